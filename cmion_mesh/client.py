@@ -1,0 +1,126 @@
+"""A mesh client: what tools (the CLI, tests, other programs) use to read, write and watch.
+
+It needs only a transport, not a simulation: no update loop, no components of its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from cmion_mesh import keys
+from cmion_mesh.errors import OutcomeUnknown, ProtocolError, StorageError
+from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
+from cmion_mesh.messages import (
+    AddContainer,
+    Container,
+    Event,
+    Message,
+    Outcome,
+    Property,
+    RemoveContainer,
+    RemoveProperty,
+    Request,
+    SetProperty,
+    decode,
+)
+from cmion_mesh.transport import Closeable, Sample, Transport
+
+Entry = Property | Container
+
+
+class MeshClient:
+    def __init__(self, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> None:
+        self.transport = transport
+        self.mesh = keys.check_name(mesh, "mesh")
+
+    # --- storage ------------------------------------------------------------------------------
+
+    def read(self, selector: str, *, timeout: float = 5.0) -> dict[str, Entry]:
+        """All properties and containers under a zenoh selector, by key."""
+        out: dict[str, Entry] = {}
+        for reply in self.transport.get(selector, timeout=timeout):
+            if not reply.ok:
+                continue
+            try:
+                out[reply.key] = decode(reply.payload, Entry, where=reply.key)
+            except ProtocolError:
+                continue  # not a storage entry (another program answering the same keys)
+        return dict(sorted(out.items()))
+
+    def read_store(self, embodiment: str, store: str, path: str = "", *, timeout: float = 5.0) -> dict[str, Entry]:
+        base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(path))
+        return self.read(f"{base}/**", timeout=timeout)
+
+    def get_property(self, embodiment: str, store: str, container: str, name: str, *, timeout: float = 5.0) -> Property:
+        key = keys.storage_key(self.mesh, embodiment, store, keys.split_path(container), name)
+        for reply in self.transport.get(key, timeout=timeout):
+            if reply.ok and reply.key == key:
+                entry = decode(reply.payload, Entry, where=key)
+                if isinstance(entry, Property):
+                    return entry
+        raise StorageError(f"no property at {key} (or no store answered)")
+
+    def write(self, embodiment: str, store: str, write: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
+        """Send one storage write; returns its outcome (accepted, rejected, conflict)."""
+        op = {
+            SetProperty: "set_property",
+            RemoveProperty: "remove_property",
+            AddContainer: "add_container",
+            RemoveContainer: "remove_container",
+        }[type(write)]
+        return send_request(self.transport, keys.request_key(self.mesh, embodiment, store, op), write, timeout=timeout)
+
+    def set_property(
+        self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False
+    ) -> None:
+        """Set a property or raise ``RequestRejected`` / ``OutcomeUnknown`` naming the key."""
+        key = keys.request_key(self.mesh, embodiment, store, "set_property")
+        require_accepted(self.write(embodiment, store, SetProperty(container, name, value, persistent)), key)
+
+    # --- requests and events ------------------------------------------------------------------
+
+    def request(
+        self, embodiment: str, component: str, name: str, payload: Message | None = None,
+        *, timeout: float = DEFAULT_REQUEST_TIMEOUT,
+    ) -> Outcome:
+        key = keys.request_key(self.mesh, embodiment, component, name)
+        return send_request(self.transport, key, payload if payload is not None else Request(), timeout=timeout)
+
+    def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:
+        """``handler(key, entry)`` on every change under ``selector``; ``entry`` None when removed."""
+
+        def on_sample(sample: Sample) -> None:
+            if sample.deleted:
+                handler(sample.key, None)
+                return
+            try:
+                handler(sample.key, decode(sample.payload, Entry, where=sample.key))
+            except ProtocolError:
+                pass
+
+        return self.transport.subscribe(selector, on_sample)
+
+    def events(
+        self, handler: Callable[[Event], None], *, embodiment: str = "*", component: str = "*", event: str = "*"
+    ) -> Closeable:
+        pattern = keys.event_pattern(self.mesh, embodiment, component, event)
+
+        def on_sample(sample: Sample) -> None:
+            if not sample.deleted:
+                try:
+                    handler(decode(sample.payload, Event, where=sample.key))
+                except ProtocolError:
+                    pass
+
+        return self.transport.subscribe(pattern, on_sample)
+
+    def embodiments(self, *, timeout: float = 2.0) -> list[str]:
+        """Names of the embodiments whose liveliness token is present."""
+        names = []
+        for key in self.transport.alive(f"{keys.mesh_prefix(self.mesh)}/{keys.ALIVE}/*", timeout=timeout):
+            names.append(key.rsplit("/", 1)[-1])
+        return sorted(set(names))
+
+
+__all__ = ["Entry", "MeshClient", "OutcomeUnknown"]

@@ -1,0 +1,76 @@
+"""One exception root, with families by meaning.
+
+Every message names the thing at fault: a file and line, a key, a peer, a component.
+Callers catch a family (``ConfigError``, ``RequestError``...) or the root ``MeshError``.
+"""
+
+from __future__ import annotations
+
+
+class MeshError(Exception):
+    """Root of every error cmion-mesh raises on purpose."""
+
+
+class InvalidName(MeshError, ValueError):
+    """A name that cannot be carried in one key chunk (mesh, embodiment, component, property...)."""
+
+
+
+class ConfigError(MeshError):
+    """A file or setting is unusable: malformed, hostile, oversized, or semantically wrong.
+
+    ``path`` and ``line`` locate the fault when it comes from a file.
+    """
+
+    def __init__(self, message: str, *, path: str | None = None, line: int | None = None) -> None:
+        self.path = path
+        self.line = line
+        where = ""
+        if path is not None:
+            where = f"{path}:{line}: " if line is not None else f"{path}: "
+        super().__init__(f"{where}{message}")
+        self.detail = message
+
+
+class XmlError(ConfigError):
+    """An XML file was refused: unsafe construct, size cap, syntax or schema violation."""
+
+
+class ProtocolError(MeshError):
+    """Bytes from the network do not decode to the message the key expects."""
+
+
+class TransportError(MeshError):
+    """The zenoh session could not be opened or used."""
+
+
+class RequestError(MeshError):
+    """A request did not end in acceptance."""
+
+    def __init__(self, message: str, *, key: str = "") -> None:
+        self.key = key
+        super().__init__(message)
+
+
+class RequestRejected(RequestError):
+    """The component answered: rejected (with its reason) or lost a conflict."""
+
+    def __init__(self, message: str, *, key: str = "", status: str = "rejected", reason: str = "") -> None:
+        self.status = status
+        self.reason = reason
+        super().__init__(message, key=key)
+
+
+class OutcomeUnknown(RequestError):
+    """No definite answer: nobody answered, the link broke, or the deadline passed.
+
+    Never treat this as success: the request may or may not have been applied.
+    """
+
+
+class StorageError(MeshError):
+    """A blackboard or world-model operation refers to a container or property that is not there."""
+
+
+class ClosedError(MeshError):
+    """The object was used after ``close()``."""

@@ -1,0 +1,502 @@
+"""ION semantics over the mesh: components, events, requests and the update loop.
+
+CMION ran on the ION framework: a *simulation* steps *components* through *updates*. We keep
+its semantics and drive them from arriving work instead of a fixed-rate timer:
+
+* An update starts as soon as work arrives (a request, a remote event, a posted call) and takes
+  everything that has arrived by then. An idle simulation blocks in one ``queue.get``: no polling.
+* In one update, posted calls run first, then every component receives *all* the requests that
+  reached it together (``handle_requests``) so it can mediate conflicts, then events are
+  dispatched one at a time in the order raised, including events raised by the handlers.
+  Requests raised while handling events are handled in the next update.
+* Every request gets a definite ``Outcome``: accepted, rejected with a reason, or conflict (lost
+  to another request in the same update). A request a handler leaves unanswered is rejected.
+* Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control);
+  requests are zenoh queries on ``.../rq/<component>/<request>``. Local events and requests
+  between components of one simulation are delivered directly, in order, and still published.
+"""
+
+from __future__ import annotations
+
+import functools
+import heapq
+import itertools
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
+
+from cmion_mesh import keys
+from cmion_mesh.errors import ClosedError, MeshError, OutcomeUnknown, ProtocolError, RequestRejected
+from cmion_mesh.messages import Event, Message, Outcome, Request, check_value, decode, encode
+from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
+
+log = logging.getLogger(__name__)
+
+EventHandler = Callable[[Event], None]
+OutcomeHandler = Callable[[Outcome], None]
+
+#: Events dispatched in one update before the rest is carried to the next (a runaway loop of
+#: handlers raising events must not starve requests; nothing is dropped).
+MAX_EVENTS_PER_UPDATE = 10_000
+#: Work items taken into one update.
+MAX_ITEMS_PER_UPDATE = 10_000
+DEFAULT_REQUEST_TIMEOUT = 10.0
+
+
+class IncomingRequest:
+    """One request handed to a component; answer it with ``accept``, ``reject`` or ``conflict``."""
+
+    __slots__ = ("_answer", "component", "name", "outcome", "payload", "requester")
+
+    def __init__(
+        self, component: str, name: str, payload: Any, requester: str, answer: Callable[[Outcome], None]
+    ) -> None:
+        self.component = component
+        self.name = name
+        self.payload = payload
+        self.requester = requester
+        self._answer = answer
+        self.outcome: Outcome | None = None
+
+    @property
+    def answered(self) -> bool:
+        return self.outcome is not None
+
+    def _send(self, outcome: Outcome) -> None:
+        if self.outcome is not None:
+            return  # first answer stands; repeated answers are ignored
+        self.outcome = outcome
+        try:
+            self._answer(outcome)
+        except Exception:  # the requester vanished: its outcome is its own to recover
+            log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
+
+    def accept(self, value: Any = None) -> None:
+        self._send(Outcome("accepted", "", check_value(value)))
+
+    def reject(self, reason: str) -> None:
+        self._send(Outcome("rejected", reason))
+
+    def conflict(self, reason: str) -> None:
+        self._send(Outcome("conflict", reason))
+
+
+class Component:
+    """A part of an embodiment that raises events and receives requests.
+
+    ``requests`` maps request names to the message type their payload decodes to. Subclasses
+    override ``handle_requests`` to mediate a batch, or ``on_request`` for one at a time.
+    """
+
+    requests: Mapping[str, Any] = {}
+
+    def __init__(self, name: str) -> None:
+        self.name = keys.check_name(name, "component")
+        self._sim: Simulation | None = None
+
+    @property
+    def sim(self) -> Simulation:
+        if self._sim is None:
+            raise MeshError(f"component {self.name!r} is not attached to a simulation")
+        return self._sim
+
+    def attach(self, sim: Simulation) -> None:
+        """Called on the update loop when added: register event handlers here."""
+
+    def detach(self) -> None:
+        """Called on the update loop when removed or when the simulation closes."""
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        """All requests that reached this component in one update, in arrival order."""
+        for request in batch:
+            self.on_request(request)
+
+    def on_request(self, request: IncomingRequest) -> None:
+        request.reject(f"component {self.name!r} does not handle {request.name!r}")
+
+    def raise_event(self, name: str, data: Any = None) -> None:
+        self.sim.raise_event(self.name, name, data)
+
+
+class _RequestItem:
+    __slots__ = ("component", "request")
+
+    def __init__(self, component: Component, request: IncomingRequest) -> None:
+        self.component = component
+        self.request = request
+
+
+class _Subscription(Handle):
+    def __init__(self, sim: Simulation, pattern: str, handler: EventHandler) -> None:
+        self.sim = sim
+        self.pattern = pattern
+        self.handler = handler
+        self.remote: Closeable | None = None
+        self.closed = False
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.sim._unsubscribe(self)
+        if self.remote is not None:
+            self.remote.close()
+
+
+_STOP = object()
+
+
+class Simulation:
+    """The update loop of one embodiment in one process. A context manager; ``close`` is idempotent."""
+
+    def __init__(self, transport: Transport, *, mesh: str = keys.DEFAULT_MESH, embodiment: str) -> None:
+        self.transport = transport
+        self.mesh = keys.check_name(mesh, "mesh")
+        self.embodiment = keys.check_name(embodiment, "embodiment")
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._components: dict[str, Component] = {}
+        self._queryables: dict[str, Closeable] = {}
+        self._subscriptions: list[_Subscription] = []
+        self._events: deque[Event] = deque()
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._timer_ids = itertools.count()
+        self._seq = itertools.count(1)
+        self._lock = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self._stopped = threading.Event()
+        self.updates = 0
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def start(self) -> Simulation:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name=f"ion-{self.embodiment}", daemon=True)
+            self._thread.start()
+        return self
+
+    def __enter__(self) -> Simulation:
+        return self.start()
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        if self._thread is not None:
+            self._inbox.put(_STOP)
+            if self._thread is not threading.current_thread():
+                self._thread.join(10.0)
+        else:
+            self._shutdown()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def on_loop(self) -> bool:
+        return threading.current_thread() is self._thread
+
+    # --- components ---------------------------------------------------------------------------
+
+    def add(self, component: Component) -> Component:
+        """Add a component; its request queryable is declared at once, ``attach`` runs on the loop."""
+        with self._lock:
+            if self._closed:
+                raise ClosedError(f"simulation {self.embodiment!r} is closed")
+            if component.name in self._components:
+                raise MeshError(f"embodiment {self.embodiment!r} already has a component {component.name!r}")
+            self._components[component.name] = component
+        component._sim = self
+        if component.requests:
+            selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/*"
+            self._queryables[component.name] = self.transport.declare_queryable(
+                selector, functools.partial(self._on_query, component)
+            )
+        self.call(lambda: component.attach(self))
+        return component
+
+    def remove(self, name: str) -> None:
+        with self._lock:
+            component = self._components.pop(name, None)
+        queryable = self._queryables.pop(name, None)
+        if queryable is not None:
+            queryable.close()
+        if component is not None:
+            self.call(component.detach)
+
+    def component(self, name: str) -> Component:
+        try:
+            return self._components[name]
+        except KeyError:
+            raise MeshError(f"embodiment {self.embodiment!r} has no component {name!r}") from None
+
+    @property
+    def components(self) -> list[Component]:
+        return list(self._components.values())
+
+    # --- work in ----------------------------------------------------------------------------
+
+    def call(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the update loop, at the start of the next update. Thread-safe."""
+        if self._closed:
+            raise ClosedError(f"simulation {self.embodiment!r} is closed")
+        self._inbox.put(fn)
+
+    def call_later(self, delay: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the loop after ``delay`` seconds (the loop sleeps until then, it does not poll)."""
+        due = time.monotonic() + max(0.0, delay)
+
+        def arm() -> None:
+            heapq.heappush(self._timers, (due, next(self._timer_ids), fn))
+
+        if self.on_loop():
+            arm()
+        else:
+            self.call(arm)
+
+    def _on_query(self, component: Component, query: IncomingQuery) -> None:
+        # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
+        # component state are answered here so a bad request never costs an update.
+        name = query.key.rsplit("/", 1)[-1]
+
+        def answer(outcome: Outcome) -> None:
+            try:
+                query.reply(query.key, encode(outcome))
+            finally:
+                query.finish()
+
+        kind = component.requests.get(name)
+        if kind is None:
+            known = ", ".join(sorted(component.requests)) or "none"
+            answer(Outcome("rejected", f"component {component.name!r} has no request {name!r} (known: {known})"))
+            return
+        try:
+            payload = decode(query.payload or b"", kind, where=query.key)
+        except ProtocolError as exc:
+            answer(Outcome("rejected", str(exc)))
+            return
+        requester = payload.requester if isinstance(payload, Request) else ""
+        if self._closed:
+            answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down"))
+            return
+        self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, requester, answer)))
+
+    def _on_remote_event(self, sample: Sample) -> None:
+        if sample.deleted:
+            return
+        try:
+            event = decode(sample.payload, Event, where=sample.key)
+        except ProtocolError as exc:
+            log.warning("ignored event: %s", exc)
+            return
+        self._inbox.put(event)
+
+    # --- events -----------------------------------------------------------------------------
+
+    def raise_event(self, component: str, name: str, data: Any = None) -> None:
+        """Raise an event: published now, dispatched locally in order. Thread-safe."""
+        if not self.on_loop():
+            self.call(lambda: self.raise_event(component, name, data))
+            return
+        event = Event(self.embodiment, component, name, check_value(data), next(self._seq), time.time())
+        self._events.append(event)
+        key = keys.event_key(self.mesh, self.embodiment, component, name)
+        try:
+            self.transport.publish(key, encode(event), block=True)
+        except Exception as exc:
+            log.warning("could not publish %s: %s", key, exc)
+
+    def on_event(
+        self, handler: EventHandler, *, embodiment: str | None = None, component: str = "*", event: str = "*"
+    ) -> Closeable:
+        """Call ``handler`` on the loop for each matching event, local or remote, one at a time."""
+        pattern = keys.event_pattern(self.mesh, embodiment or self.embodiment, component, event)
+        sub = _Subscription(self, pattern, handler)
+        with self._lock:
+            self._subscriptions.append(sub)
+        sub.remote = self.transport.subscribe(pattern, self._on_remote_event, remote_only=True)
+        return sub
+
+    def _unsubscribe(self, sub: _Subscription) -> None:
+        with self._lock:
+            if sub in self._subscriptions:
+                self._subscriptions.remove(sub)
+
+    # --- requests out -------------------------------------------------------------------------
+
+    def request(
+        self,
+        component: str,
+        name: str,
+        payload: Message | None = None,
+        *,
+        embodiment: str | None = None,
+        on_outcome: OutcomeHandler | None = None,
+        timeout: float = DEFAULT_REQUEST_TIMEOUT,
+    ) -> Future[Outcome]:
+        """Send a request; the outcome completes the future and, if given, ``on_outcome`` runs on the loop.
+
+        A request to a component of this simulation goes straight to the inbox; one to another
+        embodiment is a zenoh query sent from a worker, never from the loop. If nobody answers,
+        the outcome is ``rejected`` with reason ``outcome unknown: ...``; ``on_outcome`` sees it.
+        """
+        target = embodiment or self.embodiment
+        message = payload if payload is not None else Request()
+        future: Future[Outcome] = Future()
+
+        def settle(outcome: Outcome) -> None:
+            if not future.done():
+                future.set_result(outcome)
+            if on_outcome is not None and not self._closed:
+                self.call(lambda: on_outcome(outcome))
+
+        if self._closed:
+            settle(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down"))
+            return future
+        local = self._components.get(component) if target == self.embodiment else None
+        if local is not None:
+            kind = local.requests.get(name)
+            if kind is None:
+                settle(Outcome("rejected", f"component {component!r} has no request {name!r}"))
+            else:
+                item = IncomingRequest(component, name, message, self.embodiment, settle)
+                self._inbox.put(_RequestItem(local, item))
+            return future
+        key = keys.request_key(self.mesh, target, component, name)
+        if self._pool is None:
+            with self._lock:
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(max_workers=8, thread_name_prefix=f"rq-{self.embodiment}")
+
+        def remote() -> None:
+            try:
+                settle(send_request(self.transport, key, message, timeout=timeout))
+            except OutcomeUnknown as exc:
+                settle(Outcome("rejected", f"outcome unknown: {exc}"))
+
+        self._pool.submit(remote)
+        return future
+
+    # --- the loop -----------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            while True:
+                timeout = None
+                if self._timers:
+                    timeout = max(0.0, self._timers[0][0] - time.monotonic())
+                try:
+                    first = self._inbox.get(timeout=timeout)
+                except queue.Empty:
+                    first = None
+                items = [] if first is None else [first]
+                while len(items) < MAX_ITEMS_PER_UPDATE:
+                    try:
+                        items.append(self._inbox.get_nowait())
+                    except queue.Empty:
+                        break
+                stop = any(item is _STOP for item in items)
+                self._update([item for item in items if item is not _STOP])
+                if stop:
+                    break
+        finally:
+            self._shutdown()
+            self._stopped.set()
+
+    def _update(self, items: list[Any]) -> None:
+        self.updates += 1
+        now = time.monotonic()
+        while self._timers and self._timers[0][0] <= now:
+            items.insert(0, heapq.heappop(self._timers)[2])
+        batches: dict[str, list[IncomingRequest]] = {}
+        for item in items:
+            if isinstance(item, _RequestItem):
+                batches.setdefault(item.component.name, []).append(item.request)
+            elif isinstance(item, Event):
+                self._events.append(item)
+            else:
+                self._guard("call", item)
+        for name, batch in batches.items():
+            component = self._components.get(name)
+            if component is None:
+                for request in batch:
+                    request.reject(f"component {name!r} was removed")
+                continue
+            self._guard(f"{name}.handle_requests", component.handle_requests, batch)
+            for request in batch:
+                if not request.answered:
+                    request.reject(f"component {name!r} gave no answer to {request.name!r}")
+        dispatched = 0
+        while self._events and dispatched < MAX_EVENTS_PER_UPDATE:
+            event = self._events.popleft()
+            dispatched += 1
+            key = keys.event_key(self.mesh, event.embodiment, event.component, event.name)
+            for sub in list(self._subscriptions):
+                if not sub.closed and keys.matches(sub.pattern, key):
+                    self._guard(f"handler of {key}", sub.handler, event)
+        if self._events:
+            self._inbox.put(lambda: None)  # carry the rest into the next update
+
+    def _guard(self, what: str, fn: Callable[..., Any], *args: Any) -> None:
+        try:
+            fn(*args)
+        except Exception:
+            log.exception("%s failed in embodiment %s", what, self.embodiment)
+
+    def _shutdown(self) -> None:
+        # Queryables first (joining their workers), so no request can slip in after the drain;
+        # then whatever is still queued gets a definite answer rather than silence.
+        for queryable in list(self._queryables.values()):
+            queryable.close()
+        self._queryables.clear()
+        while True:
+            try:
+                item = self._inbox.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, _RequestItem):
+                item.request.reject(f"embodiment {self.embodiment!r} is shutting down")
+        for sub in list(self._subscriptions):
+            sub.close()
+        for component in reversed(list(self._components.values())):
+            self._guard(f"{component.name}.detach", component.detach)
+
+
+def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
+    """Send one request as a zenoh query and return its ``Outcome``.
+
+    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable.
+    """
+    try:
+        replies = transport.get(key, encode(payload), timeout=timeout)
+    except MeshError as exc:
+        raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
+    if not replies:
+        raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
+    reply = replies[0]
+    if not reply.ok:
+        raise OutcomeUnknown(f"{key}: error reply {reply.payload[:200]!r}", key=key)
+    try:
+        outcome: Outcome = decode(reply.payload, Outcome, where=key)
+    except ProtocolError as exc:
+        raise OutcomeUnknown(str(exc), key=key) from None
+    return outcome
+
+
+def require_accepted(outcome: Outcome, key: str) -> Any:
+    """The outcome's value if accepted, else ``RequestRejected`` naming the key and reason."""
+    if outcome.status != "accepted":
+        raise RequestRejected(f"{key}: {outcome.status}: {outcome.reason}", key=key, status=outcome.status, reason=outcome.reason)
+    return outcome.value

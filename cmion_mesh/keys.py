@@ -1,0 +1,157 @@
+"""The key-space: one grammar for every key cmion-mesh reads, writes, publishes or queries.
+
+::
+
+    cmion/<mesh>/<embodiment>/bb/<container>/.../<property>   blackboard property or container
+    cmion/<mesh>/<embodiment>/wm/<entity>/.../<property>      world-model property or entity
+    cmion/<mesh>/<embodiment>/ev/<component>/<event>          event publications
+    cmion/<mesh>/<embodiment>/rq/<component>/<request>        request queryables
+    cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
+
+``<mesh>`` names one deployment (default ``default``): two meshes never hear each other.
+Every name is one key chunk; a name containing ``/ * $ # ?``, a leading ``@``, white space at its
+ends, or nothing at all is refused with ``InvalidName`` naming it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from cmion_mesh.errors import InvalidName
+
+ROOT = "cmion"
+DEFAULT_MESH = "default"
+BLACKBOARD = "bb"
+WORLD_MODEL = "wm"
+EVENTS = "ev"
+REQUESTS = "rq"
+ALIVE = "@alive"
+
+_FORBIDDEN = set("/*$#?")
+MAX_NAME = 200
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """Return ``name`` if it can be one key chunk, else raise ``InvalidName`` naming it."""
+    if not isinstance(name, str):
+        raise InvalidName(f"{what} must be a string, got {type(name).__name__}: {name!r}")
+    if name == "":
+        raise InvalidName(f"{what} is empty")
+    bad = sorted(set(name) & _FORBIDDEN)
+    if bad:
+        raise InvalidName(f"{what} {name!r} contains {' '.join(repr(c) for c in bad)}, which a zenoh key chunk cannot carry")
+    if name.startswith("@"):
+        raise InvalidName(f"{what} {name!r} starts with '@', which zenoh reserves")
+    if name != name.strip() or any(ord(c) < 32 for c in name):
+        raise InvalidName(f"{what} {name!r} has surrounding white space or control characters")
+    if len(name) > MAX_NAME:
+        raise InvalidName(f"{what} {name[:40]!r}... is longer than {MAX_NAME} characters")
+    return name
+
+
+def split_path(path: str | Sequence[str], what: str = "container path") -> tuple[str, ...]:
+    """A container path, given as ``"a/b"`` or ``["a", "b"]``, checked chunk by chunk. ``""`` is the root."""
+    parts: Sequence[str] = ([] if path == "" else path.split("/")) if isinstance(path, str) else path
+    return tuple(check_name(p, f"{what} element") for p in parts)
+
+
+def mesh_prefix(mesh: str) -> str:
+    return f"{ROOT}/{check_name(mesh, 'mesh')}"
+
+
+def embodiment_prefix(mesh: str, embodiment: str) -> str:
+    return f"{mesh_prefix(mesh)}/{check_name(embodiment, 'embodiment')}"
+
+
+def storage_key(mesh: str, embodiment: str, store: str, path: Sequence[str], name: str | None = None) -> str:
+    """Key of a container (``name`` None) or of a property inside it."""
+    chunks = [embodiment_prefix(mesh, embodiment), check_name(store, "store"), *split_path(path)]
+    if name is not None:
+        chunks.append(check_name(name, "property"))
+    return "/".join(chunks)
+
+
+def storage_selector(mesh: str, embodiment: str, store: str) -> str:
+    return f"{embodiment_prefix(mesh, embodiment)}/{check_name(store, 'store')}/**"
+
+
+def event_key(mesh: str, embodiment: str, component: str, event: str) -> str:
+    return f"{embodiment_prefix(mesh, embodiment)}/{EVENTS}/{check_name(component, 'component')}/{check_name(event, 'event')}"
+
+
+def request_key(mesh: str, embodiment: str, component: str, request: str) -> str:
+    return f"{embodiment_prefix(mesh, embodiment)}/{REQUESTS}/{check_name(component, 'component')}/{check_name(request, 'request')}"
+
+
+def alive_key(mesh: str, embodiment: str) -> str:
+    return f"{mesh_prefix(mesh)}/{ALIVE}/{check_name(embodiment, 'embodiment')}"
+
+
+def pattern_chunk(value: str, what: str) -> str:
+    """A chunk of a subscription pattern: ``*`` (any one chunk) or a valid name."""
+    return value if value == "*" else check_name(value, what)
+
+
+def event_pattern(mesh: str, embodiment: str = "*", component: str = "*", event: str = "*") -> str:
+    return "/".join(
+        [mesh_prefix(mesh), pattern_chunk(embodiment, "embodiment"), EVENTS,
+         pattern_chunk(component, "component"), pattern_chunk(event, "event")]
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ParsedKey:
+    """A key taken apart: ``kind`` is ``bb``, ``wm``, ``ev``, ``rq`` or ``@alive``."""
+
+    mesh: str
+    embodiment: str
+    kind: str
+    rest: tuple[str, ...]
+
+
+def parse(key: str) -> ParsedKey:
+    """Take a concrete key apart; raises ``InvalidName`` if it is not in the grammar."""
+    chunks = key.split("/")
+    if len(chunks) < 4 or chunks[0] != ROOT:
+        raise InvalidName(f"key {key!r} is not of the form {ROOT}/<mesh>/<embodiment>/<kind>/...")
+    mesh = check_name(chunks[1], "mesh")
+    if chunks[2] == ALIVE:
+        if len(chunks) != 4:
+            raise InvalidName(f"liveliness key {key!r} must be {ROOT}/<mesh>/{ALIVE}/<embodiment>")
+        return ParsedKey(mesh, check_name(chunks[3], "embodiment"), ALIVE, ())
+    embodiment = check_name(chunks[2], "embodiment")
+    kind = chunks[3]
+    rest = tuple(check_name(c, "key element") for c in chunks[4:])
+    if kind in (EVENTS, REQUESTS) and len(rest) != 2:
+        raise InvalidName(f"key {key!r}: {kind} keys are .../{kind}/<component>/<name>")
+    if kind not in (EVENTS, REQUESTS, BLACKBOARD, WORLD_MODEL):
+        raise InvalidName(f"key {key!r}: unknown kind {kind!r}")
+    return ParsedKey(mesh, embodiment, kind, rest)
+
+
+def matches(pattern: str, key: str) -> bool:
+    """Whether a concrete ``key`` matches ``pattern`` (``*`` = one chunk, ``**`` = zero or more)."""
+    return _match(pattern.split("/"), key.split("/"))
+
+
+def matches_chunks(pattern: Sequence[str], chunks: Sequence[str]) -> bool:
+    """``matches`` on keys already split; ``chunks`` may be empty (the prefix itself)."""
+    return _match(list(pattern), list(chunks))
+
+
+def _match(pat: list[str], chunks: list[str]) -> bool:
+    # Iterative over the pattern; recursion only at ``**``, whose count is tiny in our patterns.
+    i = 0
+    while i < len(pat):
+        p = pat[i]
+        if p == "**":
+            rest = pat[i + 1 :]
+            return any(_match(rest, chunks[j:]) for j in range(len(chunks) + 1))
+        if not chunks:
+            return False
+        if p != "*" and p != chunks[0]:
+            return False
+        chunks = chunks[1:]
+        i += 1
+    return not chunks

@@ -1,0 +1,218 @@
+"""An in-process transport with the same threading contract as zenoh's, for fast unit tests of logic.
+
+Never proof that the network works: tests that say so use ``ZenohTransport`` across processes.
+"""
+
+from __future__ import annotations
+
+import itertools
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from cmion_mesh.errors import ClosedError
+from cmion_mesh.keys import matches
+from cmion_mesh.transport import Closeable, Handle, LivelinessHandler, QueryHandler, Reply, Sample, SampleHandler
+
+_STOP = object()
+
+
+def _intersects(a: str, b: str) -> bool:
+    # Good enough for tests: one side is concrete, or both are equal patterns.
+    return matches(a, b) or matches(b, a) or a == b
+
+
+class _Worker:
+    def __init__(self, name: str, handle: Callable[[Any], None]) -> None:
+        self.queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._handle = handle
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is _STOP:
+                return
+            try:
+                self._handle(item)
+            except Exception:  # mirror zenoh_transport: a failing handler does not kill the worker
+                import logging
+
+                logging.getLogger(__name__).exception("handler failed")
+
+    def stop(self) -> None:
+        self.queue.put(_STOP)
+        if self.thread is not threading.current_thread():
+            self.thread.join(5.0)
+
+
+class MemoryNetwork:
+    """A shared medium: every ``MemoryTransport`` on it hears the others."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.subs: dict[int, tuple[str, _Worker, bool, MemoryTransport]] = {}
+        self.queryables: dict[int, tuple[str, _Worker, MemoryTransport]] = {}
+        self.tokens: dict[int, str] = {}
+        self.watchers: dict[int, tuple[str, _Worker]] = {}
+        self.ids = itertools.count()
+
+
+class _MemQuery:
+    def __init__(self, selector: str, payload: bytes | None, sink: list[Reply], done: threading.Event) -> None:
+        self.key = selector.split("?")[0]
+        self.selector = selector
+        self.payload = payload
+        self._sink = sink
+        self._done = done
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self._sink.append(Reply(key, payload, True))
+
+    def reply_err(self, payload: bytes) -> None:
+        self._sink.append(Reply(self.key, payload, False))
+
+    def finish(self) -> None:
+        self._done.set()
+
+
+class _Handle(Handle):
+    def __init__(self, close: Callable[[], None]) -> None:
+        self._close = close
+        self._closed = False
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._close()
+
+
+class MemoryTransport:
+    def __init__(self, network: MemoryNetwork, name: str = "mem") -> None:
+        self.net = network
+        self._id = f"{name}-{next(network.ids)}"
+        self._mine: list[_Handle] = []
+        self._closed = False
+
+    @property
+    def id(self) -> str:
+        return self._id
+
+    def __enter__(self) -> MemoryTransport:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def _check(self) -> None:
+        if self._closed:
+            raise ClosedError(f"transport {self._id} is closed")
+
+    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
+        self._deliver(Sample(key, payload, False))
+
+    def delete(self, key: str) -> None:
+        self._deliver(Sample(key, b"", True))
+
+    def _deliver(self, sample: Sample) -> None:
+        self._check()
+        with self.net.lock:
+            targets = [
+                w for sel, w, remote_only, owner in self.net.subs.values()
+                if matches(sel, sample.key) and not (remote_only and owner is self)
+            ]
+        for worker in targets:
+            worker.queue.put(sample)
+
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
+        self._check()
+        worker = _Worker(f"mem-sub:{selector}", handler)
+        with self.net.lock:
+            sid = next(self.net.ids)
+            self.net.subs[sid] = (selector, worker, remote_only, self)
+        def unsubscribe() -> None:
+            with self.net.lock:
+                self.net.subs.pop(sid, None)
+            worker.stop()
+
+        return self._remember(unsubscribe)
+
+    def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
+        self._check()
+        worker = _Worker(f"mem-qbl:{selector}", handler)
+        with self.net.lock:
+            qid = next(self.net.ids)
+            self.net.queryables[qid] = (selector, worker, self)
+        def undeclare() -> None:
+            with self.net.lock:
+                self.net.queryables.pop(qid, None)
+            worker.stop()
+
+        return self._remember(undeclare)
+
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
+        self._check()
+        key = selector.split("?")[0]
+        with self.net.lock:
+            targets = [w for sel, w, _ in self.net.queryables.values() if _intersects(sel, key)]
+        replies: list[Reply] = []
+        dones = []
+        for worker in targets:
+            done = threading.Event()
+            worker.queue.put(_MemQuery(selector, payload, replies, done))
+            dones.append(done)
+        for done in dones:
+            done.wait(timeout)
+        return list(replies)
+
+    def declare_token(self, key: str) -> Closeable:
+        self._check()
+        with self.net.lock:
+            tid = next(self.net.ids)
+            self.net.tokens[tid] = key
+            watchers = [w for sel, w in self.net.watchers.values() if matches(sel, key)]
+        for w in watchers:
+            w.queue.put((key, True))
+
+        def undeclare() -> None:
+            with self.net.lock:
+                self.net.tokens.pop(tid, None)
+                gone = [w for sel, w in self.net.watchers.values() if matches(sel, key)]
+            for w in gone:
+                w.queue.put((key, False))
+
+        return self._remember(undeclare)
+
+    def alive(self, selector: str, *, timeout: float = 2.0) -> list[str]:
+        with self.net.lock:
+            return [k for k in self.net.tokens.values() if matches(selector, k)]
+
+    def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
+        worker = _Worker(f"mem-live:{selector}", lambda item: handler(*item))
+        with self.net.lock:
+            wid = next(self.net.ids)
+            self.net.watchers[wid] = (selector, worker)
+            for k in self.net.tokens.values():
+                if matches(selector, k):
+                    worker.queue.put((k, True))
+        def unwatch() -> None:
+            with self.net.lock:
+                self.net.watchers.pop(wid, None)
+            worker.stop()
+
+        return self._remember(unwatch)
+
+    def _remember(self, close: Callable[[], Any]) -> Closeable:
+        handle = _Handle(close)
+        self._mine.append(handle)
+        return handle
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for handle in reversed(self._mine):
+            handle.close()
+        self._mine.clear()

@@ -1,0 +1,172 @@
+"""Every message that crosses the wire: frozen, tagged msgspec Structs, encoded as MessagePack.
+
+Each payload is one MessagePack map whose ``"type"`` field names the message (the tag);
+fields are named, so a client in any language decodes them with a plain MessagePack library.
+``docs/wire.md`` lists them with the keys they travel on.
+
+Values carried by properties, events and requests are "plain data": str, int, float, bool,
+None, lists and maps with string keys, nested to at most ``MAX_DEPTH``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, TypeVar
+
+import msgspec
+
+from cmion_mesh.errors import ProtocolError
+
+#: Largest payload decoded from the network; bigger ones are refused unread.
+MAX_PAYLOAD = 16 * 1024 * 1024
+MAX_DEPTH = 32
+
+Value = Any  # plain data, checked by ``check_value``
+
+
+class Message(msgspec.Struct, frozen=True, tag_field="type", forbid_unknown_fields=False):
+    """Base of all wire messages; the subclass name (snake case) is the tag."""
+
+
+# --- storage -----------------------------------------------------------------------------------
+
+
+class Property(Message, frozen=True, tag="property"):
+    """The value of one property, as answered by ``get`` and published on every change."""
+
+    value: Value
+    persistent: bool = False
+
+
+class Container(Message, frozen=True, tag="container"):
+    """A (sub-)container, as answered by ``get`` and published when it is added."""
+
+    kind: str = ""
+
+
+class SetProperty(Message, frozen=True, tag="set_property"):
+    container: str  # slash-separated path below the store's root, "" for the root
+    name: str
+    value: Value
+    persistent: bool = False
+
+
+class RemoveProperty(Message, frozen=True, tag="remove_property"):
+    container: str
+    name: str
+
+
+class AddContainer(Message, frozen=True, tag="add_container"):
+    container: str  # the parent
+    name: str
+    kind: str = ""
+
+
+class RemoveContainer(Message, frozen=True, tag="remove_container"):
+    container: str  # the parent
+    name: str
+
+
+StorageWrite = SetProperty | RemoveProperty | AddContainer | RemoveContainer
+
+
+class StorageChange(Message, frozen=True, tag="storage_change"):
+    """Event data raised by a store after each applied write."""
+
+    op: Literal["set_property", "remove_property", "add_container", "remove_container"]
+    container: str
+    name: str
+    value: Value = None
+    persistent: bool = False
+    kind: str = ""
+
+
+# --- ION: events and requests --------------------------------------------------------------------
+
+
+class Event(Message, frozen=True, tag="event"):
+    """An event raised by a component; published on ``.../ev/<component>/<name>``."""
+
+    embodiment: str
+    component: str
+    name: str
+    data: Value = None
+    seq: int = 0
+    time: float = 0.0
+
+
+class Request(Message, frozen=True, tag="request"):
+    """A generic request to a component; sent as a query on ``.../rq/<component>/<name>``."""
+
+    args: dict[str, Value] = {}
+    requester: str = ""
+
+
+Status = Literal["accepted", "rejected", "conflict"]
+
+
+class Outcome(Message, frozen=True, tag="outcome"):
+    """The definite answer to every request: accepted, rejected with a reason, or lost a conflict."""
+
+    status: Status
+    reason: str = ""
+    value: Value = None
+
+
+AnyMessage = (
+    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
+)
+
+_encoder = msgspec.msgpack.Encoder()
+_any_decoder = msgspec.msgpack.Decoder(AnyMessage)
+_decoders: dict[Any, msgspec.msgpack.Decoder[Any]] = {}
+
+M = TypeVar("M")
+
+
+def encode(message: Message) -> bytes:
+    return _encoder.encode(message)
+
+
+def encode_value(value: Value) -> bytes:
+    return _encoder.encode(check_value(value))
+
+
+def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
+    """Decode ``data`` as ``kind`` (a Struct type or union), raising ``ProtocolError`` naming ``where``."""
+    if len(data) > MAX_PAYLOAD:
+        raise ProtocolError(f"{where or 'payload'}: {len(data)} bytes exceeds the {MAX_PAYLOAD}-byte cap")
+    decoder = _any_decoder if kind is AnyMessage else _decoders.get(kind)
+    if decoder is None:
+        decoder = _decoders.setdefault(kind, msgspec.msgpack.Decoder(kind))
+    try:
+        message = decoder.decode(data)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise ProtocolError(f"{where or 'payload'}: malformed message: {exc}") from None
+    except RecursionError:
+        raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
+    for field in ("value", "data", "args"):
+        if hasattr(message, field):
+            try:
+                check_value(getattr(message, field))
+            except ValueError as exc:
+                raise ProtocolError(f"{where or 'payload'}: {exc}") from None
+    return message
+
+
+def check_value(value: Value, _depth: int = 0) -> Value:
+    """Return ``value`` if it is plain data (see module doc), else raise ``ValueError`` saying where."""
+    if _depth > MAX_DEPTH:
+        raise ValueError(f"value nested deeper than {MAX_DEPTH} levels")
+    if value is None or isinstance(value, (str, bool, int, float)):
+        return value
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            check_value(item, _depth + 1)
+        return value
+    if isinstance(value, dict):
+        for k, item in value.items():
+            if not isinstance(k, str):
+                raise ValueError(f"map key {k!r} is not a string")
+            check_value(item, _depth + 1)
+        return value
+    raise ValueError(f"{type(value).__name__} is not plain data (str, int, float, bool, None, list, map)")

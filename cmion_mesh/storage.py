@@ -1,0 +1,401 @@
+"""Storage containers: the blackboard and the world model, served as zenoh keys.
+
+A store is a tree of containers; each container holds properties (plain-data values, optionally
+*persistent*, i.e. part of what a companion carries when it migrates) and named sub-containers
+with a kind (the world model's top-level entities are of kind ``agent`` or ``object``).
+Property and sub-container names share one namespace per container.
+
+On the mesh (see ``keys``)::
+
+    cmion/<mesh>/<embodiment>/<store>                       the root container
+    cmion/<mesh>/<embodiment>/<store>/<c1>/.../<cN>          a container     -> ``Container``
+    cmion/<mesh>/<embodiment>/<store>/<c1>/.../<property>    a property      -> ``Property``
+
+A plain zenoh ``get`` on a key or wildcard answers the current values; a plain subscriber sees
+every change (a put of the new ``Property``/``Container``, a delete when removed). Writes are
+requests to ``.../rq/<store>/<set_property|remove_property|add_container|remove_container>``.
+
+Mediation policy (CMION's): within one update, the *first* write to a property (or to a
+sub-container name) wins; later writes to the same name in that update get ``conflict``.
+Writes to a missing container, or that clash with an existing name of the other sort, are
+``rejected`` with the reason. After each applied write the store raises an event
+(``PropertyChanged``, ``PropertyRemoved``, ``SubContainerAdded``, ``SubContainerRemoved``)
+whose data is a ``StorageChange``.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from cmion_mesh import keys
+from cmion_mesh.errors import ConfigError, InvalidName, StorageError
+from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.messages import (
+    AddContainer,
+    Container,
+    Property,
+    RemoveContainer,
+    RemoveProperty,
+    SetProperty,
+    StorageChange,
+    check_value,
+    encode,
+)
+from cmion_mesh.transport import IncomingQuery
+
+EVENT_FOR_OP = {
+    "set_property": "PropertyChanged",
+    "remove_property": "PropertyRemoved",
+    "add_container": "SubContainerAdded",
+    "remove_container": "SubContainerRemoved",
+}
+
+
+@dataclass(slots=True)
+class _Prop:
+    value: Any
+    persistent: bool
+    wire: bytes  # encoded ``Property``, kept so that reads never re-encode
+
+
+@dataclass(slots=True)
+class Node:
+    """One container of a store."""
+
+    kind: str
+    properties: dict[str, _Prop] = field(default_factory=dict)
+    children: dict[str, Node] = field(default_factory=dict)
+    wire: bytes = b""
+
+    def __post_init__(self) -> None:
+        self.wire = encode(Container(self.kind))
+
+
+def _path(container: str | Sequence[str]) -> tuple[str, ...]:
+    return keys.split_path(container)
+
+
+def _join(path: Sequence[str]) -> str:
+    return "/".join(path)
+
+
+class Store(Component):
+    """A tree of containers of properties, mediated per update and served on its key-space."""
+
+    requests = {
+        "set_property": SetProperty,
+        "remove_property": RemoveProperty,
+        "add_container": AddContainer,
+        "remove_container": RemoveContainer,
+    }
+    #: Kinds allowed for the root's sub-containers (None: any).
+    root_kinds: frozenset[str] | None = None
+    root_kind = "store"
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.root = Node(self.root_kind)
+        self._lock = threading.RLock()
+        self._prefix = ""
+        self._reads: Any = None
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def attach(self, sim: Simulation) -> None:
+        self._prefix = f"{keys.embodiment_prefix(sim.mesh, sim.embodiment)}/{self.name}"
+        # Reads are answered on the transport's worker, not the loop: they need only the lock.
+        self._reads = sim.transport.declare_queryable(f"{self._prefix}/**", self._answer_read)
+
+    def detach(self) -> None:
+        if self._reads is not None:
+            self._reads.close()
+            self._reads = None
+
+    def _key(self, path: Sequence[str]) -> str:
+        return "/".join((self._prefix, *path)) if path else self._prefix
+
+    # --- reading (any thread) -----------------------------------------------------------------
+
+    def node(self, container: str | Sequence[str] = ()) -> Node:
+        path = _path(container)
+        with self._lock:
+            node = self.root
+            for i, chunk in enumerate(path):
+                child = node.children.get(chunk)
+                if child is None:
+                    raise StorageError(f"{self.name}: no container {_join(path[: i + 1])!r}")
+                node = child
+            return node
+
+    def has_container(self, container: str | Sequence[str]) -> bool:
+        try:
+            self.node(container)
+            return True
+        except StorageError:
+            return False
+
+    def get(self, container: str | Sequence[str], name: str, default: Any = None) -> Any:
+        with self._lock:
+            try:
+                prop = self.node(container).properties.get(name)
+            except StorageError:
+                return default
+            return default if prop is None else prop.value
+
+    def property(self, container: str | Sequence[str], name: str) -> tuple[Any, bool]:
+        """``(value, persistent)``; ``StorageError`` naming the property if it is not there."""
+        with self._lock:
+            prop = self.node(container).properties.get(name)
+            if prop is None:
+                raise StorageError(f"{self.name}: no property {_join((*_path(container), name))!r}")
+            return prop.value, prop.persistent
+
+    def tree(self, container: str | Sequence[str] = ()) -> dict[str, Any]:
+        """A plain-data copy: ``{"kind", "properties": {name: {value, persistent}}, "children": {...}}``."""
+        with self._lock:
+            return _plain(self.node(container))
+
+    def _walk(self, node: Node, path: tuple[str, ...]) -> Iterator[tuple[tuple[str, ...], Node | _Prop]]:
+        yield path, node
+        for name, prop in node.properties.items():
+            yield (*path, name), prop
+        for name, child in node.children.items():
+            yield from self._walk(child, (*path, name))
+
+    def _answer_read(self, query: IncomingQuery) -> None:
+        try:
+            pattern = query.key
+            rest = pattern[len(self._prefix) :].lstrip("/").split("/") if len(pattern) > len(self._prefix) else []
+            # Descend through the literal head of the selector instead of scanning the whole tree.
+            node: Node = self.root
+            path: tuple[str, ...] = ()
+            with self._lock:
+                while rest and rest[0] not in ("*", "**") and "$" not in rest[0]:
+                    if len(rest) == 1 and rest[0] in node.properties:
+                        query.reply(self._key((*path, rest[0])), node.properties[rest[0]].wire)
+                    child = node.children.get(rest[0])
+                    if child is None:
+                        return
+                    node, path, rest = child, (*path, rest[0]), rest[1:]
+                if not rest:
+                    query.reply(self._key(path), node.wire)
+                    return
+                found = [
+                    (self._key(p), item.wire)
+                    for p, item in self._walk(node, path)
+                    if keys.matches_chunks(rest, p[len(path) :])
+                ]
+            for key, wire in found:
+                query.reply(key, wire)
+        finally:
+            query.finish()
+
+    # --- writing (on the loop) ----------------------------------------------------------------
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        written: set[tuple[str, ...]] = set()
+        changes: list[tuple[str, StorageChange, tuple[str, ...], bytes | None]] = []
+        with self._lock:
+            for request in batch:
+                try:
+                    change = self._apply(request.payload, written)
+                except StorageError as exc:
+                    request.reject(str(exc))
+                except _Conflict as exc:
+                    request.conflict(str(exc))
+                except (InvalidName, ValueError) as exc:
+                    request.reject(f"{self.name}: {exc}")
+                else:
+                    request.accept()
+                    changes.append(change)
+        self._publish(changes)
+
+    def apply_now(self, write: SetProperty | RemoveProperty | AddContainer | RemoveContainer) -> None:
+        """Apply one write outside mediation (loading, restoring); raises ``StorageError``."""
+        with self._lock:
+            change = self._apply(write, set())
+        if self._sim is not None and self._prefix:
+            self._publish([change])
+
+    def _publish(self, changes: list[tuple[str, StorageChange, tuple[str, ...], bytes | None]]) -> None:
+        if self._sim is None or not self._prefix:
+            return
+        transport = self._sim.transport
+        for op, change, path, wire in changes:
+            key = self._key(path)
+            if wire is None:
+                transport.delete(key)
+            else:
+                transport.publish(key, wire, block=True)
+            self.raise_event(EVENT_FOR_OP[op], msgspec.to_builtins(change))
+
+    def _apply(self, write: Any, written: set[tuple[str, ...]]) -> tuple[str, StorageChange, tuple[str, ...], bytes | None]:
+        path = _path(write.container)
+        name = keys.check_name(write.name, "property" if isinstance(write, (SetProperty, RemoveProperty)) else "container")
+        node = self.node(path)
+        full = (*path, name)
+        where = f"{self.name}/{_join(full)}"
+        if full in written:
+            raise _Conflict(f"{where}: lost to an earlier write to the same name in this update")
+        if isinstance(write, SetProperty):
+            if name in node.children:
+                raise StorageError(f"{where} is a container, not a property")
+            value = check_value(write.value)
+            wire = encode(Property(value, write.persistent))
+            node.properties[name] = _Prop(value, write.persistent, wire)
+            change = StorageChange("set_property", _join(path), name, value, write.persistent)
+        elif isinstance(write, RemoveProperty):
+            prop = node.properties.pop(name, None)
+            if prop is None:
+                raise StorageError(f"{where}: no such property")
+            change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
+            wire = None
+        elif isinstance(write, AddContainer):
+            if name in node.properties or name in node.children:
+                raise StorageError(f"{where} already exists")
+            kind = write.kind
+            if not path and self.root_kinds is not None and kind not in self.root_kinds:
+                raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}")
+            child = Node(kind)
+            node.children[name] = child
+            change = StorageChange("add_container", _join(path), name, kind=kind)
+            wire = child.wire
+        elif isinstance(write, RemoveContainer):
+            if name not in node.children:
+                raise StorageError(f"{where}: no such container")
+            child = node.children.pop(name)
+            change = StorageChange("remove_container", _join(path), name, kind=child.kind)
+            wire = None
+        else:
+            raise StorageError(f"{self.name}: unknown write {type(write).__name__}")
+        written.add(full)
+        return change.op, change, full, wire
+
+
+class _Conflict(Exception):
+    pass
+
+
+def _plain(node: Node) -> dict[str, Any]:
+    return {
+        "kind": node.kind,
+        "properties": {n: {"value": p.value, "persistent": p.persistent} for n, p in node.properties.items()},
+        "children": {n: _plain(c) for n, c in node.children.items()},
+    }
+
+
+class Blackboard(Store):
+    root_kind = "blackboard"
+
+    def __init__(self, name: str = keys.BLACKBOARD) -> None:
+        super().__init__(name)
+
+
+class WorldModel(Store):
+    """The world model: top-level entities are agents or objects, addressed by unique name."""
+
+    root_kind = "world_model"
+    root_kinds = frozenset({"agent", "object"})
+
+    def __init__(self, name: str = keys.WORLD_MODEL) -> None:
+        super().__init__(name)
+
+    def load_init(self, path: str | os.PathLike[str]) -> int:
+        """Load a CMION ``WorldModel`` init file; returns the number of entities added."""
+        entities = load_world_model_init(path)
+        for entity in entities:
+            self.apply_now(AddContainer("", entity.name, entity.kind))
+            for prop in entity.properties:
+                self.apply_now(SetProperty(entity.name, prop.name, prop.value, prop.persistent))
+        return len(entities)
+
+
+@dataclass(frozen=True, slots=True)
+class InitProperty:
+    name: str
+    value: Any
+    persistent: bool
+
+
+@dataclass(frozen=True, slots=True)
+class InitEntity:
+    name: str
+    kind: str
+    properties: tuple[InitProperty, ...]
+
+
+_TRUE = {"true", "yes", "1"}
+_FALSE = {"false", "no", "0"}
+
+
+def _typed(raw: str, kind: str, where: str) -> Any:
+    try:
+        if kind == "string":
+            return raw
+        if kind == "int":
+            return int(raw)
+        if kind == "float":
+            return float(raw)
+        if kind == "bool":
+            low = raw.strip().lower()
+            if low in _TRUE | _FALSE:
+                return low in _TRUE
+            raise ValueError(f"not a boolean: {raw!r}")
+        if kind == "json":
+            return check_value(msgspec.json.decode(raw))
+    except (ValueError, msgspec.DecodeError) as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    raise ValueError(f"{where}: unknown Type {kind!r}")
+
+
+def _line(element: Any) -> int | None:
+    line = getattr(element, "sourceline", None)
+    return line if isinstance(line, int) else None
+
+
+def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
+    """Parse a CMION world-model init file (validated by ``schemas/WorldModel.xsd``).
+
+    Values are strings, as in CMION, unless a property says ``Type="int|float|bool|json"``.
+    """
+    from cmion_mesh import xmlsafe
+
+    tree = xmlsafe.load(path, "WorldModel.xsd")
+    entities: list[InitEntity] = []
+    seen: dict[str, int] = {}
+    for element in tree.getroot():
+        if not isinstance(element.tag, str):
+            continue
+        name = element.get("Name", "")
+        line = _line(element)
+        try:
+            keys.check_name(name, "entity name")
+        except InvalidName as exc:
+            raise ConfigError(str(exc), path=str(path), line=line) from None
+        if name in seen:
+            raise ConfigError(f"entity {name!r} already defined at line {seen[name]}", path=str(path), line=line)
+        seen[name] = line or 0
+        props = []
+        names: set[str] = set()
+        for p in element:
+            if not isinstance(p.tag, str):
+                continue
+            pname = p.get("Name", "")
+            try:
+                keys.check_name(pname, "property name")
+                if pname in names:
+                    raise ValueError(f"property {pname!r} of {name!r} defined twice")
+                value = _typed(p.get("Value", ""), p.get("Type", "string"), f"property {pname!r}")
+            except ValueError as exc:
+                raise ConfigError(str(exc), path=str(path), line=_line(p)) from None
+            names.add(pname)
+            persistent = p.get("Persistent", "false").strip().lower() in _TRUE
+            props.append(InitProperty(pname, value, persistent))
+        entities.append(InitEntity(name, element.tag.lower(), tuple(props)))
+    return entities

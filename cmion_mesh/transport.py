@@ -1,0 +1,117 @@
+"""The small transport interface that the rest of cmion-mesh talks to.
+
+``zenoh_transport`` implements it over a real zenoh session (the only module that imports
+zenoh); ``memory_transport`` implements it in one process for fast unit tests of logic.
+
+Threading contract: handlers given to ``subscribe``, ``declare_queryable`` and
+``watch_liveliness`` run on a worker thread owned by the transport (never on a zenoh thread);
+they may call the transport, but they should hand long work on to a queue.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    key: str
+    payload: bytes
+    deleted: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    key: str
+    payload: bytes
+    ok: bool = True
+
+
+class IncomingQuery(Protocol):
+    """A query to answer. ``finish()`` must always be called, exactly once, after the replies."""
+
+    @property
+    def key(self) -> str: ...
+    @property
+    def selector(self) -> str: ...
+    @property
+    def payload(self) -> bytes | None: ...
+    def reply(self, key: str, payload: bytes) -> None: ...
+    def reply_err(self, payload: bytes) -> None: ...
+    def finish(self) -> None: ...
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+    def __enter__(self) -> Closeable: ...
+    def __exit__(self, *_: object) -> None: ...
+
+
+class Handle:
+    """Base for things a caller closes: a context manager whose ``close`` is idempotent."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Handle:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+@dataclass(frozen=True, slots=True)
+class TransportConfig:
+    """How to join the mesh.
+
+    Defaults give a zenoh peer that finds others on the LAN by multicast scouting.
+    ``connect``/``listen`` endpoints (``tcp/host:port``) and a zenoh JSON5 ``config_file``
+    override that, e.g. to go through routers beyond one LAN; ``multicast=False`` keeps the
+    session to its explicit endpoints (as the tests do, on loopback only).
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    multicast: bool = True
+    multicast_interface: str | None = None
+    lease_ms: int | None = None
+    overrides: tuple[tuple[str, str], ...] = field(default=())
+
+
+SampleHandler = Callable[[Sample], None]
+QueryHandler = Callable[[IncomingQuery], None]
+LivelinessHandler = Callable[[str, bool], None]
+
+
+class Transport(Protocol):
+    """Publish/subscribe, query/queryable and liveliness, as cmion-mesh needs them."""
+
+    @property
+    def id(self) -> str: ...
+
+    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
+        """Publish. ``block`` = wait rather than drop under congestion (events, changes)."""
+
+    def delete(self, key: str) -> None: ...
+
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
+        """``handler`` receives samples in order on one worker thread per subscription."""
+
+    def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable: ...
+
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
+        """Query; all replies. Zero replies means nobody answered: outcome unknown, not success."""
+
+    def declare_token(self, key: str) -> Closeable: ...
+
+    def alive(self, selector: str, *, timeout: float = 2.0) -> list[str]:
+        """Keys of the liveliness tokens currently alive under ``selector``."""
+
+    def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
+        """``handler(key, alive)`` for every token that appears (including present ones) or vanishes."""
+
+    def close(self) -> None: ...

@@ -1,0 +1,280 @@
+"""The zenoh adapter: the only module that imports zenoh.
+
+Every subscriber and queryable gets a FIFO channel and one worker thread that drains it, so
+zenoh's own threads never run Python and a slow handler cannot stall the session's receive path.
+Workers end when their channel closes (undeclare or session close).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from cmion_mesh.errors import ConfigError, TransportError
+from cmion_mesh.transport import (
+    Closeable,
+    Handle,
+    LivelinessHandler,
+    QueryHandler,
+    Reply,
+    Sample,
+    SampleHandler,
+    TransportConfig,
+)
+
+log = logging.getLogger(__name__)
+
+#: Channel depth for events and queries: deep enough to absorb bursts; a full channel makes
+#: zenoh apply back-pressure (blocking congestion control) rather than drop.
+CHANNEL_CAPACITY = 4096
+
+
+def build_config(cfg: TransportConfig) -> zenoh.Config:
+    if cfg.config_file:
+        path = Path(cfg.config_file)
+        if not path.is_file():
+            raise ConfigError("zenoh config file not found", path=str(path))
+        try:
+            zc = zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises ZError with its own text
+            raise ConfigError(f"invalid zenoh config: {exc}", path=str(path)) from None
+    else:
+        zc = zenoh.Config()
+    settings: list[tuple[str, Any]] = [("mode", cfg.mode)]
+    if cfg.connect:
+        settings.append(("connect/endpoints", list(cfg.connect)))
+    if cfg.listen:
+        settings.append(("listen/endpoints", list(cfg.listen)))
+    if not cfg.multicast:
+        settings.append(("scouting/multicast/enabled", False))
+    if cfg.multicast_interface:
+        settings.append(("scouting/multicast/interface", cfg.multicast_interface))
+    if cfg.lease_ms:
+        settings.append(("transport/link/tx/lease", cfg.lease_ms))
+        # zenoh sends keep-alives lease/keep_alive apart; 4 per lease tolerates one lost.
+        settings.append(("transport/link/tx/keep_alive", 4))
+    for key, value in settings:
+        try:
+            zc.insert_json5(key, json.dumps(value))
+        except Exception as exc:
+            raise ConfigError(f"zenoh setting {key}={value!r} refused: {exc}") from None
+    for key, raw in cfg.overrides:
+        try:
+            zc.insert_json5(key, raw)
+        except Exception as exc:
+            raise ConfigError(f"zenoh setting {key}={raw} refused: {exc}") from None
+    return zc
+
+
+class _Query:
+    __slots__ = ("_done", "_query", "key", "payload", "selector")
+
+    def __init__(self, query: zenoh.Query) -> None:
+        self._query = query
+        self._done = False
+        self.key = str(query.key_expr)
+        self.selector = str(query.selector)
+        raw = query.payload
+        self.payload = raw.to_bytes() if raw is not None else None
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self._query.reply(key, payload)
+
+    def reply_err(self, payload: bytes) -> None:
+        self._query.reply_err(payload)
+
+    def finish(self) -> None:
+        if not self._done:
+            self._done = True
+            self._query.drop()  # type: ignore[no-untyped-call]
+
+
+class _Entity(Handle):
+    """A declared subscriber/queryable/token plus the worker draining it."""
+
+    def __init__(self, undeclare: Callable[[], None], worker: threading.Thread | None) -> None:
+        self._undeclare = undeclare
+        self._worker = worker
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            self._undeclare()
+        except Exception:  # session already closed: the entity is gone with it
+            pass
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(5.0)
+
+
+def _drain(name: str, recv: Callable[[], Any], handle: Callable[[Any], None]) -> threading.Thread:
+    def run() -> None:
+        while True:
+            try:
+                item = recv()
+            except zenoh.ZError:
+                return  # channel closed: undeclared or session closed
+            try:
+                handle(item)
+            except Exception:
+                log.exception("handler of %s failed", name)
+
+    thread = threading.Thread(target=run, name=f"zenoh-{name}", daemon=True)
+    thread.start()
+    return thread
+
+
+class ZenohTransport:
+    """A zenoh session behind the ``Transport`` interface. A context manager; ``close`` is idempotent."""
+
+    def __init__(self, config: TransportConfig | None = None) -> None:
+        self.config = config or TransportConfig()
+        zc = build_config(self.config)
+        try:
+            self._session = zenoh.open(zc)
+        except Exception as exc:
+            raise TransportError(f"cannot open zenoh session: {exc}") from None
+        self._entities: list[_Entity] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    @property
+    def id(self) -> str:
+        return str(self._session.zid())
+
+    def __enter__(self) -> ZenohTransport:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def _track(self, entity: _Entity) -> _Entity:
+        with self._lock:
+            self._entities.append(entity)
+        return entity
+
+    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
+        if block:
+            # A declared publisher per key keeps routing state warm for repeated events.
+            pub = self._publishers.get(key)
+            if pub is None:
+                with self._lock:
+                    pub = self._publishers.get(key)
+                    if pub is None:
+                        if len(self._publishers) > 4096:
+                            self._publishers.clear()
+                        pub = self._session.declare_publisher(
+                            key, congestion_control=zenoh.CongestionControl.BLOCK
+                        )
+                        self._publishers[key] = pub
+            pub.put(payload)
+        else:
+            self._session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP)
+
+    def delete(self, key: str) -> None:
+        self._session.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        sub = self._session.declare_subscriber(
+            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), allowed_origin=origin
+        )
+        channel = sub.handler
+
+        def handle(sample: zenoh.Sample) -> None:
+            handler(
+                Sample(
+                    str(sample.key_expr),
+                    sample.payload.to_bytes(),
+                    sample.kind == zenoh.SampleKind.DELETE,
+                )
+            )
+
+        return self._track(_Entity(sub.undeclare, _drain(f"sub:{selector}", channel.recv, handle)))
+
+    def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
+        queryable = self._session.declare_queryable(
+            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), complete=complete
+        )
+        channel = queryable.handler
+
+        def handle(query: zenoh.Query) -> None:
+            wrapped = _Query(query)
+            try:
+                handler(wrapped)
+            except Exception:
+                wrapped.finish()
+                raise
+
+        return self._track(_Entity(queryable.undeclare, _drain(f"qbl:{selector}", channel.recv, handle)))
+
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
+        try:
+            replies = self._session.get(
+                selector,
+                payload=payload,
+                timeout=timeout,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
+            out: list[Reply] = []
+            for reply in replies:
+                ok = reply.ok
+                if ok is not None:
+                    out.append(Reply(str(ok.key_expr), ok.payload.to_bytes(), True))
+                else:
+                    err = reply.err
+                    out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
+            return out
+        except zenoh.ZError as exc:
+            raise TransportError(f"query {selector}: {exc}") from None
+
+    def declare_token(self, key: str) -> Closeable:
+        token = self._session.liveliness().declare_token(key)
+        return self._track(_Entity(token.undeclare, None))
+
+    def alive(self, selector: str, *, timeout: float = 2.0) -> list[str]:
+        replies = self._session.liveliness().get(selector, timeout=timeout)
+        keys = []
+        for reply in replies:
+            if reply.ok is not None:
+                keys.append(str(reply.ok.key_expr))
+        return keys
+
+    def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
+        sub = self._session.liveliness().declare_subscriber(
+            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), history=True
+        )
+        channel = sub.handler
+
+        def handle(sample: zenoh.Sample) -> None:
+            handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        return self._track(_Entity(sub.undeclare, _drain(f"live:{selector}", channel.recv, handle)))
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            entities, self._entities = self._entities, []
+            publishers, self._publishers = list(self._publishers.values()), {}
+        for pub in publishers:
+            try:
+                pub.undeclare()  # type: ignore[no-untyped-call]
+            except Exception:
+                pass
+        for entity in entities:
+            entity.close()
+        self._session.close()  # type: ignore[no-untyped-call]

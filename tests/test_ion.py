@@ -1,0 +1,248 @@
+"""ION semantics on the in-memory transport: mediation, ordering, definite answers."""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+
+from cmion_mesh.errors import ClosedError, MeshError
+from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.messages import Event, Outcome, Request
+from cmion_mesh.procs import wait_for
+
+pytestmark = pytest.mark.timeout(30)
+
+
+@contextmanager
+def held(sim: Simulation) -> Iterator[None]:
+    """Block the update loop so that everything sent meanwhile lands in one update."""
+    entered, release = threading.Event(), threading.Event()
+
+    def block() -> None:
+        entered.set()
+        release.wait(10)
+
+    sim.call(block)
+    assert entered.wait(5)
+    try:
+        yield
+    finally:
+        release.set()
+
+
+class Recorder(Component):
+    """Accepts the first request per ``slot`` arg in each batch, conflicts the rest."""
+
+    requests = {"claim": Request, "silent": Request, "boom": Request}
+
+    def __init__(self, name: str = "arbiter") -> None:
+        super().__init__(name)
+        self.batches: list[list[str]] = []
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        self.batches.append([r.payload.args.get("who", "") for r in batch])
+        taken: set[Any] = set()
+        for r in batch:
+            if r.name == "boom":
+                raise RuntimeError("handler bug")
+            if r.name == "silent":
+                continue
+            slot = r.payload.args.get("slot")
+            if slot in taken:
+                r.conflict(f"slot {slot} taken in this update")
+            else:
+                taken.add(slot)
+                r.accept({"slot": slot})
+
+
+@pytest.fixture
+def sim(transport: MemoryTransport, mesh: str) -> Iterator[Simulation]:
+    with Simulation(transport, mesh=mesh, embodiment="robot") as s:
+        yield s
+
+
+def test_requests_in_one_update_are_mediated_together_and_all_answered(sim: Simulation, network: MemoryNetwork) -> None:
+    arbiter = sim.add(Recorder())
+    with MemoryTransport(network, "remote") as remote:
+        results: dict[str, Outcome] = {}
+
+        def ask(who: str, slot: int) -> None:
+            key = f"cmion/{sim.mesh}/robot/rq/arbiter/claim"
+            results[who] = send_request(remote, key, Request({"who": who, "slot": slot}))
+
+        with held(sim):
+            threads = [threading.Thread(target=ask, args=(w, s)) for w, s in (("a", 1), ("b", 1), ("c", 2))]
+            for t in threads:
+                t.start()
+            # The three queries are in the inbox before the loop is released.
+            wait_for(lambda: sim._inbox.qsize() >= 3, 5, "three requests queued")
+        for t in threads:
+            t.join(10)
+    assert sorted(arbiter.batches[-1]) == ["a", "b", "c"], "all three were handed over together"
+    statuses = {w: o.status for w, o in results.items()}
+    assert sorted(statuses.values()) == ["accepted", "accepted", "conflict"]
+    loser = next(w for w, s in statuses.items() if s == "conflict")
+    assert "slot 1 taken" in results[loser].reason
+    assert results["c"].value == {"slot": 2}
+
+
+def test_unanswered_and_failing_requests_still_get_definite_answers(sim: Simulation) -> None:
+    sim.add(Recorder())
+    silent = sim.request("arbiter", "silent", Request()).result(5)
+    assert silent.status == "rejected" and "gave no answer" in silent.reason
+    boom = sim.request("arbiter", "boom", Request()).result(5)
+    assert boom.status == "rejected"
+    unknown = sim.request("arbiter", "nope", Request()).result(5)
+    assert unknown.status == "rejected" and "'nope'" in unknown.reason
+
+
+def test_remote_unknown_and_malformed_requests_are_rejected_with_reason(sim: Simulation, network: MemoryNetwork) -> None:
+    sim.add(Recorder())
+    with MemoryTransport(network, "remote") as remote:
+        from cmion_mesh.messages import decode
+
+        (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/nope", b"")
+        assert "has no request 'nope'" in decode(reply.payload, Outcome).reason
+        (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/claim", b"\xc1garbage")
+        outcome = decode(reply.payload, Outcome)
+        assert outcome.status == "rejected" and "malformed" in outcome.reason
+
+
+class Chain(Component):
+    """On event n (< 3) raises n+1 twice: checks order and same-update dispatch."""
+
+    def __init__(self, log: list[tuple[int, str, int]]) -> None:
+        super().__init__("chain")
+        self.log = log
+
+    def attach(self, sim: Simulation) -> None:
+        sim.on_event(self.first, component="chain")
+        sim.on_event(self.second, component="chain", event="step")
+
+    def first(self, event: Event) -> None:
+        self.log.append((self.sim.updates, "first", event.data))
+        if event.data < 3:
+            self.raise_event("step", event.data + 1)
+            self.raise_event("step", event.data + 10)
+
+    def second(self, event: Event) -> None:
+        self.log.append((self.sim.updates, "second", event.data))
+
+
+def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(sim: Simulation, network: MemoryNetwork) -> None:
+    log: list[tuple[int, str, int]] = []
+    chain = sim.add(Chain(log))
+    seen: list[int] = []
+    with MemoryTransport(network, "observer") as observer:
+        from cmion_mesh.messages import decode
+
+        observer.subscribe(f"cmion/{sim.mesh}/robot/ev/chain/step", lambda s: seen.append(decode(s.payload, Event).data))
+        sim.call(lambda: chain.raise_event("step", 1))
+        wait_for(lambda: len(log) >= 10, 5, "chain of events dispatched")
+        wait_for(lambda: len(seen) >= 5, 5, "events published")
+    updates = {u for u, _, _ in log}
+    assert len(updates) == 1, f"all in one update: {log}"
+    # Breadth-first in the order raised; each event reaches both handlers before the next event.
+    assert [(h, d) for _, h, d in log] == [
+        ("first", 1), ("second", 1),
+        ("first", 2), ("second", 2), ("first", 11), ("second", 11),
+        ("first", 3), ("second", 3), ("first", 12), ("second", 12),
+    ]
+    assert seen == [1, 2, 11, 3, 12], "publication order is raise order"
+
+
+def test_events_from_other_threads_and_processes_are_handled_one_at_a_time(sim: Simulation, network: MemoryNetwork, mesh: str) -> None:
+    active = []
+    overlap = []
+    got: list[Any] = []
+
+    def handler(event: Event) -> None:
+        active.append(1)
+        if len(active) > 1:
+            overlap.append(event)
+        got.append((event.embodiment, event.data))
+        active.pop()
+
+    sim.call(lambda: sim.on_event(handler, embodiment="*", component="sensor"))
+    wait_for(lambda: sim._subscriptions, 5, "subscription")
+    with MemoryTransport(network, "phone") as phone, Simulation(phone, mesh=mesh, embodiment="phone") as other:
+        threads = [threading.Thread(target=lambda i=i: sim.raise_event("sensor", "tick", i)) for i in range(20)]
+        for t in threads:
+            t.start()
+        for i in range(20):
+            other.raise_event("sensor", "tick", 100 + i)
+        for t in threads:
+            t.join(5)
+        wait_for(lambda: len(got) == 40, 5, "40 events handled")
+    assert not overlap
+    assert [d for e, d in got if e == "phone"] == list(range(100, 120)), "remote events keep their order"
+
+
+def test_idle_loop_blocks_without_polling(sim: Simulation) -> None:
+    sim.add(Recorder())
+    wait_for(lambda: sim.updates >= 1, 5, "first update")
+    before = sim.updates
+    tid = sim._thread.native_id if sim._thread else 0
+    stat = f"/proc/self/task/{tid}/stat"
+
+    def cpu_ticks() -> int:
+        with open(stat) as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])
+
+    ticks = cpu_ticks()
+    threading.Event().wait(0.5)  # an observation window: nothing is expected to happen in it
+    assert sim.updates == before, "no update runs without work"
+    assert cpu_ticks() - ticks == 0, "the idle loop burnt CPU"
+    with open(stat) as f:
+        assert f.read().rsplit(")", 1)[1].split()[0] == "S"
+
+
+def test_close_answers_pending_requests_and_is_idempotent(transport: MemoryTransport, mesh: str) -> None:
+    sim = Simulation(transport, mesh=mesh, embodiment="robot").start()
+    sim.add(Recorder())
+    release = threading.Event()
+    sim.call(lambda: release.wait(5))
+    pending = [sim.request("arbiter", "claim", Request({"slot": i})) for i in range(3)]
+    closer = threading.Thread(target=sim.close)
+    closer.start()
+    release.set()
+    closer.join(10)
+    outcomes = [f.result(5) for f in pending]
+    assert all(o.status in ("accepted", "rejected") for o in outcomes)
+    sim.close()
+    assert sim.request("arbiter", "claim").result(1).status == "rejected"
+    with pytest.raises(ClosedError):
+        sim.call(lambda: None)
+
+
+def test_duplicate_component_names_are_refused(sim: Simulation) -> None:
+    sim.add(Recorder("x"))
+    with pytest.raises(MeshError, match="'x'"):
+        sim.add(Recorder("x"))
+
+
+def test_runaway_event_storm_is_carried_over_not_dropped(sim: Simulation) -> None:
+    count = [0]
+
+    class Storm(Component):
+        def attach(self, s: Simulation) -> None:
+            s.on_event(self.on, component="storm")
+
+        def on(self, event: Event) -> None:
+            count[0] += 1
+            if event.data < 25_000:
+                self.raise_event("e", event.data + 1)
+
+    storm = sim.add(Storm("storm"))
+    start = sim.updates
+    sim.call(lambda: storm.raise_event("e", 1))
+    wait_for(lambda: count[0] == 25_000, 20, "all storm events handled")
+    assert sim.updates - start >= 3, "spread over several updates"
+    assert os.getpid()

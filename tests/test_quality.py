@@ -1,0 +1,31 @@
+"""ruff and mypy are part of the test suite, so the README's one test command checks them too."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def run(tool: str, *args: str) -> subprocess.CompletedProcess[str]:
+    exe = BIN / tool if (BIN / tool).exists() else shutil.which(tool)
+    assert exe, f"{tool} is not installed: install the test extra (pip install -e '.[test]')"
+    return subprocess.run([str(exe), *args], cwd=ROOT, capture_output=True, text=True, timeout=280)
+
+
+def test_ruff_clean() -> None:
+    result = run("ruff", "check", "cmion_mesh", "tests", "bench", "embodiments")
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_mypy_clean() -> None:
+    result = run("mypy")
+    assert result.returncode == 0, result.stdout + result.stderr
