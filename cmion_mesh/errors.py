@@ -74,3 +74,7 @@ class StorageError(MeshError):
 
 class ClosedError(MeshError):
     """The object was used after ``close()``."""
+
+
+class PlanError(MeshError):
+    """A plan step cannot run: a substitution has no value, no competency of its type exists..."""
