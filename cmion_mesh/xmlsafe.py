@@ -49,7 +49,7 @@ __all__ = [
 
 #: Largest document accepted.  Configuration and identity documents are a few kilobytes.
 DEFAULT_MAX_BYTES = 4 * 1024 * 1024
-#: Deepest element nesting accepted (CMION's deepest file nests 4 levels).
+#: Deepest element nesting accepted (CMION's deepest file nests 5 levels).
 DEFAULT_MAX_DEPTH = 64
 #: Most elements accepted in one document.
 DEFAULT_MAX_ELEMENTS = 100_000
@@ -85,10 +85,11 @@ _LOCATION_SUFFIX = re.compile(r"(?:, line \d+, column \d+)+\s*$")
 
 
 class ExternalResourceRefused(Exception):
-    """Raised inside libxml2's loader callback so the parse aborts instead of reading the resource.
+    """Raised from libxml2's loader callback so the parse aborts instead of reading the resource.
 
-    Not an ``XmlError`` on purpose: it must never be mistaken for a normal refusal by code that
-    catches ``XmlError`` inside the parser; ``load`` converts it on the way out.
+    lxml stores it and re-raises it once the parse stops; ``load``/``loads`` turn it into an
+    ``XmlError``.  It is a separate type so a parser built elsewhere with ``DenyAllResolver``
+    shows plainly why it failed.
     """
 
     def __init__(self, url: str | None) -> None:
@@ -133,7 +134,7 @@ def _make_parser() -> etree.XMLPullParser:
 
 
 def _line_at(data: bytes, offset: int) -> int:
-    """1-based line of a byte offset; good enough for ASCII-compatible data and UTF-16 alike."""
+    """1-based line of a byte offset, counted before decoding (the data may not decode at all)."""
     return data.count(b"\n", 0, max(offset, 0)) + 1
 
 
@@ -324,25 +325,23 @@ def _parse(data: bytes, text: str, name: str, max_depth: int, max_elements: int)
     return root.getroottree()
 
 
+def _has_internal_subset(tree: etree._ElementTree, dtd: Any) -> bool:
+    """Whether the DOCTYPE carries declarations (``dtd`` is ``Any``: the stubs lack the DTD API)."""
+    if any(True for _ in dtd.iterentities()) or any(True for _ in dtd.iterelements()):
+        return True
+    header: str = tree.docinfo.doctype  # type: ignore[attr-defined]
+    serialised = etree.tostring(tree, encoding="unicode")
+    return not serialised.startswith(header) or serialised[len(header) :].lstrip().startswith("[")
+
+
 def _postcheck(tree: etree._ElementTree, name: str) -> None:
     """Second line of defence, independent of the pre-scan: look at what libxml2 actually built."""
     dtd = tree.docinfo.internalDTD
     # A bare ``<!DOCTYPE X SYSTEM "X.dtd">`` yields an empty internal DTD node; declarations do not.
     # lxml lists element and entity declarations but not e.g. an ATTLIST for an undeclared element,
     # so the serialised DOCTYPE is checked too: any internal subset shows there as " [...]".
-    if dtd is not None:
-        declared = any(True for _ in dtd.iterentities()) or any(  # type: ignore[attr-defined]
-            True
-            for _ in dtd.iterelements()  # type: ignore[attr-defined]
-        )
-        header: str = tree.docinfo.doctype  # type: ignore[attr-defined]
-        serialised = etree.tostring(tree, encoding="unicode")
-        if (
-            declared
-            or not serialised.startswith(header)
-            or serialised[len(header) :].lstrip().startswith("[")
-        ):
-            raise XmlError("internal DTD declarations are not allowed", path=name, line=1)
+    if dtd is not None and _has_internal_subset(tree, dtd):
+        raise XmlError("internal DTD declarations are not allowed", path=name, line=1)
     for node in tree.getroot().iter(etree.Entity):
         parent = node.getparent()
         line = _sourceline(node) or _sourceline(parent)

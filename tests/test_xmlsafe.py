@@ -363,7 +363,14 @@ def test_malformed_file_names_the_path(tmp_path: Path) -> None:
         (b"<r>\n\xff\xfe\x80garbage</r>", 2),
         (b"\x80\x81\x82\x83", 1),
         (b'<?xml version="1.0" encoding="UTF-8"?>\n<r>\n\xc3\x28</r>', 3),
-        (b'<?xml version="1.0" encoding="UTF-7"?><r/>', 1),
+        # UTF-7 could spell "<!DOCTYPE r [<!ENTITY e 'x'>]>" without a single "<"
+        (
+            b'<?xml version="1.0" encoding="UTF-7"?>'
+            b'+ADw-!DOCTYPE r +AFs-+ADw-!ENTITY e "x"+AD4-+AF0-+AD4-<r/>',
+            1,
+        ),
+        # a declaration padded past the pre-scan's window
+        (b'<?xml version="1.0"' + b" " * 2000 + b'encoding="UTF-7"?><r/>', 1),
         (b'<?xml version="1.0" encoding="no-such-codec"?><r/>', 1),
         (b"\x4c\x6f\xa7\x94\x93\x40", 1),  # EBCDIC
         ('<?xml version="1.0" encoding="UTF-16"?><r/>'.encode("utf-32"), 1),
@@ -417,6 +424,16 @@ def test_schema_path_finds_repository_schemas() -> None:
         path = xmlsafe.schema_path(name)
         assert path.is_file() and path.name == name
         xmlsafe.load(path, None)  # the schemas pass through the same door
+
+
+def test_schema_path_prefers_the_packaged_copy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    packaged = tmp_path / "cmion_mesh" / "schemas"
+    packaged.mkdir(parents=True)
+    shutil.copy(xmlsafe.schema_path("WorldModel.xsd"), packaged / "WorldModel.xsd")
+    repo = xmlsafe._SCHEMA_DIRS[-1]
+    monkeypatch.setattr(xmlsafe, "_SCHEMA_DIRS", (packaged, repo))
+    assert xmlsafe.schema_path("WorldModel.xsd") == packaged / "WorldModel.xsd"
+    assert xmlsafe.schema_path("CompetencyLibrary.xsd") == repo / "CompetencyLibrary.xsd"
 
 
 @pytest.mark.parametrize("name", ["../pyproject.toml", "/etc/passwd", "", "..", "sub/x.xsd"])
