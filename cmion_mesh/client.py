@@ -5,14 +5,21 @@ It needs only a transport, not a simulation: no update loop, no components of it
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import queue
+import uuid
+from collections.abc import Callable, Sequence
 from typing import Any
+
+import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.errors import OutcomeUnknown, ProtocolError, StorageError
 from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.messages import (
+    Act,
+    ActionReport,
     AddContainer,
+    CancelAction,
     Container,
     Event,
     Message,
@@ -27,6 +34,7 @@ from cmion_mesh.messages import (
 from cmion_mesh.transport import Closeable, Sample, Transport
 
 Entry = Property | Container
+ACTION_END_EVENTS = frozenset({"ActionSucceeded", "ActionFailed", "ActionCancelled"})
 
 
 class MeshClient:
@@ -86,6 +94,41 @@ class MeshClient:
     ) -> Outcome:
         key = keys.request_key(self.mesh, embodiment, component, name)
         return send_request(self.transport, key, payload if payload is not None else Request(), timeout=timeout)
+
+    def act(
+        self, embodiment: str, name: str, parameters: Sequence[str] = (), *, subject: str = "", action_id: str = "",
+        timeout: float = 60.0, deadline: float = 0.0,
+    ) -> ActionReport:
+        """Send a mind action and wait for its end; returns the final report (succeeded/failed/cancelled).
+
+        Raises ``RequestRejected`` if the manager refuses it (no rule, duplicate id) and
+        ``OutcomeUnknown`` if nobody answers or the end is not heard within ``timeout``.
+        """
+        action_id = action_id or f"{self.transport.id[:8]}-{uuid.uuid4().hex[:12]}"
+        ended: queue.SimpleQueue[ActionReport] = queue.SimpleQueue()
+
+        def on_event(event: Event) -> None:
+            if event.name in ACTION_END_EVENTS and isinstance(event.data, dict) and event.data.get("action_id") == action_id:
+                ended.put(msgspec.convert(event.data, ActionReport))
+
+        with self.events(on_event, embodiment=embodiment, component="manager"):
+            act = Act(name, list(parameters), subject, action_id, deadline)
+            key = keys.request_key(self.mesh, embodiment, "manager", "act")
+            outcome = send_request(self.transport, key, act)
+            require_accepted(outcome, key)
+            try:
+                return ended.get(timeout=timeout)
+            except queue.Empty:
+                pass
+        # The end event may have been missed (a link hiccup): the manager remembers recent ends.
+        status = self.request(embodiment, "manager", "status", Request({"action_id": action_id}))
+        if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
+            report: ActionReport = msgspec.convert(status.value, ActionReport)
+            return report
+        raise OutcomeUnknown(f"action {action_id} on {embodiment}: no end heard within {timeout:g} s", key=key)
+
+    def cancel(self, embodiment: str, action_id: str) -> Outcome:
+        return self.request(embodiment, "manager", "cancel", CancelAction(action_id))
 
     def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:
         """``handler(key, entry)`` on every change under ``selector``; ``entry`` None when removed."""

@@ -112,8 +112,38 @@ class Outcome(Message, frozen=True, tag="outcome"):
     value: Value = None
 
 
+# --- competency manager --------------------------------------------------------------------------
+
+
+class Act(Message, frozen=True, tag="act"):
+    """A mind action to perform; sent to ``.../rq/manager/act``. An empty id is assigned by the manager."""
+
+    name: str
+    parameters: list[str] = []
+    subject: str = ""
+    action_id: str = ""
+    deadline: float = 0.0  # seconds for each plan tried; 0 = the embodiment's default
+
+
+class CancelAction(Message, frozen=True, tag="cancel_action"):
+    action_id: str
+
+
+class ActionReport(Message, frozen=True, tag="action_report"):
+    """Data of the manager's ``ActionStarted/Succeeded/Failed/Cancelled`` events."""
+
+    action_id: str
+    name: str
+    parameters: list[str] = []
+    subject: str = ""
+    status: str = ""
+    reason: str = ""
+    rule: str = ""
+
+
 AnyMessage = (
     Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
+    | Act | CancelAction | ActionReport
 )
 
 _encoder = msgspec.msgpack.Encoder()

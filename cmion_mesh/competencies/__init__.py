@@ -1,0 +1,1 @@
+"""Competencies shipped with cmion-mesh: CMION's test set and the simulated Spirit of the Building body."""

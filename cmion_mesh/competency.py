@@ -1,0 +1,334 @@
+"""Competencies: the units of work a body can do, and the library that loads them.
+
+A competency has a unique name, a type (plans ask for types, several competencies may share
+one), an availability flag and the constructor parameters it was built with. Each competency owns
+one worker thread (it is bound to a sensor or actuator, so it runs one execution at a time): its
+``run`` gets the step's run parameters and a ``RunContext`` and returns True (succeeded) or False
+(failed); an exception counts as failure with its message as the reason. Cancellation is
+cooperative: ``ctx.cancelled`` is set and ``ctx.wait`` returns early; a run that ends after a
+cancel is reported as cancelled whatever it returns.
+
+**Background competencies** (sensors) have ``background = True``: they start when the embodiment
+loads and run until it stops. One that crashes or returns is reported with a
+``CompetencyCrashed`` event and restarted with exponential backoff; never silently dead.
+
+The library file uses CMION's ``CompetencyLibrary`` vocabulary with Python classes named
+``package.module:Class`` (or dotted ``package.module.Class``) and comma-separated constructor
+parameters, passed as strings.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import queue
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from cmion_mesh import keys
+from cmion_mesh.errors import ConfigError, MeshError, RequestRejected
+from cmion_mesh.messages import AddContainer, RemoveContainer, RemoveProperty, SetProperty
+
+if TYPE_CHECKING:
+    from cmion_mesh.ion import Simulation
+    from cmion_mesh.storage import Store
+
+log = logging.getLogger(__name__)
+
+#: Backoff for restarting a crashed background competency: first delay, cap.
+RESTART_BACKOFF = (0.05, 10.0)
+
+
+class Cancelled(MeshError):
+    """Raised by ``RunContext.check`` inside a run that was cancelled."""
+
+
+class RunContext:
+    """What a running competency sees: its parameters, cancellation, and the embodiment's stores."""
+
+    def __init__(self, competency: Competency, run_id: str, parameters: dict[str, Any]) -> None:
+        self.competency = competency
+        self.run_id = run_id
+        self.parameters = parameters
+        self.cancelled = threading.Event()
+        self.reason = ""
+
+    def wait(self, seconds: float) -> bool:
+        """Wait up to ``seconds``; False if cancelled meanwhile (then stop promptly)."""
+        return not self.cancelled.wait(seconds)
+
+    def check(self) -> None:
+        if self.cancelled.is_set():
+            raise Cancelled(f"{self.competency.name}: cancelled")
+
+    def fail(self, reason: str) -> bool:
+        """Record why the run failed; returns False so ``return ctx.fail("...")`` reads well."""
+        self.reason = reason
+        return False
+
+    # -- stores and events, thread-safe: writes are requests to the embodiment's stores --------
+
+    def store(self, name: str) -> Store:
+        """A local store, for reads (thread-safe); write through ``write`` so that writes are mediated."""
+        from cmion_mesh.storage import Store
+
+        store = self.competency.sim.component(name)
+        assert isinstance(store, Store)
+        return store
+
+    def bb_get(self, path: str, default: Any = None) -> Any:
+        container, _, name = path.rpartition("/")
+        return self.store(keys.BLACKBOARD).get(container, name, default)
+
+    def wm_get(self, entity: str, prop: str, default: Any = None) -> Any:
+        return self.store(keys.WORLD_MODEL).get(entity, prop, default)
+
+    def write(self, store: str, message: Any, timeout: float = 10.0) -> None:
+        """Send a write request to a local store and wait for its outcome; raises unless accepted."""
+        outcome = self.competency.sim.request(store, _OPS[type(message)], message).result(timeout)
+        if outcome.status != "accepted":
+            raise RequestRejected(f"{store}: {outcome.status}: {outcome.reason}", status=outcome.status, reason=outcome.reason)
+
+    def bb_set(self, path: str, value: Any, *, persistent: bool = False) -> None:
+        container, _, name = path.rpartition("/")
+        self.write(keys.BLACKBOARD, SetProperty(container, name, value, persistent))
+
+    def bb_remove(self, path: str) -> None:
+        container, _, name = path.rpartition("/")
+        self.write(keys.BLACKBOARD, RemoveProperty(container, name))
+
+    def raise_event(self, name: str, data: Any = None) -> None:
+        self.competency.sim.raise_event(self.competency.name, name, data)
+
+    def progress(self, data: Any) -> None:
+        self.raise_event("Progress", {"run_id": self.run_id, "progress": data})
+
+
+_OPS: dict[type, str] = {
+    SetProperty: "set_property",
+    RemoveProperty: "remove_property",
+    AddContainer: "add_container",
+    RemoveContainer: "remove_container",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class RunResult:
+    run_id: str
+    status: str  # succeeded | failed | cancelled
+    reason: str = ""
+
+
+Done = Callable[[RunResult], None]
+_STOP = object()
+
+
+class Competency:
+    """Base class of every competency. Subclasses set ``type`` (and ``name``) and override ``run``."""
+
+    type: str = ""
+    background: bool = False
+
+    def __init__(self, *constructor_parameters: str, name: str | None = None, type: str | None = None) -> None:
+        self.name = keys.check_name(name or type_name(self), "competency name")
+        self.type = keys.check_name(type or self.type or self.name, "competency type")
+        self.constructor_parameters = constructor_parameters
+        self.available = True
+        self._sim: Simulation | None = None
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._current: RunContext | None = None
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name} type={self.type}>"
+
+    @property
+    def sim(self) -> Simulation:
+        if self._sim is None:
+            raise MeshError(f"competency {self.name!r} is not loaded in an embodiment")
+        return self._sim
+
+    def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
+        """The competency's work; runs on its own thread. Return True on success."""
+        raise NotImplementedError(f"{type(self).__name__}.run")
+
+    # -- life cycle (called by the execution system) -----------------------------------------
+
+    def start(self, sim: Simulation) -> None:
+        self._sim = sim
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._work, name=f"competency-{self.name}", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stopping.set()
+        with self._lock:
+            if self._current is not None:
+                self._current.cancelled.set()
+        self._queue.put(_STOP)
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.warning("competency %s did not stop within %.0f s", self.name, timeout)
+
+    @property
+    def busy(self) -> bool:
+        return self._current is not None
+
+    def execute(self, run_id: str, parameters: dict[str, Any], done: Done) -> RunContext:
+        """Queue one execution on this competency's thread; ``done`` is called from that thread."""
+        ctx = RunContext(self, run_id, parameters)
+        with self._lock:
+            self._current = ctx
+        self._queue.put((ctx, done))
+        return ctx
+
+    def cancel(self, run_id: str) -> None:
+        with self._lock:
+            if self._current is not None and self._current.run_id == run_id:
+                self._current.cancelled.set()
+
+    def _work(self) -> None:
+        if self.background:
+            self._run_background()
+            return
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            ctx, done = item
+            result = self._execute_once(ctx)
+            with self._lock:
+                self._current = None
+            try:
+                done(result)
+            except Exception:
+                log.exception("reporting the result of %s failed", self.name)
+
+    def _execute_once(self, ctx: RunContext) -> RunResult:
+        try:
+            ok = bool(self.run(ctx.parameters, ctx))
+            reason = ctx.reason
+        except Cancelled:
+            ok, reason = False, "cancelled"
+        except MeshError as exc:  # a refused write, an unknown outcome: the reason says which
+            ok, reason = False, str(exc)
+        except Exception as exc:
+            log.exception("competency %s raised", self.name)
+            ok, reason = False, f"{type(exc).__name__}: {exc}"
+        if ctx.cancelled.is_set():
+            return RunResult(ctx.run_id, "cancelled", reason or "cancelled")
+        if ok:
+            return RunResult(ctx.run_id, "succeeded")
+        return RunResult(ctx.run_id, "failed", reason or f"{self.name} failed")
+
+    def _run_background(self) -> None:
+        delay, cap = RESTART_BACKOFF
+        attempt = 0
+        while not self._stopping.is_set():
+            attempt += 1
+            ctx = RunContext(self, f"{self.name}#{attempt}", {})
+            with self._lock:
+                self._current = ctx
+            if self._stopping.is_set():  # stop() may have run before _current was set
+                ctx.cancelled.set()
+            result = self._execute_once(ctx)
+            with self._lock:
+                self._current = None
+            if self._stopping.is_set():
+                return
+            reason = result.reason if result.status != "succeeded" else "returned"
+            try:
+                self.sim.raise_event(self.name, "CompetencyCrashed",
+                                     {"competency": self.name, "type": self.type, "reason": reason, "restart_in": delay,
+                                      "attempt": attempt})
+            except MeshError:
+                return  # the simulation is closing
+            if self._stopping.wait(delay):
+                return
+            delay = min(cap, delay * 2)
+
+
+def type_name(obj: object) -> str:
+    return type(obj).__name__
+
+
+# --- the library --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class LibraryEntry:
+    class_name: str
+    parameters: tuple[str, ...]
+    line: int | None
+
+
+def import_class(spec: str, *, path: str | None = None, line: int | None = None) -> type[Any]:
+    """Import ``package.module:Class`` (or ``package.module.Class``); ``ConfigError`` naming the line."""
+    module_name, sep, attr = spec.partition(":")
+    if not sep:
+        module_name, _, attr = spec.rpartition(".")
+    if not module_name or not attr:
+        raise ConfigError(f"class name {spec!r} is not of the form package.module:Class", path=path, line=line)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"cannot import module {module_name!r} for {spec!r}: {exc}", path=path, line=line) from None
+    try:
+        cls = getattr(module, attr)
+    except AttributeError:
+        raise ConfigError(f"module {module_name!r} has no class {attr!r}", path=path, line=line) from None
+    if not isinstance(cls, type):
+        raise ConfigError(f"{spec!r} is not a class", path=path, line=line)
+    return cls
+
+
+def split_parameters(raw: str | None) -> tuple[str, ...]:
+    """CMION's comma-separated constructor parameters; an absent or empty attribute means none."""
+    if raw is None or raw.strip() == "":
+        return ()
+    return tuple(p.strip() for p in raw.split(","))
+
+
+def read_library(path: str | os.PathLike[str]) -> list[LibraryEntry]:
+    from cmion_mesh import xmlsafe
+
+    tree = xmlsafe.load(path, "CompetencyLibrary.xsd")
+    entries = []
+    for element in tree.getroot():
+        if element.tag != "Competency":
+            continue  # SamgarCompetency entries need a Samgar connector, which this mesh does not have
+        line = element.sourceline if isinstance(element.sourceline, int) else None
+        entries.append(LibraryEntry(element.get("ClassName", ""), split_parameters(element.get("ConstructorParameters")), line))
+    return entries
+
+
+def load_library(path: str | os.PathLike[str]) -> list[Competency]:
+    """Build the competencies a library file names, in file order; errors name file and line."""
+    name = os.fspath(path)
+    competencies: list[Competency] = []
+    names: set[str] = set()
+    for entry in read_library(path):
+        spec = entry.class_name
+        cls = import_class(spec, path=name, line=entry.line)
+        if not (isinstance(cls, type) and issubclass(cls, Competency)):
+            raise ConfigError(f"{spec!r} is not a Competency subclass", path=name, line=entry.line)
+        try:
+            competency = cls(*entry.parameters)
+        except TypeError as exc:
+            raise ConfigError(
+                f"cannot construct {spec} with parameters {list(entry.parameters)}: {exc}", path=name, line=entry.line
+            ) from None
+        except MeshError as exc:
+            raise ConfigError(f"{spec}: {exc}", path=name, line=entry.line) from None
+        if competency.name in names:
+            raise ConfigError(f"a competency named {competency.name!r} is already in the library", path=name, line=entry.line)
+        names.add(competency.name)
+        competencies.append(competency)
+    return competencies
+

@@ -1,0 +1,176 @@
+"""The competency manager: turns mind actions into execution plans, with fallback.
+
+Requests (on ``.../rq/manager/<name>``):
+
+* ``act`` (``Act``): accepted at once with ``{"action_id": ...}`` when some rule matches,
+  rejected with the reason otherwise (unknown action, duplicate id). The outcome of the action
+  itself comes later as an event.
+* ``cancel`` (``CancelAction``): stops the action's running plan; it ends ``ActionCancelled``.
+* ``status`` (``Request`` with ``args.action_id``): running, or the final report of one of the
+  last ``HISTORY`` finished actions; with no id, the ids of the running actions.
+
+Events (data: ``ActionReport``): ``ActionStarted``, ``ActionAttempt`` (a plan is tried: which
+rule, which attempt), ``ActionSucceeded``, ``ActionFailed``, ``ActionCancelled``, each carrying
+the action id.
+
+Rules are tried most specific first (see ``rules``); within a rule its plans in file order. A
+plan that needs a competency type this embodiment does not have is skipped (as CMION did); when a
+plan fails, the next untried candidate runs; when none is left the action fails with every
+reason collected.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+
+import msgspec
+
+from cmion_mesh.errors import MeshError
+from cmion_mesh.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
+from cmion_mesh.ion import Component, IncomingRequest
+from cmion_mesh.messages import Act, ActionReport, CancelAction, Request
+from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet
+
+
+@dataclass(eq=False)
+class _Active:
+    act: Act
+    action: MindAction
+    candidates: deque[tuple[Rule, Plan]]
+    run_id: str = ""
+    rule: str = ""
+    attempts: int = 0
+    reasons: list[str] = field(default_factory=list)
+    cancel_requested: bool = False
+
+
+class CompetencyManager(Component):
+    requests = {"act": Act, "cancel": CancelAction, "status": Request}
+    #: Finished actions remembered for ``status`` (a requester that missed the end event asks).
+    HISTORY = 1024
+
+    def __init__(self, rules: RuleSet, execution: ExecutionSystem, name: str = "manager",
+                 default_deadline: float = DEFAULT_PLAN_DEADLINE) -> None:
+        super().__init__(name)
+        self.rules = rules
+        self.execution = execution
+        self.default_deadline = default_deadline
+        self._active: dict[str, _Active] = {}
+        self._finished: OrderedDict[str, ActionReport] = OrderedDict()
+        self._ids = itertools.count(1)
+
+    @property
+    def active(self) -> list[str]:
+        return list(self._active)
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        for request in batch:
+            if isinstance(request.payload, CancelAction):
+                self._cancel(request, request.payload.action_id)
+            elif isinstance(request.payload, Act):
+                self._act(request, request.payload)
+            else:
+                self._status(request, str(request.payload.args.get("action_id", "")))
+
+    def _status(self, request: IncomingRequest, action_id: str) -> None:
+        if action_id in self._active:
+            active = self._active[action_id]
+            request.accept({"action_id": action_id, "status": "running", "rule": active.rule, "attempts": active.attempts})
+        elif action_id in self._finished:
+            request.accept(msgspec.to_builtins(self._finished[action_id]))
+        elif not action_id:
+            request.accept({"running": sorted(self._active)})
+        else:
+            request.reject(f"no action with id {action_id!r} is running or recently finished")
+
+    def _act(self, request: IncomingRequest, act: Act) -> None:
+        action = MindAction(act.name, tuple(act.parameters), act.subject)
+        action_id = act.action_id or f"{self.sim.embodiment}-{next(self._ids)}"
+        if action_id in self._active:
+            request.reject(f"action id {action_id!r} is already running")
+            return
+        act = msgspec.structs.replace(act, action_id=action_id)
+        rules = self.rules.candidates(action)
+        if not rules:
+            reason = f"no rule matches action {_show(action)!r}"
+            request.reject(reason)
+            self._report("ActionFailed", act, "failed", reason)
+            return
+        types = self.execution.types()
+        candidates: deque[tuple[Rule, Plan]] = deque()
+        skipped = []
+        for rule in rules:
+            for plan in rule.plans:
+                missing = {s.type for s in plan.steps} - types
+                if missing:
+                    skipped.append(f"rule at line {rule.line}: no competency of type {', '.join(sorted(missing))}")
+                else:
+                    candidates.append((rule, plan))
+        if not candidates:
+            reason = f"no executable plan for {_show(action)!r}: " + "; ".join(skipped)
+            request.reject(reason)
+            self._report("ActionFailed", act, "failed", reason)
+            return
+        active = _Active(act, action, candidates, reasons=skipped)
+        self._active[action_id] = active
+        request.accept({"action_id": action_id})
+        self._report("ActionStarted", act, "started")
+        self._next(active)
+
+    def _next(self, active: _Active) -> None:
+        if active.cancel_requested:
+            self._end(active, "ActionCancelled", "cancelled", "cancelled")
+            return
+        if not active.candidates:
+            self._end(active, "ActionFailed", "failed", "; ".join(active.reasons) or "every plan failed")
+            return
+        rule, plan = active.candidates.popleft()
+        active.attempts += 1
+        active.rule = f"{rule.path}:{rule.line}"
+        active.run_id = f"{active.act.action_id}#{active.attempts}"
+        deadline = active.act.deadline or self.default_deadline
+        self._report("ActionAttempt", active.act, f"attempt {active.attempts}", "", active.rule)
+
+        def done(status: str, reason: str) -> None:
+            if status == "succeeded":
+                self._end(active, "ActionSucceeded", "succeeded", "")
+            elif status == "cancelled" or active.cancel_requested:
+                self._end(active, "ActionCancelled", "cancelled", reason or "cancelled")
+            else:
+                active.reasons.append(f"rule at line {rule.line}: {reason}")
+                self._next(active)
+
+        try:
+            self.execution.execute(plan, active.action, done, deadline=deadline, run_id=active.run_id)
+        except MeshError as exc:
+            active.reasons.append(str(exc))
+            self._next(active)
+
+    def _cancel(self, request: IncomingRequest, action_id: str) -> None:
+        active = self._active.get(action_id)
+        if active is None:
+            request.reject(f"no running action with id {action_id!r}")
+            return
+        active.cancel_requested = True
+        request.accept({"action_id": action_id})
+        if not self.execution.cancel(active.run_id):
+            self._end(active, "ActionCancelled", "cancelled", "cancelled")
+
+    def _end(self, active: _Active, event: str, status: str, reason: str) -> None:
+        if self._active.pop(active.act.action_id, None) is None:
+            return
+        self._report(event, active.act, status, reason, active.rule)
+
+    def _report(self, event: str, act: Act, status: str, reason: str = "", rule: str = "") -> None:
+        report = ActionReport(act.action_id, act.name, list(act.parameters), act.subject, status, reason, rule)
+        if status in ("succeeded", "failed", "cancelled"):
+            self._finished[act.action_id] = report
+            while len(self._finished) > self.HISTORY:
+                self._finished.popitem(last=False)
+        self.raise_event(event, msgspec.to_builtins(report))
+
+
+def _show(action: MindAction) -> str:
+    return " ".join((action.name, *action.parameters))
