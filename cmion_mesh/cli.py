@@ -140,11 +140,29 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     stop = _stop_on_signals()
     with Embodiment(
-        args.name, mesh=args.mesh, transport_config=transport_config(args), world_model_init=args.world_model
+        args.name, mesh=args.mesh, transport_config=transport_config(args), world_model_init=args.world_model,
+        rules=args.rules, library=args.library,
     ) as embodiment:
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id})", flush=True)
         stop.wait()
     print(f"embodiment {args.name!r} stopped", flush=True)
+    return EXIT_OK
+
+
+def cmd_serve_competency(args: argparse.Namespace) -> int:
+    from cmion_mesh.competency import Competency, import_class, split_parameters
+    from cmion_mesh.remote import serve
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    cls = import_class(args.cls)
+    if not issubclass(cls, Competency):
+        raise MeshError(f"{args.cls} is not a Competency subclass")
+    competency = cls(*split_parameters(args.parameters))
+    stop = _stop_on_signals()
+    with ZenohTransport(transport_config(args)) as transport, serve(competency, embodiment=args.embodiment, transport=transport,
+                                                                    mesh=args.mesh):
+        print(f"competency {competency.name!r} ({competency.type}) serving embodiment {args.embodiment!r}", flush=True)
+        stop.wait()
     return EXIT_OK
 
 
@@ -187,6 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("--name", required=True, help="embodiment name")
     p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file to load at start")
+    p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file")
+    p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file")
     p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed")
     _common(p)
     p.set_defaults(func=cmd_up)
@@ -208,6 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
                 ap.add_argument("--container", action="store_true", help="the path names a container")
             _common(ap)
             ap.set_defaults(func=cmd_store, store=store)
+
+    p = sub.add_parser("serve-competency", help="host a competency for an embodiment from this process (remote competency)")
+    p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Competency subclass")
+    p.add_argument("--embodiment", required=True)
+    p.add_argument("--parameters", default="", help="comma-separated constructor parameters")
+    _common(p)
+    p.set_defaults(func=cmd_serve_competency)
 
     p = sub.add_parser("peers", help="list the embodiments alive in the mesh")
     _common(p)

@@ -79,12 +79,27 @@ class RunContext:
         assert isinstance(store, Store)
         return store
 
+    def read(self, store: str, container: str, name: str, default: Any = None) -> Any:
+        """A property's value: from the local store, or over the mesh when this competency is remote."""
+        from cmion_mesh.storage import Store
+
+        sim = self.competency.sim
+        local = sim.components_by_name().get(store)
+        if isinstance(local, Store):
+            return local.get(container, name, default)
+        from cmion_mesh.client import MeshClient
+
+        try:
+            return MeshClient(sim.transport, sim.mesh).get_property(sim.embodiment, store, container, name).value
+        except MeshError:
+            return default
+
     def bb_get(self, path: str, default: Any = None) -> Any:
         container, _, name = path.rpartition("/")
-        return self.store(keys.BLACKBOARD).get(container, name, default)
+        return self.read(keys.BLACKBOARD, container, name, default)
 
     def wm_get(self, entity: str, prop: str, default: Any = None) -> Any:
-        return self.store(keys.WORLD_MODEL).get(entity, prop, default)
+        return self.read(keys.WORLD_MODEL, entity, prop, default)
 
     def write(self, store: str, message: Any, timeout: float = 10.0) -> None:
         """Send a write request to a local store and wait for its outcome; raises unless accepted."""
@@ -170,6 +185,7 @@ class Competency:
         with self._lock:
             if self._current is not None:
                 self._current.cancelled.set()
+        self._interrupt()
         self._queue.put(_STOP)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout)
@@ -192,6 +208,10 @@ class Competency:
         with self._lock:
             if self._current is not None and self._current.run_id == run_id:
                 self._current.cancelled.set()
+                self._interrupt()
+
+    def _interrupt(self) -> None:
+        """Wake a run blocked on something other than ``ctx.wait`` (after cancel or stop)."""
 
     def _work(self) -> None:
         if self.background:

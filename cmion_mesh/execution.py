@@ -29,6 +29,7 @@ from cmion_mesh.errors import MeshError, PlanError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import Request
 from cmion_mesh.rules import MindAction, Plan, Step, substitute_step
+from cmion_mesh.transport import Closeable
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,7 @@ class ExecutionSystem(Component):
         self._plans: dict[str, PlanRun] = {}
         self._waiting: deque[tuple[PlanRun, _StepRun]] = deque()
         self._run_ids = itertools.count(1)
+        self._remote_watch: Closeable | None = None
 
     # --- competencies -------------------------------------------------------------------------
 
@@ -102,8 +104,37 @@ class ExecutionSystem(Component):
     def attach(self, sim: Simulation) -> None:
         for competency in self._competencies.values():
             competency.start(sim)
+        self._remote_watch = sim.transport.watch_liveliness(
+            keys.competency_alive_pattern(sim.mesh, sim.embodiment), self._on_remote_token
+        )
+
+    def _on_remote_token(self, key: str, alive: bool) -> None:
+        # On the transport's worker: hand over to the loop.
+        *_, competency_type, name = key.split("/")
+        try:
+            self.sim.call(functools.partial(self._remote_changed, name, competency_type, alive))
+        except MeshError:
+            pass  # closing
+
+    def _remote_changed(self, name: str, competency_type: str, alive: bool) -> None:
+        from cmion_mesh.remote import RemoteCompetency
+
+        existing = self._competencies.get(name)
+        if alive:
+            if existing is None:
+                self.add_competency(RemoteCompetency(name, competency_type))
+                self.raise_event("CompetencyAppeared", {"competency": name, "type": competency_type})
+                self._retry_waiting(competency_type)
+            elif not isinstance(existing, RemoteCompetency):
+                log.warning("remote competency %s ignored: a local competency has that name", name)
+        elif isinstance(existing, RemoteCompetency):
+            self.remove_competency(name)
+            self.raise_event("CompetencyVanished", {"competency": name, "type": competency_type})
 
     def detach(self) -> None:
+        if self._remote_watch is not None:
+            self._remote_watch.close()
+            self._remote_watch = None
         for plan in list(self._plans.values()):
             self.cancel(plan.id)
         for competency in self._competencies.values():

@@ -246,6 +246,9 @@ class Simulation:
     def components(self) -> list[Component]:
         return list(self._components.values())
 
+    def components_by_name(self) -> dict[str, Component]:
+        return dict(self._components)
+
     # --- work in ----------------------------------------------------------------------------
 
     def call(self, fn: Callable[[], None]) -> None:

@@ -7,6 +7,7 @@
     cmion/<mesh>/<embodiment>/ev/<component>/<event>          event publications
     cmion/<mesh>/<embodiment>/rq/<component>/<request>        request queryables
     cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
+    cmion/<mesh>/@competency/<embodiment>/<type>/<name>       remote competencies (liveliness)
 
 ``<mesh>`` names one deployment (default ``default``): two meshes never hear each other.
 Every name is one key chunk; a name containing ``/ * $ # ?``, a leading ``@``, white space at its
@@ -27,6 +28,7 @@ WORLD_MODEL = "wm"
 EVENTS = "ev"
 REQUESTS = "rq"
 ALIVE = "@alive"
+COMPETENCY = "@competency"
 
 _FORBIDDEN = set("/*$#?")
 MAX_NAME = 200
@@ -86,6 +88,16 @@ def request_key(mesh: str, embodiment: str, component: str, request: str) -> str
 
 def alive_key(mesh: str, embodiment: str) -> str:
     return f"{mesh_prefix(mesh)}/{ALIVE}/{check_name(embodiment, 'embodiment')}"
+
+
+def competency_alive_key(mesh: str, embodiment: str, competency_type: str, name: str) -> str:
+    """Liveliness token of a remote competency serving ``embodiment``."""
+    return "/".join((mesh_prefix(mesh), COMPETENCY, check_name(embodiment, "embodiment"),
+                     check_name(competency_type, "competency type"), check_name(name, "competency name")))
+
+
+def competency_alive_pattern(mesh: str, embodiment: str) -> str:
+    return f"{mesh_prefix(mesh)}/{COMPETENCY}/{check_name(embodiment, 'embodiment')}/*/*"
 
 
 def pattern_chunk(value: str, what: str) -> str:

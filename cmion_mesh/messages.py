@@ -141,9 +141,31 @@ class ActionReport(Message, frozen=True, tag="action_report"):
     rule: str = ""
 
 
+# --- remote competencies ---------------------------------------------------------------------------
+
+
+class StartRun(Message, frozen=True, tag="start_run"):
+    """Start one execution of a remote competency; sent to ``.../rq/<competency>/start``."""
+
+    run_id: str
+    parameters: dict[str, Value] = {}
+
+
+class CancelRun(Message, frozen=True, tag="cancel_run"):
+    run_id: str
+
+
+class RunEnded(Message, frozen=True, tag="run_ended"):
+    """Data of a remote competency's ``RunSucceeded`` / ``RunFailed`` / ``RunCancelled`` events."""
+
+    run_id: str
+    status: Literal["succeeded", "failed", "cancelled"]
+    reason: str = ""
+
+
 AnyMessage = (
     Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
-    | Act | CancelAction | ActionReport
+    | Act | CancelAction | ActionReport | StartRun | CancelRun | RunEnded
 )
 
 _encoder = msgspec.msgpack.Encoder()

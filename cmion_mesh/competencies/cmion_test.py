@@ -14,6 +14,7 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext
+from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import AddContainer, SetProperty
 
 
@@ -39,8 +40,11 @@ class TestCompetency3(Competency):
         name = str(parameters["RandomInName"])
         if ctx.bb_get(name) is None:
             return ctx.fail(f"no random number on the blackboard under {name!r}")
-        if not ctx.store(keys.WORLD_MODEL).has_container("TestUser"):
+        try:
             ctx.write(keys.WORLD_MODEL, AddContainer("", "TestUser", "agent"))
+        except RequestRejected as exc:
+            if "already exists" not in exc.reason:
+                raise
         ctx.write(keys.WORLD_MODEL, SetProperty("TestUser", "test", True))
         return True
 
