@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -83,14 +82,17 @@ def test_remote_competency_runs_reports_progress_cancels_and_vanishes(robot: str
 
         # the process dies mid-run: the action fails, naming the vanished competency
         result.clear()
-        worker = threading.Thread(target=lambda: result.append(client.act("robot", "Wave", ["slow", "400"], action_id="doomed", timeout=60)))
+        def doomed() -> None:
+            result.append(client.act("robot", "Wave", ["slow", "400"], action_id="doomed", timeout=60))
+
+        worker = threading.Thread(target=doomed)
         worker.start()
-        wait_for(lambda: sum(1 for e in events if e.name == "Progress" and e.data["run_id"].startswith("doomed")) >= 2, 10, "doomed run going")
+        wait_for(lambda: sum(1 for e in events if e.name == "Progress" and e.data["run_id"].startswith("doomed")) >= 2, 10,
+                 "doomed run going")
         arm.kill()
         worker.join(30)
         assert result and result[0].status == "failed"
         assert "vanished" in result[0].reason, result[0].reason
     finally:
         arm.kill()
-    assert any(e.name == "CompetencyVanished" for e in events)
-    assert json.dumps([e.name for e in events])
+    wait_for(lambda: any(e.name == "CompetencyVanished" for e in events), 10, "the proxy is removed")
