@@ -126,3 +126,24 @@ def test_client_outcome_unknown(robot: str, mesh: str) -> None:
             client.set_property("ghost", "bb", "", "x", 1)
         client.set_property("robot", "bb", "", "x", 1)
         assert client.get_property("robot", "bb", "", "x").value == 1
+
+
+def test_cmion_test_scenario_across_processes(mesh: str) -> None:
+    """CMION's own test scenario, its rules file unchanged, driven from another process."""
+    from cmion_mesh.client import MeshClient
+    from cmion_mesh.resources import embodiment_dir
+    from cmion_mesh.transport import TransportConfig
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    library = embodiment_dir("cmion_test") / "CompetencyLibrary.xml"
+    daemon, endpoint = start_daemon(mesh, "cmion", "--rules", str(CMION_2011 / "CompManagerRulesTest.xml"),
+                                    "--library", str(library), "--world-model", str(CMION_2011 / "worldModelInit.xml"))
+    with daemon, ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: client.read_store("cmion", "wm"), 10, "daemon reachable")
+        first = client.act("cmion", "TestAction", ["test"], timeout=30)
+        assert first.status == "succeeded" and first.rule.endswith("CompManagerRulesTest.xml:47")
+        assert client.get_property("cmion", "wm", "TestUser", "test").value is True
+        assert isinstance(client.get_property("cmion", "bb", "", "test").value, float)
+        assert client.act("cmion", "TestAction2", timeout=30).status == "succeeded"
+    assert daemon.proc.returncode == 0
