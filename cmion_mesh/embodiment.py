@@ -9,12 +9,16 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Iterable
+from typing import Any
 
-from cmion_mesh import keys
+from cmion_mesh import __version__, keys
+from cmion_mesh.architecture import load_architecture
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.execution import ExecutionSystem
-from cmion_mesh.ion import Component, Simulation
+from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
+from cmion_mesh.messages import Request
+from cmion_mesh.mind import Mind
 from cmion_mesh.rules import RuleSet, load_rules
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
@@ -32,8 +36,10 @@ class Embodiment:
         rules: str | os.PathLike[str] | RuleSet | None = None,
         library: str | os.PathLike[str] | None = None,
         competencies: Iterable[Competency] = (),
+        components: Iterable[Component] = (),
     ) -> None:
         self.name = keys.check_name(name, "embodiment")
+        self.version = __version__
         self.mesh = keys.check_name(mesh, "mesh")
         self.started_at = time.time()
         self._owns_transport = transport is None
@@ -43,6 +49,7 @@ class Embodiment:
             transport = ZenohTransport(transport_config)
         self.transport: Transport = transport
         self._token: Closeable | None = None
+        self._inhabitant: str | None = None
         self.sim = Simulation(self.transport, mesh=self.mesh, embodiment=self.name)
         try:
             self.blackboard = Blackboard()
@@ -60,17 +67,58 @@ class Embodiment:
             self.sim.add(self.execution)
             self.manager = CompetencyManager(self.rules, self.execution)
             self.sim.add(self.manager)
+            self.describer = Describer(self)
+            self.sim.add(self.describer)
+            for component in components:
+                self.sim.add(component)
         except BaseException:
             self.close()
             raise
 
+    @classmethod
+    def from_architecture(
+        cls, path: str | os.PathLike[str], *, mesh: str = keys.DEFAULT_MESH, name: str | None = None,
+        transport: Transport | None = None, transport_config: TransportConfig | None = None,
+    ) -> Embodiment:
+        """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``)."""
+        arch = load_architecture(path)
+        return cls(
+            name or arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
+            world_model_init=arch.world_model, rules=arch.rules, library=arch.library, components=arch.build_components(),
+        )
+
     def add(self, component: Component) -> Component:
         return self.sim.add(component)
+
+    @property
+    def minds(self) -> list[Mind]:
+        return [c for c in self.sim.components if isinstance(c, Mind)]
+
+    def describe(self) -> dict[str, Any]:
+        """What discovery tells other peers about this embodiment (plain data)."""
+        return {
+            "name": self.name,
+            "mesh": self.mesh,
+            "competency_types": sorted(self.execution.types()),
+            "competencies": [c.name for c in self.execution.competencies],
+            "actions": self.rules.actions(),
+            "minds": [m.name for m in self.minds],
+            "inhabitant": self.inhabitant,
+            "version": self.version,
+            "started_at": self.started_at,
+            "zenoh_id": self.transport.id,
+        }
+
+    @property
+    def inhabitant(self) -> str | None:
+        """The companion living here, or None when empty (set by migration)."""
+        return self._inhabitant
 
     def start(self) -> Embodiment:
         self.sim.start()
         if self._token is None:
             self._token = self.transport.declare_token(keys.alive_key(self.mesh, self.name))
+        self.sim.raise_event("embodiment", "EmbodimentReady", {"name": self.name})
         return self
 
     def __enter__(self) -> Embodiment:
@@ -86,3 +134,18 @@ class Embodiment:
         self.sim.close()
         if self._owns_transport:
             self.transport.close()
+
+
+class Describer(Component):
+    """Answers ``.../rq/embodiment/describe`` for discovery."""
+
+    requests = {"describe": Request}
+
+    def __init__(self, embodiment: Embodiment) -> None:
+        super().__init__("embodiment")
+        self.embodiment = embodiment
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        description = self.embodiment.describe()
+        for request in batch:
+            request.accept(description)

@@ -1,0 +1,97 @@
+"""Architecture configuration, in CMION's ``ArchitectureConfiguration`` vocabulary.
+
+::
+
+    <ArchitectureConfiguration Embodiment="robot"
+        CompetencyManagerRulesFile="rules.xml"
+        CompetencyLibraryConfigurationFile="library.xml"
+        WorldModelInitFile="worldModel.xml">
+      <ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,spirit.json"/>
+    </ArchitectureConfiguration>
+
+File names are relative to the configuration file. ``ArchitectureComponent`` entries name ION
+components (``package.module:Class``, subclasses of ``cmion_mesh.ion.Component``) built with
+comma-separated string parameters: minds, monitors, extra stores. ``Embodiment`` (an extension)
+names the embodiment; without it the configuration's folder name is used.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from cmion_mesh import keys, xmlsafe
+from cmion_mesh.competency import import_class, split_parameters
+from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.ion import Component
+
+
+@dataclass(frozen=True, slots=True)
+class ComponentSpec:
+    class_name: str
+    parameters: tuple[str, ...]
+    line: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class Architecture:
+    path: Path
+    embodiment: str
+    rules: Path
+    library: Path
+    world_model: Path | None
+    components: tuple[ComponentSpec, ...]
+    line: int | None = None
+
+    def build_components(self) -> list[Component]:
+        built = []
+        for spec in self.components:
+            cls = import_class(spec.class_name, path=str(self.path), line=spec.line)
+            if not issubclass(cls, Component):
+                raise ConfigError(f"{spec.class_name} is not an ION component (cmion_mesh.ion.Component)",
+                                  path=str(self.path), line=spec.line)
+            try:
+                built.append(cls(*spec.parameters))
+            except TypeError as exc:
+                raise ConfigError(f"cannot construct {spec.class_name} with {list(spec.parameters)}: {exc}",
+                                  path=str(self.path), line=spec.line) from None
+        return built
+
+
+def _line(element: object) -> int | None:
+    line = getattr(element, "sourceline", None)
+    return line if isinstance(line, int) else None
+
+
+def load_architecture(path: str | os.PathLike[str]) -> Architecture:
+    """Read and check a configuration: schema, embodiment name, referenced files exist."""
+    config = Path(path).resolve()
+    tree = xmlsafe.load(config, "ArchitectureConfiguration.xsd")
+    root = tree.getroot()
+    line = _line(root)
+
+    def referenced(attribute: str, required: bool) -> Path | None:
+        value = root.get(attribute)
+        if value is None or value.strip() == "":
+            if required:
+                raise ConfigError(f"{attribute} is required", path=str(config), line=line)
+            return None
+        target = (config.parent / value).resolve()
+        if not target.is_file():
+            raise ConfigError(f"{attribute} {value!r} not found (looked at {target})", path=str(config), line=line)
+        return target
+
+    rules = referenced("CompetencyManagerRulesFile", True)
+    library = referenced("CompetencyLibraryConfigurationFile", True)
+    assert rules is not None and library is not None
+    name = root.get("Embodiment") or config.parent.name
+    try:
+        keys.check_name(name, "embodiment")
+    except InvalidName as exc:
+        raise ConfigError(str(exc), path=str(config), line=line) from None
+    components = tuple(
+        ComponentSpec(el.get("ClassName", ""), split_parameters(el.get("ConstructorParameters")), _line(el))
+        for el in root if el.tag == "ArchitectureComponent"
+    )
+    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line)

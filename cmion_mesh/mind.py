@@ -1,0 +1,182 @@
+"""The agent mind interface (CMION's ``AgentMindConnector``).
+
+A ``Mind`` is an ION component that drives the body and perceives it:
+
+* **to the body**: ``act(name, parameters, subject)`` sends a mind action to the competency
+  manager and returns its id; ``cancel(action_id)`` stops it;
+* **from the body**, each on the update loop, one at a time: the outcome of every action it sent
+  (``on_action_succeeded`` / ``failed`` / ``cancelled``), world-model changes (``on_entity_added``,
+  ``on_entity_removed``, ``on_property_changed``, ``on_property_removed``, with the persistent
+  flag), remote actions (actions of other agents, raised as ``RemoteAction`` events by any
+  component) and raw messages (``.../rq/<mind>/message``);
+* ``sleep`` / ``wake`` (requests ``.../rq/<mind>/sleep`` and ``wake``): an asleep mind perceives
+  nothing and its ``act`` is refused; ``on_sleep`` / ``on_wake`` tell it.
+
+The same class runs inside the daemon (named in the architecture config) or in another process
+(``serve_mind``): there its simulation carries the embodiment's name, so its requests and
+subscriptions travel over zenoh. The key-space protocol is therefore only: requests
+``.../rq/manager/act|cancel``, events ``.../ev/manager/Action*`` and ``.../ev/wm/*``, events
+``.../ev/*/RemoteAction``, and the mind's own ``.../rq/<mind>/sleep|wake|message|state``. Any
+zenoh client can be a mind. Several minds may drive one body (each has its own component name).
+
+``state()`` / ``restore()`` hold the mind's plain-data state, which migration packs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+import msgspec
+
+from cmion_mesh import keys
+from cmion_mesh.errors import MeshError
+from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.messages import Act, ActionReport, CancelAction, Event, Outcome, Request, StorageChange
+from cmion_mesh.rules import MindAction
+from cmion_mesh.transport import Transport
+
+log = logging.getLogger(__name__)
+
+
+class Mind(Component):
+    requests = {"sleep": Request, "wake": Request, "message": Request, "state": Request}
+
+    def __init__(self, name: str = "mind", *, awake: bool = True) -> None:
+        super().__init__(name)
+        self.awake = awake
+        self._ids = itertools.count(1)
+        self.pending: dict[str, Act] = {}
+
+    # --- wiring -------------------------------------------------------------------------------
+
+    def attach(self, sim: Simulation) -> None:
+        sim.on_event(self._manager_event, component="manager")
+        sim.on_event(self._world_event, component=keys.WORLD_MODEL)
+        sim.on_event(self._remote_action, event="RemoteAction")
+        self.on_start()
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        for request in batch:
+            if request.name == "sleep":
+                self.sleep()
+                request.accept({"awake": self.awake})
+            elif request.name == "wake":
+                self.wake()
+                request.accept({"awake": self.awake})
+            elif request.name == "state":
+                request.accept(self.state())
+            elif not self.awake:
+                request.reject(f"mind {self.name!r} is asleep")
+            else:
+                self.on_message(request.payload.args)
+                request.accept()
+
+    def sleep(self) -> None:
+        if self.awake:
+            self.awake = False
+            self.raise_event("MindAsleep", {"mind": self.name})
+            self.on_sleep()
+
+    def wake(self) -> None:
+        if not self.awake:
+            self.awake = True
+            self.raise_event("MindAwake", {"mind": self.name})
+            self.on_wake()
+
+    # --- to the body --------------------------------------------------------------------------
+
+    def act(self, name: str, parameters: list[str] | tuple[str, ...] = (), subject: str = "", *, deadline: float = 0.0) -> str:
+        """Send an action; returns its id. Its end arrives as ``on_action_*``. Refused while asleep."""
+        if not self.awake:
+            raise MeshError(f"mind {self.name!r} is asleep: action {name!r} not sent")
+        action_id = f"{self.name}-{self.sim.transport.id[:6]}-{next(self._ids)}"
+        act = Act(name, list(parameters), subject, action_id, deadline)
+        self.pending[action_id] = act
+        self.sim.request("manager", "act", act, on_outcome=lambda outcome: self._act_answered(act, outcome))
+        return action_id
+
+    def cancel(self, action_id: str) -> None:
+        self.sim.request("manager", "cancel", CancelAction(action_id))
+
+    def _act_answered(self, act: Act, outcome: Outcome) -> None:
+        if outcome.status != "accepted" and self.pending.pop(act.action_id, None) is not None:
+            # Refused (no rule...) or unknown: the mind learns it as a failure with the reason.
+            self.on_action_failed(ActionReport(act.action_id, act.name, list(act.parameters), act.subject, "failed", outcome.reason))
+
+    # --- from the body ------------------------------------------------------------------------
+
+    def _manager_event(self, event: Event) -> None:
+        data = event.data if isinstance(event.data, dict) else {}
+        if data.get("action_id") not in self.pending:
+            return
+        report = msgspec.convert(data, ActionReport)
+        if event.name == "ActionSucceeded":
+            self.pending.pop(report.action_id, None)
+            self.on_action_succeeded(report)
+        elif event.name == "ActionFailed":
+            self.pending.pop(report.action_id, None)
+            self.on_action_failed(report)
+        elif event.name == "ActionCancelled":
+            self.pending.pop(report.action_id, None)
+            self.on_action_cancelled(report)
+
+    def _world_event(self, event: Event) -> None:
+        if not self.awake:
+            return
+        try:
+            change = msgspec.convert(event.data, StorageChange)
+        except msgspec.ValidationError:
+            return
+        if change.op == "add_container" and change.container == "":
+            self.on_entity_added(change.name, change.kind)
+        elif change.op == "remove_container" and change.container == "":
+            self.on_entity_removed(change.name, change.kind)
+        elif change.op == "set_property":
+            self.on_property_changed(change.container, change.name, change.value, change.persistent)
+        elif change.op == "remove_property":
+            self.on_property_removed(change.container, change.name, change.persistent)
+
+    def _remote_action(self, event: Event) -> None:
+        if not self.awake or not isinstance(event.data, dict):
+            return
+        data = event.data
+        self.on_remote_action(MindAction(str(data.get("name", "")), tuple(str(p) for p in data.get("parameters", ())),
+                                         str(data.get("subject", ""))))
+
+    # --- to override --------------------------------------------------------------------------
+
+    def on_start(self) -> None: ...
+    def on_action_succeeded(self, report: ActionReport) -> None: ...
+    def on_action_failed(self, report: ActionReport) -> None: ...
+    def on_action_cancelled(self, report: ActionReport) -> None: ...
+    def on_entity_added(self, name: str, kind: str) -> None: ...
+    def on_entity_removed(self, name: str, kind: str) -> None: ...
+    def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None: ...
+    def on_property_removed(self, entity: str, name: str, persistent: bool) -> None: ...
+    def on_remote_action(self, action: MindAction) -> None: ...
+    def on_message(self, data: dict[str, Any]) -> None: ...
+    def on_sleep(self) -> None: ...
+    def on_wake(self) -> None: ...
+
+    def state(self) -> dict[str, Any]:
+        """Plain data that migration carries; minds with memory override this and ``restore``."""
+        return {}
+
+    def restore(self, state: dict[str, Any]) -> None: ...
+
+
+def raise_remote_action(component: Component, name: str, parameters: list[str] | tuple[str, ...] = (), subject: str = "") -> None:
+    """What a perception component calls when it sees another agent act (e.g. the user)."""
+    component.raise_event("RemoteAction", {"name": name, "parameters": list(parameters), "subject": subject})
+
+
+@contextlib.contextmanager
+def serve_mind(mind: Mind, *, embodiment: str, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> Iterator[Simulation]:
+    """Run ``mind`` in this process, driving ``embodiment`` over the mesh."""
+    with Simulation(transport, mesh=mesh, embodiment=embodiment) as sim:
+        sim.add(mind)
+        yield sim
