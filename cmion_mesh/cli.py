@@ -7,10 +7,13 @@ and ``--no-multicast``; errors are one clear line on stderr and a non-zero exit,
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -21,7 +24,7 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Container, Property, RemoveContainer, RemoveProperty
 from cmion_mesh.transport import TransportConfig
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
 
 
 def transport_config(args: argparse.Namespace) -> TransportConfig:
@@ -135,17 +138,48 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
+def resolve_config(path: str) -> str:
+    """``up`` takes a configuration file, a folder holding ``ArchitectureConfiguration.xml``, or the
+    name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``)."""
+    from pathlib import Path
+
+    from cmion_mesh.resources import data_dir
+
+    candidate = Path(path)
+    if candidate.is_dir():
+        candidate = candidate / "ArchitectureConfiguration.xml"
+    elif not candidate.exists() and "/" not in path:
+        shipped = data_dir("embodiments") / path / "ArchitectureConfiguration.xml"
+        if shipped.exists():
+            candidate = shipped
+    if not candidate.is_file():
+        raise MeshError(f"no architecture configuration at {path!r}")
+    return str(candidate)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from cmion_mesh.embodiment import Embodiment
 
     stop = _stop_on_signals()
-    with Embodiment(
-        args.name, mesh=args.mesh, transport_config=transport_config(args), world_model_init=args.world_model,
-        rules=args.rules, library=args.library,
-    ) as embodiment:
-        print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id})", flush=True)
+    if args.path:
+        embodiment = Embodiment.from_architecture(resolve_config(args.path), mesh=args.mesh, name=args.name,
+                                                  transport_config=transport_config(args))
+    else:
+        if not args.name:
+            raise MeshError("give an architecture configuration (PATH) or at least --name")
+        embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args),
+                                world_model_init=args.world_model, rules=args.rules, library=args.library)
+    with embodiment:
+        if args.no_multicast and not args.connect and not args.listen:
+            print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
+        print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
+              f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules)", flush=True)
         stop.wait()
-    print(f"embodiment {args.name!r} stopped", flush=True)
+    left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
+    if left:
+        print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
+        return EXIT_FAILED
+    print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
     return EXIT_OK
 
 
@@ -168,13 +202,140 @@ def cmd_serve_competency(args: argparse.Namespace) -> int:
 
 def cmd_peers(args: argparse.Namespace) -> int:
     transport, client = _client(args)
-    with transport:
-        names = client.embodiments()
+    with transport, Spinner("looking for embodiments", enabled=not args.json):
+        peers = client.describe_all(timeout=args.timeout)
     if args.json:
-        print(json.dumps(names))
-    else:
-        print("\n".join(names) if names else "(no embodiments found)")
+        print(json.dumps(peers))
+        return EXIT_OK
+    if not peers:
+        print("(no embodiments found: try `cmion-mesh doctor`)")
+        return EXIT_OK
+    rows: list[tuple[str, ...]] = [("EMBODIMENT", "INHABITANT", "COMPETENCY TYPES", "ACTIONS", "VERSION", "UP SINCE")]
+    for p in peers:
+        since = time.strftime("%H:%M:%S", time.localtime(p.get("started_at", 0))) if p.get("started_at") else "?"
+        rows.append((p["name"], p.get("inhabitant") or "-", ",".join(p.get("competency_types", [])) or "-",
+                     "; ".join(p.get("actions", [])) or "-", p.get("version", "?"), since))
+    _table(rows)
     return EXIT_OK
+
+
+def _table(rows: list[tuple[str, ...]]) -> None:
+    widths = [min(40, max(len(r[i]) for r in rows)) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(cell[:40].ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
+
+
+class Spinner:
+    """A progress line on stderr while a command waits (only on a terminal)."""
+
+    def __init__(self, text: str, *, enabled: bool = True) -> None:
+        self.text = text
+        self.enabled = enabled and sys.stderr.isatty()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> Spinner:
+        if self.enabled:
+            self._thread = threading.Thread(target=self._spin, daemon=True)
+            self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        frames = "|/-\\"
+        start = time.monotonic()
+        for i in itertools.count():
+            if self._stop.wait(0.1):
+                break
+            sys.stderr.write(f"\r{frames[i % 4]} {self.text} ({time.monotonic() - start:.1f} s)")
+            sys.stderr.flush()
+        sys.stderr.write("\r" + " " * (len(self.text) + 16) + "\r")
+        sys.stderr.flush()
+
+    def __exit__(self, *_: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1)
+
+
+def cmd_act(args: argparse.Namespace) -> int:
+    transport, client = _client(args)
+    with transport:
+        client.wait_for_embodiment(args.embodiment, timeout=args.discover_timeout)
+        with Spinner(f"{args.embodiment}: {' '.join([args.action, *args.parameters])}", enabled=not args.json):
+            report = client.act(args.embodiment, args.action, args.parameters, subject=args.subject, action_id=args.id or "",
+                                timeout=args.timeout, deadline=args.deadline)
+    if args.json:
+        print(json.dumps(msgspec.to_builtins(report)))
+    else:
+        extra = f": {report.reason}" if report.reason else ""
+        print(f"{report.action_id} {report.status}{extra}" + (f" (rule {report.rule})" if report.rule else ""))
+    return {"succeeded": EXIT_OK, "cancelled": EXIT_CANCELLED}.get(report.status, EXIT_FAILED)
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    from cmion_mesh.ion import require_accepted
+
+    transport, client = _client(args)
+    with transport:
+        client.wait_for_embodiment(args.embodiment, timeout=args.discover_timeout)
+        require_accepted(client.cancel(args.embodiment, args.action_id), f"{args.embodiment}/manager/cancel")
+    print(f"cancel of {args.action_id} accepted")
+    return EXIT_OK
+
+
+def cmd_events(args: argparse.Namespace) -> int:
+    from cmion_mesh.messages import Event
+
+    stop = _stop_on_signals()
+    seen = [0]
+
+    def show(event: Event) -> None:
+        if args.json:
+            print(json.dumps(msgspec.to_builtins(event)), flush=True)
+        else:
+            stamp = time.strftime("%H:%M:%S", time.localtime(event.time)) + f".{int(event.time * 1000) % 1000:03d}"
+            data = json.dumps(event.data) if event.data is not None else ""
+            print(f"{stamp} {event.embodiment}/{event.component} {event.name} {data}", flush=True)
+        seen[0] += 1
+        if args.count and seen[0] >= args.count:
+            stop.set()
+
+    transport, client = _client(args)
+    with transport, client.events(show, embodiment=args.embodiment, component=args.component, event=args.event):
+        if not args.json:
+            print(f"following events of {args.embodiment}/{args.component}/{args.event} in mesh {args.mesh!r} (Ctrl-C to stop)",
+                  file=sys.stderr, flush=True)
+        stop.wait(args.duration or None)
+    return EXIT_OK
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from cmion_mesh import router
+
+    return router.run(args)
+
+
+def cmd_serve_mind(args: argparse.Namespace) -> int:
+    from cmion_mesh.competency import import_class, split_parameters
+    from cmion_mesh.mind import Mind, serve_mind
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    cls = import_class(args.cls)
+    if not issubclass(cls, Mind):
+        raise MeshError(f"{args.cls} is not a Mind subclass")
+    mind = cls(*split_parameters(args.parameters))
+    stop = _stop_on_signals()
+    with ZenohTransport(transport_config(args)) as transport, serve_mind(mind, embodiment=args.embodiment, transport=transport,
+                                                                         mesh=args.mesh):
+        print(f"mind {mind.name!r} driving embodiment {args.embodiment!r}", flush=True)
+        stop.wait()
+    return EXIT_OK
+
+
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from cmion_mesh.doctor import run_doctor
+
+    return run_doctor(args, transport_config(args))
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -203,7 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
-    p.add_argument("--name", required=True, help="embodiment name")
+    p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")
+    p.add_argument("--name", help="embodiment name (default: from the configuration)")
     p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file to load at start")
     p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file")
     p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file")
@@ -236,9 +398,57 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.set_defaults(func=cmd_serve_competency)
 
-    p = sub.add_parser("peers", help="list the embodiments alive in the mesh")
+    p = sub.add_parser("peers", help="list the embodiments alive in the mesh, with what they can do")
+    p.add_argument("--timeout", type=float, default=1.5, help="seconds to wait for answers")
     _common(p)
     p.set_defaults(func=cmd_peers)
+
+    p = sub.add_parser("act", help="send a mind action to an embodiment and wait for its outcome (exit code says it)")
+    p.add_argument("embodiment")
+    p.add_argument("action")
+    p.add_argument("parameters", nargs="*")
+    p.add_argument("--subject", default="")
+    p.add_argument("--id", help="action id (default: generated)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the outcome")
+    p.add_argument("--deadline", type=float, default=0.0, help="deadline of each plan tried, seconds")
+    p.add_argument("--discover-timeout", type=float, default=5.0, help="seconds to wait for the embodiment to be found")
+    _common(p)
+    p.set_defaults(func=cmd_act)
+
+    p = sub.add_parser("cancel", help="cancel a running action")
+    p.add_argument("embodiment")
+    p.add_argument("action_id")
+    p.add_argument("--discover-timeout", type=float, default=5.0)
+    _common(p)
+    p.set_defaults(func=cmd_cancel)
+
+    p = sub.add_parser("events", help="follow the event stream (filterable)")
+    p.add_argument("--follow", "-f", action="store_true", help="keep following (the default; for familiarity)")
+    p.add_argument("--embodiment", default="*")
+    p.add_argument("--component", default="*")
+    p.add_argument("--event", default="*")
+    p.add_argument("--count", type=int, default=0, help="stop after this many events")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    _common(p)
+    p.set_defaults(func=cmd_events)
+
+    p = sub.add_parser("serve-mind", help="run a mind in this process, driving an embodiment over the mesh")
+    p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Mind subclass")
+    p.add_argument("--embodiment", required=True)
+    p.add_argument("--parameters", default="", help="comma-separated constructor parameters")
+    _common(p)
+    p.set_defaults(func=cmd_serve_mind)
+
+    p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh")
+    from cmion_mesh import router as router_module
+
+    router_module.add_arguments(p)
+    p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("doctor", help="explain why peers are (not) found: interfaces, multicast, zenoh config")
+    p.add_argument("--timeout", type=float, default=2.0)
+    _common(p)
+    p.set_defaults(func=cmd_doctor)
 
     p = sub.add_parser("validate", help="check CMION XML files against their schemas and semantics")
     p.add_argument("files", nargs="+")
@@ -261,6 +471,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAILED
     except KeyboardInterrupt:
         return 130
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except Exception as exc:
+        if os.environ.get("CMION_MESH_DEBUG"):
+            raise
+        print(f"internal error: {type(exc).__name__}: {exc} (set CMION_MESH_DEBUG=1 for the traceback)", file=sys.stderr)
+        return EXIT_FAILED
 
 
 if __name__ == "__main__":

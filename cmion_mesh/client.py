@@ -6,14 +6,16 @@ It needs only a transport, not a simulation: no update loop, no components of it
 from __future__ import annotations
 
 import queue
+import threading
 import uuid
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.errors import OutcomeUnknown, ProtocolError, StorageError
+from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError, StorageError
 from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.messages import (
     Act,
@@ -157,6 +159,39 @@ class MeshClient:
                     pass
 
         return self.transport.subscribe(pattern, on_sample)
+
+    def describe(self, embodiment: str, *, timeout: float = 2.0) -> dict[str, Any]:
+        """An embodiment's description (name, competency types, actions, inhabitant, version, started at)."""
+        outcome = self.request(embodiment, "embodiment", "describe", timeout=timeout)
+        value = require_accepted(outcome, keys.request_key(self.mesh, embodiment, "embodiment", "describe"))
+        return value if isinstance(value, dict) else {"name": embodiment}
+
+    def describe_all(self, *, timeout: float = 2.0) -> list[dict[str, Any]]:
+        """Every live embodiment, described; one that does not answer is listed by name only."""
+        names = self.embodiments(timeout=timeout)
+        out = []
+        with ThreadPoolExecutor(max_workers=max(1, min(16, len(names)))) as pool:
+            futures = {name: pool.submit(self.describe, name, timeout=timeout) for name in names}
+            for name, future in futures.items():
+                try:
+                    out.append(future.result())
+                except MeshError as exc:
+                    out.append({"name": name, "error": str(exc)})
+        return out
+
+    def wait_for_embodiment(self, embodiment: str, *, timeout: float = 5.0) -> None:
+        """Return once ``embodiment``'s liveliness token is seen, else ``OutcomeUnknown`` naming it."""
+        seen = threading.Event()
+        key = keys.alive_key(self.mesh, embodiment)
+
+        def on_token(token: str, alive: bool) -> None:
+            if alive and token == key:
+                seen.set()
+
+        with self.transport.watch_liveliness(key, on_token):
+            if not seen.wait(timeout):
+                raise OutcomeUnknown(f"embodiment {embodiment!r} not found in mesh {self.mesh!r} within {timeout:g} s"
+                                     " (try `cmion-mesh peers` or `cmion-mesh doctor`)")
 
     def embodiments(self, *, timeout: float = 2.0) -> list[str]:
         """Names of the embodiments whose liveliness token is present."""

@@ -1,4 +1,11 @@
-"""``cmion-mesh validate``: schema and semantic checks for every CMION XML file kind."""
+"""``cmion-mesh validate``: schema and semantic checks for every CMION XML file kind.
+
+Each file is read through ``xmlsafe`` (safe parsing, XSD validation by its root element), then
+checked for meaning: rules (dependency graphs, parameters), libraries (every class imports and
+is a competency), world models (unique names, typed values), architecture configurations (the
+referenced files, the component classes, and that every competency type the rules use is
+provided by the library). Errors name file and line.
+"""
 
 from __future__ import annotations
 
@@ -8,34 +15,59 @@ from collections.abc import Callable
 from cmion_mesh import xmlsafe
 from cmion_mesh.errors import ConfigError
 
-#: Root element -> (schema, semantic check run after the schema passed).
-_KINDS: dict[str, tuple[str, Callable[[str], object] | None]] = {}
 
-
-def register(root: str, schema: str, check: Callable[[str], object] | None = None) -> None:
-    _KINDS[root] = (schema, check)
-
-
-def _world_model(path: str) -> object:
+def _world_model(path: str) -> None:
     from cmion_mesh.storage import load_world_model_init
 
-    return load_world_model_init(path)
+    load_world_model_init(path)
 
 
-register("WorldModel", "WorldModel.xsd", _world_model)
-register("CompetencyLibrary", "CompetencyLibrary.xsd")
-register("CompetencyManagerRules", "CompetencyManagerRules.xsd")
-register("ArchitectureConfiguration", "ArchitectureConfiguration.xsd")
+def _rules(path: str) -> None:
+    from cmion_mesh.rules import load_rules
+
+    load_rules(path)
+
+
+def _library(path: str) -> None:
+    from cmion_mesh.competency import load_library
+
+    load_library(path)
+
+
+def _architecture(path: str) -> None:
+    from cmion_mesh.architecture import load_architecture
+    from cmion_mesh.competency import import_class, load_library
+    from cmion_mesh.ion import Component
+    from cmion_mesh.rules import load_rules
+
+    arch = load_architecture(path)
+    rules = load_rules(arch.rules)
+    library = load_library(arch.library)
+    if arch.world_model is not None:
+        _world_model(str(arch.world_model))
+    rules.check_types({c.type for c in library})
+    for spec in arch.components:
+        cls = import_class(spec.class_name, path=str(arch.path), line=spec.line)
+        if not issubclass(cls, Component):
+            raise ConfigError(f"{spec.class_name} is not an ION component", path=str(arch.path), line=spec.line)
+
+
+#: Root element -> (schema, semantic check run after the schema passed).
+KINDS: dict[str, tuple[str, Callable[[str], None]]] = {
+    "WorldModel": ("WorldModel.xsd", _world_model),
+    "CompetencyLibrary": ("CompetencyLibrary.xsd", _library),
+    "CompetencyManagerRules": ("CompetencyManagerRules.xsd", _rules),
+    "ArchitectureConfiguration": ("ArchitectureConfiguration.xsd", _architecture),
+}
 
 
 def validate_file(path: str | os.PathLike[str]) -> str:
     """Check one file; returns its kind (root element) or raises ``ConfigError`` naming file and line."""
     name = os.fspath(path)
     root = xmlsafe.load(name, None).getroot().tag
-    if not isinstance(root, str) or root not in _KINDS:
-        raise ConfigError(f"unknown document kind <{root}>; expected one of {', '.join(sorted(_KINDS))}", path=name, line=1)
-    schema, check = _KINDS[root]
+    if not isinstance(root, str) or root not in KINDS:
+        raise ConfigError(f"unknown document kind <{root}>; expected one of {', '.join(sorted(KINDS))}", path=name, line=1)
+    schema, check = KINDS[root]
     xmlsafe.load(name, schema)
-    if check is not None:
-        check(name)
+    check(name)
     return root

@@ -263,6 +263,11 @@ class ZenohTransport:
 
         return self._track(_Entity(sub.undeclare, _drain(f"live:{selector}", channel.recv, handle)))
 
+    def peers(self) -> list[str]:
+        """Zenoh ids of the peers and routers this session is connected to (for diagnostics)."""
+        info = self._session.info
+        return [str(z) for z in info.peers_zid()] + [f"router:{z}" for z in info.routers_zid()]
+
     def close(self) -> None:
         with self._lock:
             if self._closed:

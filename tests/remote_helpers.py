@@ -5,6 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from cmion_mesh.competency import Competency, RunContext
+from cmion_mesh.messages import ActionReport
+from cmion_mesh.mind import Mind
 
 
 class Arm(Competency):
@@ -22,3 +24,33 @@ class Arm(Competency):
             return ctx.fail("arm jammed")
         ctx.bb_set("waved", {"speed": parameters.get("speed"), "steps": steps, "by": self.name})
         return True
+
+
+class EagerMind(Mind):
+    """A remote mind for tests: on start (and on every raw message) it sends the action it is given."""
+
+    def __init__(self, name: str = "eager", action: str = "TestAction", *parameters: str) -> None:
+        super().__init__(name)
+        self.action = action
+        self.parameters = parameters
+        self.outcomes: list[str] = []
+
+    def on_start(self) -> None:
+        self.act(self.action, self.parameters)
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        self.act(str(data.get("action", self.action)), tuple(str(p) for p in data.get("parameters", self.parameters)))
+
+    def on_action_succeeded(self, report: ActionReport) -> None:
+        self.outcomes.append(f"{report.name}:succeeded")
+        self.raise_event("MindSaw", {"action_id": report.action_id, "status": "succeeded", "outcomes": self.outcomes})
+
+    def on_action_failed(self, report: ActionReport) -> None:
+        self.outcomes.append(f"{report.name}:failed")
+        self.raise_event("MindSaw", {"action_id": report.action_id, "status": "failed", "reason": report.reason, "outcomes": self.outcomes})
+
+    def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None:
+        self.raise_event("MindPerceived", {"entity": entity, "name": name, "value": value, "persistent": persistent})
+
+    def state(self) -> dict[str, Any]:
+        return {"outcomes": list(self.outcomes)}

@@ -1,0 +1,124 @@
+"""``cmion-mesh doctor``: explains why peers are (or are not) found.
+
+Looks at the network interfaces (up, multicast-capable, addresses), the effective zenoh settings
+(mode, multicast scouting, endpoints, config file), then joins the mesh briefly and reports the
+zenoh peers it connected to, the embodiments alive in this mesh, and embodiments alive in *other*
+meshes (the most common mistake: a different ``--mesh``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from cmion_mesh import keys
+from cmion_mesh.transport import TransportConfig
+
+IFF_UP, IFF_LOOPBACK, IFF_MULTICAST = 0x1, 0x8, 0x1000
+
+
+def interfaces() -> list[dict[str, Any]]:
+    found = []
+    addresses = _addresses()
+    for _, name in socket.if_nameindex():
+        flags = 0
+        try:
+            flags = int(Path(f"/sys/class/net/{name}/flags").read_text().strip(), 16)
+        except (OSError, ValueError):
+            pass
+        found.append({
+            "name": name,
+            "up": bool(flags & IFF_UP),
+            "loopback": bool(flags & IFF_LOOPBACK),
+            "multicast": bool(flags & IFF_MULTICAST),
+            "addresses": addresses.get(name, []),
+        })
+    return found
+
+
+def _addresses() -> dict[str, list[str]]:
+    try:
+        out = subprocess.run(["ip", "-o", "addr", "show"], capture_output=True, text=True, timeout=5, check=False).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return {}
+    result: dict[str, list[str]] = {}
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) >= 4 and parts[2] in ("inet", "inet6"):
+            result.setdefault(parts[1], []).append(parts[3])
+    return result
+
+
+def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, Any]:
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    report: dict[str, Any] = {"mesh": mesh, "interfaces": interfaces(), "problems": [], "hints": []}
+    report["zenoh"] = {
+        "mode": config.mode, "multicast_scouting": config.multicast, "multicast_interface": config.multicast_interface or "auto",
+        "connect": list(config.connect), "listen": list(config.listen) or ["(zenoh default: all interfaces, random port)"],
+        "config_file": config.config_file,
+    }
+    usable = [i for i in report["interfaces"] if i["up"] and not i["loopback"] and i["multicast"]]
+    if config.multicast and not usable:
+        report["problems"].append("multicast scouting is on but no interface is up and multicast-capable besides loopback")
+        report["hints"].append("connect explicitly: --connect tcp/<peer-or-router>:7447 (and --listen on the other side)")
+    if not config.multicast and not config.connect:
+        report["problems"].append("multicast scouting is off and no --connect endpoint is given: this session can only be found by others")
+    started = time.monotonic()
+    with ZenohTransport(config) as transport:
+        opened = time.monotonic() - started
+        seen: set[str] = set()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and len(seen) < 1000:  # bounded: tokens arrive as links come up
+            seen.update(transport.alive(f"{keys.ROOT}/*/{keys.ALIVE}/*", timeout=max(0.1, min(0.5, deadline - time.monotonic()))))
+            if seen and time.monotonic() - started > 1.0:
+                break
+        report["session"] = {"open_seconds": round(opened, 3), "zenoh_id": transport.id, "connected_to": transport.peers()}
+    here: list[str] = []
+    elsewhere: dict[str, list[str]] = {}
+    for key in sorted(seen):
+        parts = key.split("/")
+        if parts[1] == mesh:
+            here.append(parts[3])
+        else:
+            elsewhere.setdefault(parts[1], []).append(parts[3])
+    report["embodiments"] = here
+    report["other_meshes"] = elsewhere
+    if not report["session"]["connected_to"]:
+        report["problems"].append("no zenoh peer or router reached")
+    if not here and elsewhere:
+        first = sorted(elsewhere)[0]
+        report["hints"].append(f"embodiments exist in other meshes {sorted(elsewhere)}: did you mean --mesh {first}?")
+    if not here and not elsewhere and report["session"]["connected_to"]:
+        report["hints"].append("zenoh peers answer but no embodiment is up: start one with `cmion-mesh up`")
+    return report
+
+
+def run_doctor(args: argparse.Namespace, config: TransportConfig) -> int:
+    report = diagnose(config, args.mesh, args.timeout)
+    if args.json:
+        print(json.dumps(report))
+        return 0 if report["embodiments"] else 1
+    print("interfaces:")
+    for i in report["interfaces"]:
+        flags = ", ".join(f for f, on in (("up", i["up"]), ("loopback", i["loopback"]), ("multicast", i["multicast"])) if on)
+        print(f"  {i['name']:<12} {flags:<28} {' '.join(i['addresses'])}")
+    z = report["zenoh"]
+    print(f"zenoh: mode {z['mode']}, multicast scouting {'on' if z['multicast_scouting'] else 'off'} "
+          f"(interface {z['multicast_interface']}), connect {z['connect'] or '-'}, listen {z['listen']}"
+          + (f", config {z['config_file']}" if z["config_file"] else ""))
+    s = report["session"]
+    print(f"session {s['zenoh_id']} opened in {s['open_seconds']} s; connected to {len(s['connected_to'])} zenoh node(s)")
+    print(f"embodiments in mesh {args.mesh!r}: {', '.join(report['embodiments']) or 'none'}")
+    for other, names in report["other_meshes"].items():
+        print(f"  (mesh {other!r}: {', '.join(names)})")
+    for problem in report["problems"]:
+        print(f"problem: {problem}")
+    for hint in report["hints"]:
+        print(f"hint: {hint}")
+    return 0 if report["embodiments"] else 1
