@@ -1,0 +1,42 @@
+"""Summaries of latency samples (seconds in, milliseconds out)."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+def percentile(ordered: Sequence[float], q: float) -> float:
+    """The ``q``-th percentile (0..100) of sorted samples, linearly interpolated (numpy's default)."""
+    if not ordered:
+        raise ValueError("no samples")
+    pos = (len(ordered) - 1) * q / 100.0
+    lo, hi = math.floor(pos), math.ceil(pos)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
+
+
+@dataclass(frozen=True, slots=True)
+class Summary:
+    n: int
+    median_ms: float
+    p99_ms: float
+    p90_ms: float
+    mean_ms: float
+    min_ms: float
+    max_ms: float
+
+
+def summarize(samples: Sequence[float]) -> Summary:
+    ordered = sorted(samples)
+    ms = 1000.0
+    return Summary(
+        n=len(ordered),
+        median_ms=percentile(ordered, 50) * ms,
+        p99_ms=percentile(ordered, 99) * ms,
+        p90_ms=percentile(ordered, 90) * ms,
+        mean_ms=statistics.fmean(ordered) * ms,
+        min_ms=ordered[0] * ms,
+        max_ms=ordered[-1] * ms,
+    )
