@@ -12,7 +12,8 @@
 File names are relative to the configuration file. ``ArchitectureComponent`` entries name ION
 components (``package.module:Class``, subclasses of ``cmion_mesh.ion.Component``) built with
 comma-separated string parameters: minds, monitors, extra stores. ``Embodiment`` (an extension)
-names the embodiment; without it the configuration's folder name is used.
+names the embodiment; without it the configuration's folder name is used. ``Companion`` (an
+extension) names a companion born here on the first start, if this embodiment holds no companion.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ class Architecture:
     world_model: Path | None
     components: tuple[ComponentSpec, ...]
     line: int | None = None
+    companion: str | None = None
 
     def build_components(self) -> list[Component]:
         built = []
@@ -94,4 +96,10 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
         ComponentSpec(el.get("ClassName", ""), split_parameters(el.get("ConstructorParameters")), _line(el))
         for el in root if el.tag == "ArchitectureComponent"
     )
-    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line)
+    companion = root.get("Companion") or None
+    if companion is not None:
+        try:
+            keys.check_name(companion, "companion")
+        except InvalidName as exc:
+            raise ConfigError(str(exc), path=str(config), line=line) from None
+    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line, companion)

@@ -10,7 +10,6 @@ import argparse
 import itertools
 import json
 import os
-import signal
 import sys
 import threading
 import time
@@ -22,6 +21,7 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Container, Property, RemoveContainer, RemoveProperty
+from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
@@ -84,6 +84,7 @@ def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
 
 def cmd_store(args: argparse.Namespace) -> int:
     store = args.store
+    stop = _stop_on_signals() if args.action == "watch" else None  # before any thread starts
     transport, client = _client(args)
     with transport:
         container, _, name = args.path.rpartition("/") if args.path else ("", "", "")
@@ -108,7 +109,7 @@ def cmd_store(args: argparse.Namespace) -> int:
             print(f"removed {store}/{args.path}")
             return EXIT_OK
         if args.action == "watch":
-            stop = _stop_on_signals()
+            assert stop is not None
             base = keys.storage_key(args.mesh, args.embodiment, store, keys.split_path(args.path or ""))
 
             def show(key: str, entry: Any) -> None:
@@ -127,15 +128,8 @@ def cmd_store(args: argparse.Namespace) -> int:
     return EXIT_USAGE
 
 
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-
-    def handler(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
+def _stop_on_signals() -> Stopper:
+    return Stopper()
 
 
 def resolve_config(path: str) -> str:
@@ -157,18 +151,31 @@ def resolve_config(path: str) -> str:
     return str(candidate)
 
 
+def state_dir(args: argparse.Namespace, name: str) -> str:
+    """Where an embodiment keeps its durable migration records: ``--state-dir`` or a per-user folder."""
+    if args.state_dir:
+        return str(args.state_dir)
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return os.path.join(base, "cmion-mesh", args.mesh, name)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from cmion_mesh.embodiment import Embodiment
 
     stop = _stop_on_signals()
     if args.path:
-        embodiment = Embodiment.from_architecture(resolve_config(args.path), mesh=args.mesh, name=args.name,
-                                                  transport_config=transport_config(args))
+        config = resolve_config(args.path)
+        from cmion_mesh.architecture import load_architecture
+
+        name = args.name or load_architecture(config).embodiment
+        embodiment = Embodiment.from_architecture(config, mesh=args.mesh, name=name, transport_config=transport_config(args),
+                                                  state_dir=state_dir(args, name), companion=args.companion)
     else:
         if not args.name:
             raise MeshError("give an architecture configuration (PATH) or at least --name")
         embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args),
-                                world_model_init=args.world_model, rules=args.rules, library=args.library)
+                                world_model_init=args.world_model, rules=args.rules, library=args.library,
+                                state_dir=state_dir(args, args.name), companion=args.companion)
     with embodiment:
         if args.no_multicast and not args.connect and not args.listen:
             print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
@@ -297,8 +304,8 @@ def cmd_events(args: argparse.Namespace) -> int:
             data = json.dumps(event.data) if event.data is not None else ""
             print(f"{stamp} {event.embodiment}/{event.component} {event.name} {data}", flush=True)
         seen[0] += 1
-        if args.count and seen[0] >= args.count:
-            stop.set()
+        if args.count and seen[0] == args.count:
+            stop.stop()
 
     transport, client = _client(args)
     with transport, client.events(show, embodiment=args.embodiment, component=args.component, event=args.event):
@@ -306,6 +313,17 @@ def cmd_events(args: argparse.Namespace) -> int:
             print(f"following events of {args.embodiment}/{args.component}/{args.event} in mesh {args.mesh!r} (Ctrl-C to stop)",
                   file=sys.stderr, flush=True)
         stop.wait(args.duration or None)
+    return EXIT_OK
+
+
+def cmd_migrate(args: argparse.Namespace) -> int:
+    transport, client = _client(args)
+    with transport, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
+        result = client.migrate(args.companion, args.to, timeout=args.timeout)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"{args.companion} migrated from {result['source']} to {result['target']} (epoch {result['epoch']})")
     return EXIT_OK
 
 
@@ -370,6 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file")
     p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file")
     p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed")
+    p.add_argument("--state-dir", help="durable migration records (default: ~/.local/state/cmion-mesh/<mesh>/<name>)")
+    p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none")
     _common(p)
     p.set_defaults(func=cmd_up)
 
@@ -431,6 +451,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     _common(p)
     p.set_defaults(func=cmd_events)
+
+    p = sub.add_parser("migrate", help="move a companion to another embodiment (waits for the handshake's end)")
+    p.add_argument("companion")
+    p.add_argument("--to", required=True, metavar="EMBODIMENT")
+    p.add_argument("--timeout", type=float, default=60.0)
+    _common(p)
+    p.set_defaults(func=cmd_migrate)
 
     p = sub.add_parser("serve-mind", help="run a mind in this process, driving an embodiment over the mesh")
     p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Mind subclass")

@@ -15,7 +15,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError, StorageError
+from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError, RequestRejected, StorageError
 from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.messages import (
     Act,
@@ -25,6 +25,7 @@ from cmion_mesh.messages import (
     Container,
     Event,
     Message,
+    Migrate,
     Outcome,
     Property,
     RemoveContainer,
@@ -131,6 +132,43 @@ class MeshClient:
 
     def cancel(self, embodiment: str, action_id: str) -> Outcome:
         return self.request(embodiment, "manager", "cancel", CancelAction(action_id))
+
+    def find_companion(self, companion: str, *, timeout: float = 2.0) -> str:
+        """The embodiment inhabited by ``companion``; ``OutcomeUnknown`` if none says so."""
+        for description in self.describe_all(timeout=timeout):
+            if description.get("inhabitant") == companion:
+                return str(description["name"])
+        raise OutcomeUnknown(f"no embodiment in mesh {self.mesh!r} says it hosts companion {companion!r}")
+
+    def migrate(self, companion: str, target: str, *, timeout: float = 60.0) -> dict[str, Any]:
+        """Move ``companion`` to ``target``; returns ``{source, target, epoch, attempt}`` once the target committed.
+
+        Raises ``RequestRejected`` with the reason if the migration is refused or fails (the
+        companion then keeps running at its source) and ``OutcomeUnknown`` if its end is not heard.
+        """
+        source = self.find_companion(companion)
+        ended: queue.SimpleQueue[Event] = queue.SimpleQueue()
+
+        def on_event(event: Event) -> None:
+            if event.name in ("MigrationSucceeded", "MigrationFailed") and isinstance(event.data, dict) \
+                    and event.data.get("companion") == companion:
+                ended.put(event)
+
+        key = keys.request_key(self.mesh, source, "migration", "migrate")
+        with self.events(on_event, embodiment=source, component="migration"):
+            started = send_request(self.transport, key, Migrate(companion, target), timeout=timeout)
+            require_accepted(started, key)
+            try:
+                event = ended.get(timeout=timeout)
+            except queue.Empty:
+                raise OutcomeUnknown(f"migration of {companion} from {source} to {target}: no end heard in {timeout:g} s",
+                                     key=key) from None
+        data = dict(event.data)
+        if event.name == "MigrationFailed":
+            raise RequestRejected(f"migration of {companion} to {target} failed: {data.get('reason')}", key=key,
+                                  reason=str(data.get("reason")))
+        data["source"] = source
+        return data
 
     def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:
         """``handler(key, entry)`` on every change under ``selector``; ``entry`` None when removed."""

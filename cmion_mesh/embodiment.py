@@ -18,8 +18,9 @@ from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Request
+from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
-from cmion_mesh.rules import RuleSet, load_rules
+from cmion_mesh.rules import Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
 
@@ -37,6 +38,8 @@ class Embodiment:
         library: str | os.PathLike[str] | None = None,
         competencies: Iterable[Competency] = (),
         components: Iterable[Component] = (),
+        state_dir: str | os.PathLike[str] | None = None,
+        companion: str | None = None,
     ) -> None:
         self.name = keys.check_name(name, "embodiment")
         self.version = __version__
@@ -49,7 +52,6 @@ class Embodiment:
             transport = ZenohTransport(transport_config)
         self.transport: Transport = transport
         self._token: Closeable | None = None
-        self._inhabitant: str | None = None
         self.sim = Simulation(self.transport, mesh=self.mesh, embodiment=self.name)
         try:
             self.blackboard = Blackboard()
@@ -69,8 +71,22 @@ class Embodiment:
             self.sim.add(self.manager)
             self.describer = Describer(self)
             self.sim.add(self.describer)
-            for component in components:
+            extra = list(components)
+            self.migration: MigrationManager | None = None
+            if state_dir is not None:
+                # Minds start asleep: the migration manager wakes them if a companion lives here.
+                for component in extra:
+                    if isinstance(component, Mind):
+                        component.awake = False
+                if "Migration" not in self.execution.types():
+                    self.execution.add_competency(MigrationCompetency())
+                self.rules = with_migrate_rule(self.rules)
+                self.manager.rules = self.rules
+            for component in extra:
                 self.sim.add(component)
+            if state_dir is not None:
+                self.migration = MigrationManager(state_dir, companion=companion)
+                self.sim.add(self.migration)
         except BaseException:
             self.close()
             raise
@@ -79,12 +95,14 @@ class Embodiment:
     def from_architecture(
         cls, path: str | os.PathLike[str], *, mesh: str = keys.DEFAULT_MESH, name: str | None = None,
         transport: Transport | None = None, transport_config: TransportConfig | None = None,
+        state_dir: str | os.PathLike[str] | None = None, companion: str | None = None,
     ) -> Embodiment:
         """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``)."""
         arch = load_architecture(path)
         return cls(
             name or arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
             world_model_init=arch.world_model, rules=arch.rules, library=arch.library, components=arch.build_components(),
+            state_dir=state_dir, companion=companion or arch.companion,
         )
 
     def add(self, component: Component) -> Component:
@@ -111,8 +129,8 @@ class Embodiment:
 
     @property
     def inhabitant(self) -> str | None:
-        """The companion living here, or None when empty (set by migration)."""
-        return self._inhabitant
+        """The companion living here, or None when empty."""
+        return self.migration.inhabitant if self.migration is not None else None
 
     def start(self) -> Embodiment:
         self.sim.start()
@@ -149,3 +167,14 @@ class Describer(Component):
         description = self.embodiment.describe()
         for request in batch:
             request.accept(description)
+
+
+def with_migrate_rule(rules: RuleSet) -> RuleSet:
+    """Add the built-in rule ``Migrate <target>`` -> one ``Migration`` step, unless the rules have one."""
+    from cmion_mesh.rules import MindAction
+
+    if rules.candidates(MindAction("Migrate", ("somewhere",))):
+        return rules
+    step = Step("1", "Migration", (), (("target", "$parameter1"),), 0)
+    rule = Rule(len(rules.rules), "Migrate", ("*",), None, (Plan((step,), 0),), "<built-in>", 0)
+    return RuleSet((*rules.rules, rule), rules.path)

@@ -163,9 +163,54 @@ class RunEnded(Message, frozen=True, tag="run_ended"):
     reason: str = ""
 
 
+# --- migration ---------------------------------------------------------------------------------------
+
+
+class Migrate(Message, frozen=True, tag="migrate"):
+    """Ask the embodiment hosting ``companion`` to move it to ``target`` (``.../rq/migration/migrate``)."""
+
+    companion: str
+    target: str
+
+
+class MigratePrepare(Message, frozen=True, tag="migrate_prepare"):
+    """Source -> target: store this identity durably and say prepared (``.../rq/migration/prepare``)."""
+
+    companion: str
+    epoch: int
+    attempt: str
+    source: str
+    target: str
+    document: bytes
+
+
+class MigrateCommit(Message, frozen=True, tag="migrate_commit"):
+    """Source -> target, after the source recorded ``handed``: become the companion's home."""
+
+    companion: str
+    epoch: int
+    attempt: str
+    source: str
+    target: str
+
+
+class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
+    companion: str
+    epoch: int
+    attempt: str
+
+
+class MigrateStatus(Message, frozen=True, tag="migrate_status"):
+    """Target -> source after a restart: what became of this attempt? (committed/aborted/pending)."""
+
+    companion: str
+    attempt: str
+
+
 AnyMessage = (
     Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
     | Act | CancelAction | ActionReport | StartRun | CancelRun | RunEnded
+    | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus
 )
 
 _encoder = msgspec.msgpack.Encoder()

@@ -162,6 +162,10 @@ class Mind(Component):
     def on_sleep(self) -> None: ...
     def on_wake(self) -> None: ...
 
+    def on_arrived(self, world_model: dict[str, Any]) -> None:
+        """The companion (re)started on this embodiment, its state restored and the mind awake:
+        replace embodiment-specific knowledge with this world model (``Store.tree()`` form)."""
+
     def state(self) -> dict[str, Any]:
         """Plain data that migration carries; minds with memory override this and ``restore``."""
         return {}

@@ -13,6 +13,20 @@ DATA = Path(__file__).parent / "data"
 CMION_2011 = DATA / "cmion2011"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_state_home(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Daemons keep durable records under $XDG_STATE_HOME: never the user's own, in tests."""
+    import os
+
+    old = os.environ.get("XDG_STATE_HOME")
+    os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("state-home"))
+    yield
+    if old is None:
+        os.environ.pop("XDG_STATE_HOME", None)
+    else:
+        os.environ["XDG_STATE_HOME"] = old
+
+
 @pytest.fixture
 def mesh() -> str:
     """A mesh name no other test or parallel run uses."""

@@ -119,7 +119,7 @@ def test_schema_extensions_validate(tmp_path: Path) -> None:
     )
     xmlsafe.loads(
         b'<ArchitectureConfiguration CompetencyManagerRulesFile="r.xml"'
-        b' CompetencyLibraryConfigurationFile="l.xml" Embodiment="robot-1" Mind="fatima"/>',
+        b' CompetencyLibraryConfigurationFile="l.xml" Embodiment="robot-1" Companion="spirit"/>',
         "ArchitectureConfiguration.xsd",
     )
     xmlsafe.loads(

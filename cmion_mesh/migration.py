@@ -1,0 +1,609 @@
+"""Migration: a crash-safe queryable handshake that moves a companion between embodiments.
+
+Invariant: at any moment at most one embodiment is inhabited by a companion, and after any
+crash or network fault, once things heal, exactly one is. Each side keeps a durable record per
+companion (``Records``: temp file, fsync, rename, fsync directory) and moves it through:
+
+source (S, owner at epoch e)           target (T)
+  active(e)
+  freeze; pack the identity
+  prepared(a) ---- prepare(doc) ---->  checks empty (or an older epoch of this companion),
+                                       validates the document, stores it,
+               <--- prepared --------  incoming(a)
+  handed(a)  (commit point: S never runs the companion again)
+             ---- commit (until acked)->  active(e+1), restores sections, wakes the mind
+               <--- committed -------
+  released(a)
+
+A timeout, an empty reply or an error is "outcome unknown", never success. While S is
+``prepared`` it may always abort (T cannot activate without a commit, which S sends only after
+``handed``). Recovery on restart: S ``prepared`` aborts and resumes; S ``handed`` resumes sending
+commit; T ``incoming`` asks S (``status``) and follows its answer, forever if need be: nothing is
+taken over because a peer went quiet. Messages are idempotent and keyed by (companion, epoch,
+attempt); stale ones are refused.
+
+Before packing, the source raises ``MigrationStarting`` and gives every component one update to
+``contribute`` its section (or ``wait`` and ``resolve`` later, within a deadline). Sections that
+no component here understands are carried on unchanged. The target raises ``MigrationOccurred``
+after activation; each component takes its own section back with ``section(name)``.
+
+Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
+``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
+SIGKILL right after writing that record: the crash tests use it.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import signal
+import threading
+import time
+import uuid
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import msgspec
+
+from cmion_mesh import keys
+from cmion_mesh.competency import Competency, RunContext
+from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
+from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.messages import Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
+
+log = logging.getLogger(__name__)
+
+State = Literal["active", "prepared", "handed", "released", "incoming", "dropped"]
+HOSTING: frozenset[str] = frozenset({"active", "prepared", "handed", "incoming"})
+
+
+class Record(msgspec.Struct, frozen=True):
+    """The durable state of one companion on one embodiment."""
+
+    companion: str
+    state: State
+    epoch: int
+    attempt: str = ""
+    peer: str = ""  # the target (source side) or the source (target side) of ``attempt``
+    updated: float = 0.0
+
+
+class Records:
+    """Durable records and identity documents in one directory, written atomically."""
+
+    def __init__(self, directory: str | os.PathLike[str]) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.RLock()
+        self._cache: dict[str, Record] = {}
+        for path in sorted(self.dir.glob("*.record.json")):
+            try:
+                record = msgspec.json.decode(path.read_bytes(), type=Record)
+            except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                raise ConfigError(f"unreadable migration record: {exc}", path=str(path)) from None
+            self._cache[record.companion] = record
+
+    def _write(self, name: str, data: bytes) -> None:
+        target = self.dir / name
+        tmp = self.dir / f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+        fd = os.open(self.dir, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    def get(self, companion: str) -> Record | None:
+        with self._lock:
+            return self._cache.get(companion)
+
+    def put(self, record: Record) -> Record:
+        record = msgspec.structs.replace(record, updated=time.time())
+        with self._lock:
+            self._write(f"{keys.check_name(record.companion, 'companion')}.record.json", msgspec.json.encode(record))
+            self._cache[record.companion] = record
+        return record
+
+    def all(self) -> list[Record]:
+        with self._lock:
+            return list(self._cache.values())
+
+    def hosting(self) -> Record | None:
+        """The companion this embodiment holds (active, or in a handshake), if any."""
+        with self._lock:
+            held = [r for r in self._cache.values() if r.state in HOSTING]
+        return held[0] if held else None
+
+    def put_document(self, companion: str, data: bytes) -> None:
+        with self._lock:
+            self._write(f"{keys.check_name(companion, 'companion')}.identity.xml", data)
+
+    def document(self, companion: str) -> bytes | None:
+        path = self.dir / f"{companion}.identity.xml"
+        return path.read_bytes() if path.exists() else None
+
+
+def crash_point(point: str) -> None:
+    """Die here, hard, if the crash tests asked for it (``CMION_MESH_CRASH_AT``)."""
+    wanted = os.environ.get("CMION_MESH_CRASH_AT", "")
+    if wanted and point in {p.strip() for p in wanted.split(",")}:
+        log.warning("crash point %s: killing this process", point)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+@dataclass(eq=False)
+class _Outgoing:
+    companion: str
+    target: str
+    epoch: int
+    attempt: str
+    future: Future[Outcome]
+    contributions: dict[str, Any] = field(default_factory=dict)
+    waits: set[str] = field(default_factory=set)
+    packed: bool = False
+
+
+@dataclass(frozen=True)
+class WaitToken:
+    attempt: str
+    component: str
+
+
+class MigrationManager(Component):
+    """The ``migration`` component: owns the records, runs both sides of the handshake."""
+
+    requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
+                "status": MigrateStatus}
+
+    def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = 5.0,
+                 request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0)) -> None:
+        super().__init__("migration")
+        self.records = Records(state_dir)
+        self.seed = keys.check_name(companion, "companion") if companion else None
+        self.section_deadline = section_deadline
+        self.request_timeout = request_timeout
+        self.retry = retry
+        self.identity: Identity | None = None  # the companion living here, when inhabited
+        self._outgoing: _Outgoing | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    # --- state seen from outside ---------------------------------------------------------------
+
+    @property
+    def inhabitant(self) -> str | None:
+        identity = self.identity
+        return identity.companion if identity is not None else None
+
+    def section(self, component: str) -> Any:
+        """The section ``component`` contributed to the identity living here (None if absent)."""
+        return None if self.identity is None else self.identity.sections.get(component)
+
+    # --- life cycle -----------------------------------------------------------------------------
+
+    def attach(self, sim: Simulation) -> None:
+        if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
+            # First start of the companion's home: it is born here, at epoch 1.
+            identity = Identity(self.seed, 1, {})
+            self.records.put_document(self.seed, identity.pack())
+            self.records.put(Record(self.seed, "active", 1))
+        for record in self.records.all():
+            if record.state == "prepared":
+                # Never handed: the target cannot have activated. Abort and resume here.
+                self.records.put(Record(record.companion, "active", record.epoch))
+                self._send_abort_later(record)
+                self._resume(record.companion, "recovered: a migration had not reached its commit point")
+            elif record.state == "active":
+                self._resume(record.companion, "started")
+            elif record.state == "handed":
+                self._spawn(f"commit-{record.companion}", self._commit_until_acked, record)
+            elif record.state == "incoming":
+                self._spawn(f"resolve-{record.companion}", self._resolve_incoming, record)
+        if self.identity is None:
+            self._minds_sleep()
+
+    def detach(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(10.0)
+        self._threads.clear()
+        identity = self.identity
+        if identity is not None:
+            # A clean stop keeps what the companion learnt since it arrived.
+            self._refresh_sections(identity)
+            self.records.put_document(identity.companion, identity.pack())
+
+    def _spawn(self, name: str, fn: Any, *args: Any) -> None:
+        thread = threading.Thread(target=fn, args=args, name=f"migration-{name}", daemon=True)
+        self._threads = [t for t in self._threads if t.is_alive()]
+        self._threads.append(thread)
+        thread.start()
+
+    def _post(self, fn: Any, *args: Any) -> None:
+        try:
+            self.sim.call(functools.partial(fn, *args))
+        except MeshError:
+            pass  # closing
+
+    # --- minds and sections (loop) --------------------------------------------------------------
+
+    def _minds(self) -> list[Any]:
+        from cmion_mesh.mind import Mind
+
+        return [c for c in self.sim.components if isinstance(c, Mind)]
+
+    def _minds_sleep(self) -> None:
+        for mind in self._minds():
+            mind.sleep()
+
+    def _refresh_sections(self, identity: Identity) -> None:
+        for mind in self._minds():
+            identity.sections[mind.name] = mind.state()
+
+    def _resume(self, companion: str, why: str) -> None:
+        data = self.records.document(companion)
+        identity = unpack(data, name=f"{companion}.identity.xml") if data else Identity(companion, 1, {})
+        record = self.records.get(companion)
+        if record is not None:
+            identity.epoch = record.epoch
+        self._inhabit(identity, "CompanionResumed", why)
+
+    def _inhabit(self, identity: Identity, event: str, why: str) -> None:
+        self.identity = identity
+        for mind in self._minds():
+            state = identity.sections.get(mind.name)
+            if isinstance(state, dict) and state:
+                mind.restore(state)
+        self.raise_event(event, {"companion": identity.companion, "epoch": identity.epoch, "why": why,
+                                 "sections": sorted(identity.sections)})
+        from cmion_mesh.storage import Store
+
+        world = self.sim.components_by_name().get(keys.WORLD_MODEL)
+        tree = world.tree() if isinstance(world, Store) else {}
+        for mind in self._minds():
+            mind.wake()
+            mind.on_arrived(tree)
+
+    # --- outgoing (source side) ---------------------------------------------------------------
+
+    def start(self, target: str, companion: str | None = None) -> Future[Outcome]:
+        """Start migrating the companion living here to ``target``; thread-safe. The future ends
+        with the outcome (accepted when the target committed; rejected with the reason)."""
+        future: Future[Outcome] = Future()
+        self._post(self._start, Migrate(companion or self.inhabitant or "", target), future)
+        return future
+
+    def _start(self, request: Migrate, future: Future[Outcome]) -> _Outgoing | None:
+        def refuse(reason: str) -> None:
+            self.raise_event("MigrationFailed", {"companion": request.companion, "target": request.target, "reason": reason})
+            future.set_result(Outcome("rejected", reason))
+
+        identity = self.identity
+        if identity is None:
+            refuse(f"embodiment {self.sim.embodiment!r} hosts no companion")
+            return None
+        if request.companion and request.companion != identity.companion:
+            refuse(f"companion {request.companion!r} does not live on {self.sim.embodiment!r} "
+                          f"(its inhabitant is {identity.companion!r})")
+            return None
+        if self._outgoing is not None:
+            refuse(f"a migration of {identity.companion!r} to {self._outgoing.target!r} is already under way")
+            return None
+        try:
+            keys.check_name(request.target, "target")
+        except MeshError as exc:
+            refuse(str(exc))
+            return None
+        if request.target == self.sim.embodiment:
+            refuse(f"{identity.companion!r} already lives on {request.target!r}")
+            return None
+        alive = self.sim.transport.alive(keys.alive_key(self.sim.mesh, request.target), timeout=2.0)
+        if not alive:
+            refuse(f"unknown target: embodiment {request.target!r} is not alive in mesh {self.sim.mesh!r}")
+            return None
+        record = self.records.get(identity.companion)
+        if record is None or record.state != "active":
+            refuse(f"{identity.companion!r} is not active here")
+            return None
+        out = _Outgoing(identity.companion, request.target, record.epoch, uuid.uuid4().hex, future)
+        self._outgoing = out
+        self.raise_event("MigrationStarting", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
+                                               "epoch": out.epoch})
+        self._minds_sleep()  # freeze: the companion acts nowhere until the handshake is decided
+        # The event is dispatched in this update; sections are collected from the next one on.
+        self.sim.call(functools.partial(self._maybe_pack, out))
+        self.sim.call_later(self.section_deadline, functools.partial(self._section_deadline, out))
+        return out
+
+    def contribute(self, component: str, data: Any) -> None:
+        """Add ``component``'s section to the migration being packed. Thread-safe."""
+        self._post(self._contribute, component, data)
+
+    def _contribute(self, component: str, data: Any) -> None:
+        out = self._outgoing
+        if out is not None and not out.packed:
+            out.contributions[component] = data
+            out.waits.discard(component)
+            self._maybe_pack(out)
+
+    def wait(self, component: str) -> WaitToken:
+        """Ask the packing to wait for ``component`` (loop thread); ``resolve`` ends the wait."""
+        out = self._outgoing
+        if out is None or out.packed:
+            raise MeshError("no migration is being packed")
+        out.waits.add(component)
+        return WaitToken(out.attempt, component)
+
+    def resolve(self, token: WaitToken, data: Any) -> None:
+        """End a wait with the component's section. Thread-safe."""
+        self._post(self._resolve, token, data)
+
+    def _resolve(self, token: WaitToken, data: Any) -> None:
+        out = self._outgoing
+        if out is not None and out.attempt == token.attempt:
+            self._contribute(token.component, data)
+
+    def _section_deadline(self, out: _Outgoing) -> None:
+        if self._outgoing is out and not out.packed:
+            self._abandon(out, f"components {sorted(out.waits)} did not give their sections within {self.section_deadline:g} s")
+
+    def _abandon(self, out: _Outgoing, reason: str) -> None:
+        self._outgoing = None
+        self.raise_event("MigrationFailed", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
+                                             "reason": reason})
+        for mind in self._minds():
+            mind.wake()
+        if not out.future.done():
+            out.future.set_result(Outcome("rejected", reason))
+
+    def _maybe_pack(self, out: _Outgoing) -> None:
+        if self._outgoing is not out or out.packed or out.waits:
+            return
+        identity = self.identity
+        assert identity is not None
+        self._refresh_sections(identity)
+        sections = dict(identity.sections)  # carried-on sections stay unless freshly contributed
+        sections.update(out.contributions)
+        out.packed = True
+        try:
+            document = Identity(out.companion, out.epoch, sections).pack()
+        except (MeshError, ValueError) as exc:
+            self._abandon(out, f"cannot pack the identity: {exc}")
+            return
+        self._spawn(f"send-{out.companion}", self._send, out, document)
+
+    def _send(self, out: _Outgoing, document: bytes) -> None:
+        self.records.put_document(out.companion, document)
+        prepared = self.records.put(Record(out.companion, "prepared", out.epoch, out.attempt, out.target))
+        crash_point("source:prepared")
+        message = MigratePrepare(out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document)
+        key = keys.request_key(self.sim.mesh, out.target, "migration", "prepare")
+        reply: Outcome | None = None
+        unknown = ""
+        for _ in range(3):  # prepare is idempotent: a lost reply may be asked again
+            try:
+                reply = send_request(self.sim.transport, key, message, timeout=self.request_timeout)
+                break
+            except OutcomeUnknown as exc:
+                unknown = str(exc)
+                if self._stop.wait(self.retry[0]):
+                    break
+        if reply is None or reply.status != "accepted":
+            reason = (f"{out.target} refused: {reply.reason}" if reply is not None
+                      else f"outcome unknown ({unknown}); the companion resumes here")
+            self.records.put(Record(out.companion, "active", out.epoch))
+            if reply is None:
+                self._send_abort_later(prepared)
+            self._post(self._aborted, out, reason)
+            return
+        handed = self.records.put(Record(out.companion, "handed", out.epoch, out.attempt, out.target))
+        crash_point("source:handed")
+        self._post(self._handed, out)
+        self._commit_until_acked(handed)
+
+    def _aborted(self, out: _Outgoing, reason: str) -> None:
+        self._abandon(out, reason)
+        self._resume(out.companion, f"migration to {out.target} failed")
+
+    def _handed(self, out: _Outgoing) -> None:
+        self.identity = None  # the commit point: never run the companion here again
+
+    def _commit_until_acked(self, handed: Record) -> None:
+        message = MigrateCommit(handed.companion, handed.epoch, handed.attempt, self.sim.embodiment, handed.peer)
+        key = keys.request_key(self.sim.mesh, handed.peer, "migration", "commit")
+        delay = self.retry[0]
+        while not self._stop.is_set():
+            try:
+                reply = send_request(self.sim.transport, key, message, timeout=self.request_timeout)
+                if reply.status == "accepted":
+                    break
+                log.error("%s refused the commit of %s (%s): retrying", handed.peer, handed.companion, reply.reason)
+                self._post(self.raise_event, "MigrationStuck", {"companion": handed.companion, "target": handed.peer,
+                                                                "reason": reply.reason})
+            except OutcomeUnknown as exc:
+                log.info("commit of %s to %s: %s; retrying", handed.companion, handed.peer, exc)
+            if self._stop.wait(delay):
+                return
+            delay = min(self.retry[1], delay * 2)
+        else:
+            return
+        self.records.put(Record(handed.companion, "released", handed.epoch, handed.attempt, handed.peer))
+        crash_point("source:released")
+        self._post(self._released, handed)
+
+    def _released(self, record: Record) -> None:
+        out = self._outgoing
+        self._outgoing = None
+        data = {"companion": record.companion, "target": record.peer, "attempt": record.attempt, "epoch": record.epoch + 1}
+        self.raise_event("MigrationSucceeded", data)
+        if out is not None and out.attempt == record.attempt and not out.future.done():
+            out.future.set_result(Outcome("accepted", "", data))
+
+    def _send_abort_later(self, record: Record) -> None:
+        def abort() -> None:
+            key = keys.request_key(self.sim.mesh, record.peer, "migration", "abort")
+            try:
+                send_request(self.sim.transport, key, MigrateAbort(record.companion, record.epoch, record.attempt), timeout=2.0)
+            except OutcomeUnknown:
+                pass  # the target will ask us (status) and hear "aborted"
+
+        self._spawn(f"abort-{record.companion}", abort)
+
+    # --- incoming (target side) and queries (loop) --------------------------------------------
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        for request in batch:
+            payload = request.payload
+            try:
+                if isinstance(payload, Migrate):
+                    out = self._start(payload, _AnswerFuture(request))
+                    if out is not None:  # started: the end is reported by MigrationSucceeded/Failed events
+                        request.accept({"attempt": out.attempt, "companion": out.companion, "target": out.target})
+                elif isinstance(payload, MigratePrepare):
+                    self._on_prepare(request, payload)
+                elif isinstance(payload, MigrateCommit):
+                    self._on_commit(request, payload)
+                elif isinstance(payload, MigrateAbort):
+                    self._on_abort(request, payload)
+                elif isinstance(payload, MigrateStatus):
+                    request.accept({"state": self.attempt_state(payload.companion, payload.attempt)})
+            except ConfigError as exc:
+                request.reject(str(exc))
+
+    def attempt_state(self, companion: str, attempt: str) -> str:
+        """What this embodiment, as a source, made of ``attempt``: committed, aborted or pending."""
+        record = self.records.get(companion)
+        if record is None or record.attempt != attempt:
+            return "aborted"
+        return {"prepared": "pending", "handed": "committed", "released": "committed"}.get(record.state, "aborted")
+
+    def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
+        me = self.sim.embodiment
+        if msg.target != me:
+            request.reject(f"this is {me!r}, not {msg.target!r}")
+            return
+        held = self.records.hosting()
+        if held is not None and held.companion != msg.companion:
+            request.reject(f"{me!r} is occupied by companion {held.companion!r}")
+            return
+        record = self.records.get(msg.companion)
+        if record is not None:
+            if record.state == "incoming" and record.attempt == msg.attempt:
+                request.accept({"state": "prepared"})  # a repeated prepare: same answer
+                return
+            if record.state in ("active", "prepared", "handed") and record.epoch >= msg.epoch:
+                request.reject(f"stale: {me!r} holds {msg.companion!r} at epoch {record.epoch} >= {msg.epoch}")
+                return
+            if record.epoch > msg.epoch:
+                request.reject(f"stale: {me!r} knows {msg.companion!r} at epoch {record.epoch} > {msg.epoch}")
+                return
+        identity = unpack(msg.document, name=f"identity of {msg.companion} from {msg.source}")
+        if identity.companion != msg.companion or identity.epoch != msg.epoch:
+            request.reject(f"document is for {identity.companion!r} at epoch {identity.epoch}, "
+                           f"not {msg.companion!r} at epoch {msg.epoch}")
+            return
+        self.records.put_document(msg.companion, msg.document)
+        self.records.put(Record(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source))
+        crash_point("target:incoming")
+        request.accept({"state": "prepared"})
+
+    def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
+        record = self.records.get(msg.companion)
+        if record is not None and record.state == "active" and record.attempt == msg.attempt:
+            request.accept({"state": "committed"})
+            return
+        if record is None or record.state != "incoming" or record.attempt != msg.attempt:
+            request.reject(f"no incoming migration {msg.attempt} of {msg.companion!r} here")
+            return
+        self._activate(record)
+        request.accept({"state": "committed"})
+
+    def _activate(self, incoming: Record) -> None:
+        active = self.records.put(Record(incoming.companion, "active", incoming.epoch + 1, incoming.attempt, incoming.peer))
+        crash_point("target:active")
+        data = self.records.document(incoming.companion)
+        identity = unpack(data or b"", name=f"{incoming.companion}.identity.xml")
+        identity.epoch = active.epoch
+        self._inhabit(identity, "MigrationOccurred", f"arrived from {incoming.peer}")
+
+    def _on_abort(self, request: IncomingRequest, msg: MigrateAbort) -> None:
+        record = self.records.get(msg.companion)
+        if record is not None and record.state == "incoming" and record.attempt == msg.attempt:
+            self.records.put(Record(msg.companion, "dropped", record.epoch, record.attempt, record.peer))
+        request.accept()
+
+    def _resolve_incoming(self, record: Record) -> None:
+        """After a restart in ``incoming``: ask the source until it says committed or aborted."""
+        key = keys.request_key(self.sim.mesh, record.peer, "migration", "status")
+        delay = self.retry[0]
+        while not self._stop.is_set():
+            current = self.records.get(record.companion)
+            if current is None or current.state != "incoming" or current.attempt != record.attempt:
+                return  # a commit or abort arrived meanwhile
+            try:
+                reply = send_request(self.sim.transport, key, MigrateStatus(record.companion, record.attempt),
+                                     timeout=self.request_timeout)
+                state = reply.value.get("state") if isinstance(reply.value, dict) else None
+                if state in ("committed", "aborted"):
+                    self._post(self._settle_incoming, record, state)
+                    return
+            except OutcomeUnknown as exc:
+                log.info("asking %s about %s: %s", record.peer, record.attempt, exc)
+            if self._stop.wait(delay):
+                return
+            delay = min(self.retry[1] * 2, delay * 2)
+
+    def _settle_incoming(self, record: Record, state: str) -> None:
+        current = self.records.get(record.companion)
+        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+            return
+        if state == "committed":
+            self._activate(current)
+        else:
+            self.records.put(Record(record.companion, "dropped", record.epoch, record.attempt, record.peer))
+            self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,
+                                                  "source": record.peer})
+
+
+class _AnswerFuture(Future[Outcome]):
+    """Rejects a ``migrate`` request refused at once; a started one is accepted by the handler and
+    its end is reported by events (``MigrationSucceeded`` / ``MigrationFailed``)."""
+
+    def __init__(self, request: IncomingRequest) -> None:
+        super().__init__()
+        self.request = request
+
+    def set_result(self, result: Outcome) -> None:
+        if not self.request.answered:
+            if result.status == "accepted":
+                self.request.accept(result.value)
+            else:
+                self.request.reject(result.reason)
+        super().set_result(result)
+
+
+class MigrationCompetency(Competency):
+    """Migration as a competency (type ``Migration``): a rule maps ``Migrate <target>`` to it.
+
+    Parameter ``target``. Succeeds once the target has committed; cannot be cancelled once the
+    handshake has started (the companion must end up in exactly one place).
+    """
+
+    type = "Migration"
+
+    def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
+        manager = self.sim.component("migration")
+        assert isinstance(manager, MigrationManager)
+        target = str(parameters.get("target", ""))
+        outcome = manager.start(target).result(timeout=None)
+        if outcome.status != "accepted":
+            return ctx.fail(outcome.reason)
+        return True

@@ -1,0 +1,43 @@
+"""Waiting for SIGINT/SIGTERM in long-running commands, reliably.
+
+A signal sent to a process may be delivered to any thread; zenoh's own threads would take it and
+the main thread, blocked in a wait, would never see it. So every command that runs until
+stopped blocks the signals *before* starting any thread (new threads inherit the mask) and the
+main thread collects them with ``sigwait``: no polling, no lost signal.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+_WAKE = signal.SIGUSR1
+
+
+class Stopper:
+    """Create on the main thread before any other thread; ``wait`` until a signal or ``stop``."""
+
+    def __init__(self) -> None:
+        self._main = threading.main_thread().ident
+        self.received: int | None = None
+        signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS | {_WAKE})
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        """The signal that stopped us (None after a ``stop()`` or a timeout)."""
+        wanted = STOP_SIGNALS | {_WAKE}
+        sig: int | None
+        if timeout is None:
+            sig = signal.sigwait(wanted)
+        else:
+            info = signal.sigtimedwait(wanted, timeout)
+            sig = info.si_signo if info is not None else None
+        if sig in STOP_SIGNALS:
+            self.received = sig
+            return sig
+        return None
+
+    def stop(self) -> None:
+        """Wake ``wait`` from any thread."""
+        if self._main is not None:
+            signal.pthread_kill(self._main, _WAKE)

@@ -1,0 +1,138 @@
+"""Migration logic in one process (in-memory transport): handshake, sections, refusals, records."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cmion_mesh.client import MeshClient
+from cmion_mesh.embodiment import Embodiment
+from cmion_mesh.errors import RequestRejected
+from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.messages import MigrateCommit, MigratePrepare, MigrateStatus
+from cmion_mesh.migration import Records
+from cmion_mesh.mind import Mind
+from cmion_mesh.procs import wait_for
+
+pytestmark = pytest.mark.timeout(60)
+
+
+class Diary(Mind):
+    """A mind whose memory is a list of entries; it notes where it arrived."""
+
+    def __init__(self, name: str = "mind") -> None:
+        super().__init__(name)
+        self.entries: list[str] = []
+        self.arrivals: list[str] = []
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        self.entries.append(str(data.get("note")))
+
+    def on_arrived(self, world_model: dict[str, Any]) -> None:
+        self.arrivals.append(self.sim.embodiment)
+
+    def state(self) -> dict[str, Any]:
+        return {"entries": list(self.entries)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.entries = list(state.get("entries", []))
+
+
+@pytest.fixture
+def client(network: MemoryNetwork, mesh: str) -> Iterator[MeshClient]:
+    with MemoryTransport(network, "cli") as t:
+        yield MeshClient(t, mesh)
+
+
+def body(network: MemoryNetwork, mesh: str, name: str, state: Path, companion: str | None = None) -> Embodiment:
+    return Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=state / name,
+                      companion=companion, components=[Diary()])
+
+
+def close(*embodiments: Embodiment) -> None:
+    for e in embodiments:
+        e.close()
+        e.transport.close()
+
+
+def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    try:
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        assert screen.inhabitant is None
+        robot_mind, screen_mind = robot.minds[0], screen.minds[0]
+        wait_for(lambda: robot_mind.awake and not screen_mind.awake, 5, "only the inhabited mind is awake")
+        client.request("robot", "mind", "message", _note("met Ada"))
+        result = client.migrate("spirit", "screen", timeout=20)
+        assert result["source"] == "robot" and result["epoch"] == 2
+        assert screen.inhabitant == "spirit" and robot.inhabitant is None
+        assert screen_mind.awake and not robot_mind.awake
+        assert screen_mind.entries == ["met Ada"] and screen_mind.arrivals == ["screen"]
+        assert Records(tmp_path / "robot").get("spirit").state == "released"
+        assert Records(tmp_path / "screen").get("spirit").state == "active"
+        assert Records(tmp_path / "screen").get("spirit").epoch == 2
+        # and back, through a mind action handled by the built-in Migrate rule
+        client.request("screen", "mind", "message", _note("at the entrance"))
+        report = client.act("screen", "Migrate", ["robot"], timeout=20)
+        assert report.status == "succeeded", report
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "back on the robot")
+        assert robot_mind.entries == ["met Ada", "at the entrance"] and robot_mind.awake
+    finally:
+        close(robot, screen)
+
+
+def test_refusals_leave_the_companion_running_at_the_source(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                            client: MeshClient) -> None:
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    phone = body(network, mesh, "phone", tmp_path, companion="other").start()
+    try:
+        wait_for(lambda: robot.inhabitant == "spirit" and phone.inhabitant == "other", 5, "both born")
+        with pytest.raises(RequestRejected, match="occupied by companion 'other'"):
+            client.migrate("spirit", "phone", timeout=20)
+        with pytest.raises(RequestRejected, match="unknown target: embodiment 'nowhere'"):
+            client.migrate("spirit", "nowhere", timeout=20)
+        assert robot.inhabitant == "spirit" and robot.minds[0].awake
+        assert Records(tmp_path / "robot").get("spirit").state == "active"
+    finally:
+        close(robot, phone)
+
+
+def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                          client: MeshClient) -> None:
+    screen = body(network, mesh, "screen", tmp_path).start()
+    try:
+        wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
+        hostile = b'<!DOCTYPE Identity [<!ENTITY x SYSTEM "file:///etc/passwd">]><Identity SchemaVersion="1" Companion="s" Epoch="1"/>'
+        bad = client.request("screen", "migration", "prepare", MigratePrepare("s", 1, "a1", "robot", "screen", hostile))
+        assert bad.status == "rejected" and "internal DTD subset" in bad.reason and "identity of s from robot" in bad.reason
+        doc = Identity("s", 4, {"mind": {"entries": []}, "face": {"smile": 0.7}}).pack()
+        ok = client.request("screen", "migration", "prepare", MigratePrepare("s", 4, "a2", "robot", "screen", doc))
+        again = client.request("screen", "migration", "prepare", MigratePrepare("s", 4, "a2", "robot", "screen", doc))
+        assert ok.status == again.status == "accepted", "a duplicated prepare gets the same answer"
+        stale = client.request("screen", "migration", "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen"))
+        assert stale.status == "rejected" and "old-attempt" in stale.reason
+        assert screen.inhabitant is None
+        commit = MigrateCommit("s", 4, "a2", "robot", "screen")
+        assert client.request("screen", "migration", "commit", commit).status == "accepted"
+        assert client.request("screen", "migration", "commit", commit).status == "accepted", "duplicate commit: same answer"
+        assert screen.inhabitant == "s"
+        older = client.request("screen", "migration", "prepare", MigratePrepare("s", 3, "a3", "robot", "screen", doc))
+        assert older.status == "rejected" and "stale" in older.reason
+        # the unknown "face" section is kept and carried on
+        kept = unpack(Records(tmp_path / "screen").document("s") or b"")
+        assert kept.sections["face"] == {"smile": 0.7}
+        status = client.request("screen", "migration", "status", MigrateStatus("s", "zzz"))
+        assert status.value == {"state": "aborted"}
+    finally:
+        close(screen)
+
+
+def _note(text: str) -> Any:
+    from cmion_mesh.messages import Request
+
+    return Request({"note": text})
