@@ -33,6 +33,7 @@ def transport_config(args: argparse.Namespace) -> TransportConfig:
         listen=tuple(args.listen or ()),
         config_file=args.config,
         multicast=not args.no_multicast,
+        multicast_interface=getattr(args, "multicast_interface", None),
         lease_ms=getattr(args, "lease_ms", None),
     )
 
@@ -44,6 +45,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")
     group.add_argument("--config", metavar="FILE", help="zenoh JSON5 configuration file")
     group.add_argument("--no-multicast", action="store_true", help="do not scout for peers by multicast")
+    group.add_argument("--multicast-interface", metavar="IFACE", help="interface to scout on (default: zenoh's choice)")
     group.add_argument("--json", action="store_true", help="machine-readable output")
 
 

@@ -1,31 +1,44 @@
 """``cmion-mesh router``: a zenoh router, so that embodiments beyond one LAN join one mesh.
 
 Peers find each other by multicast scouting only on their own LAN (multicast does not cross IP
-routers). A zenoh router that every site can reach over TCP forwards between them: peers
+routers). A zenoh router that every LAN can reach over TCP forwards between them: peers
 ``--connect`` to it, and routers can ``--connect`` to each other to chain sites. The router
 holds no cmion state and does not know the mesh names: it routes every key.
 
-It goes through the transport layer (``ZenohTransport`` in router mode) like every other
-process, so ``zenoh_transport`` stays the only module that imports zenoh.
+Why ``--lan``: since zenoh 1.9 a router puts all the peers connected to it in one region that
+it assumes fully connected, and never forwards between two of its peers (the old
+``peers_failover_brokering`` is gone). Peers on two different LANs cannot connect to each
+other, so the router must know they are in different regions. It does so by interface: the
+peers that reach the router through one network interface form one LAN (a zenoh *south
+subregion*), and the router forwards between LANs, as it does between its clients, its peers
+and other routers. By default every interface of the host is a LAN of its own, which is right
+for a host with one interface per LAN; peers arriving by any other interface form one more.
 
-Run it as ``cmion-mesh router ...`` or ``python -m cmion_mesh.router ...``.
+It goes through the transport layer (``ZenohTransport`` in router mode, the regions as config
+overrides) like every other process, so ``zenoh_transport`` stays the only module that imports
+zenoh. Run it as ``cmion-mesh router ...`` or ``python -m cmion_mesh.router ...``.
 """
 
 from __future__ import annotations
 
 import argparse
-import signal
+import json
+import socket
 import sys
 import threading
 from collections.abc import Sequence
-from types import FrameType
+from typing import Any
 
 from cmion_mesh.errors import MeshError
+from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
 EXIT_OK, EXIT_FAILED = 0, 1
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 READY = "router up"
+#: Only peers and clients are sorted into LANs: a router matched by no filter stays "north",
+#: a router-to-router link, which is what chaining with --connect needs.
+_SOUTH_MODES = ["peer", "client"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,14 +47,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})")
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable")
-    parser.add_argument("--config", metavar="FILE", help="zenoh JSON5 configuration file (the options above override it)")
+    parser.add_argument("--config", metavar="FILE",
+                        help="zenoh JSON5 configuration file (the options here override it, its gateway too unless --no-lans)")
     parser.add_argument("--no-multicast", action="store_true",
                         help="do not answer or send multicast scouting (peers must --connect to the router)")
     parser.add_argument("--multicast-interface", metavar="IFACE",
                         help="interface for multicast scouting (default: zenoh's choice, 'auto')")
+    lans = parser.add_mutually_exclusive_group()
+    lans.add_argument("--lan", action="append", metavar="IFACE",
+                      help="peers reaching the router through IFACE form one LAN, and the router forwards between LANs; "
+                           "repeatable (default: each network interface of this host is a LAN)")
+    lans.add_argument("--no-lans", action="store_true",
+                      help="leave zenoh's regions as they are (all peers of this router in one region assumed fully connected: "
+                           "the router then forwards only between its clients, its peers and other routers)")
+
+
+def host_interfaces() -> list[str]:
+    """This host's network interfaces except loopback, as the kernel names them."""
+    return [name for _, name in socket.if_nameindex() if name != "lo"]
+
+
+def gateway_south(lans: Sequence[str]) -> list[dict[str, Any]]:
+    """zenoh's ``gateway/south``: one subregion per LAN interface, then one for every other way in.
+
+    The catch-all keeps peers that arrive by an interface not listed (loopback, one that came up
+    later) in the mesh: without it, they would match no subregion and zenoh would refuse them.
+    """
+    regions: list[dict[str, Any]] = [{"filters": [{"modes": _SOUTH_MODES, "interfaces": [lan]}]} for lan in lans]
+    regions.append({"filters": [{"modes": _SOUTH_MODES}]})
+    return regions
+
+
+def lans_of(args: argparse.Namespace) -> list[str] | None:
+    """The LAN interfaces to configure, or None to leave zenoh's regions alone."""
+    if getattr(args, "no_lans", False):
+        return None
+    lans: list[str] = list(dict.fromkeys(getattr(args, "lan", None) or host_interfaces()))
+    return lans
 
 
 def transport_config(args: argparse.Namespace) -> TransportConfig:
+    lans = lans_of(args)
+    # The whole "gateway" object: zenoh refuses to insert below it while "south" is unset (null).
+    overrides = () if lans is None else (("gateway", json.dumps({"south": gateway_south(lans)})),)
     return TransportConfig(
         mode="router",
         listen=tuple(args.listen or (DEFAULT_LISTEN,)),
@@ -49,50 +97,43 @@ def transport_config(args: argparse.Namespace) -> TransportConfig:
         config_file=args.config,
         multicast=not args.no_multicast,
         multicast_interface=getattr(args, "multicast_interface", None),
+        overrides=overrides,
     )
 
 
-def _stop_on_signals(stop: threading.Event) -> dict[int, object]:
-    """Set ``stop`` on SIGINT/SIGTERM; returns the previous handlers (to restore them)."""
-    if threading.current_thread() is not threading.main_thread():
-        return {}  # signal handlers can only be installed from the main thread; the caller sets stop
-
-    def handler(_signum: int, _frame: FrameType | None) -> None:
-        stop.set()
-
-    previous: dict[int, object] = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, handler)
-    return previous
-
-
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
-    """Run until SIGINT/SIGTERM (or ``stop`` is set); 0 after a clean close, 1 if it cannot start."""
+    """Run until SIGINT/SIGTERM (or ``stop`` is set): 0 after a clean close, 1 if it cannot start."""
     from cmion_mesh.zenoh_transport import ZenohTransport  # lazy: the CLI builds its parser without zenoh
 
-    stop = stop or threading.Event()
-    # Handlers go in before the session opens, so a signal during the (slow) open is not lost.
-    previous = _stop_on_signals(stop)
-    config = transport_config(args)
+    # Signals are blocked before the session's threads start, then collected by the main thread.
+    stopper = Stopper() if stop is None else None
     try:
+        config = transport_config(args)
+        lans = lans_of(args)
+        missing = sorted(set(lans or ()) - {name for _, name in socket.if_nameindex()})
+        if missing:  # not fatal: an interface may come up later (a VPN)
+            print(f"warning: no interface named {', '.join(missing)} on this host (yet)", file=sys.stderr, flush=True)
         with ZenohTransport(config) as transport:
-            connecting = f", connecting to {', '.join(config.connect)}" if config.connect else ""
-            scouting = "multicast scouting on" if config.multicast else "no multicast scouting"
-            print(f"{READY}, listening on {', '.join(config.listen)}{connecting}; {scouting} "
-                  f"(zenoh id {transport.id})", flush=True)
-            stop.wait()
+            parts = [f"{READY}, listening on {', '.join(config.listen)}"]
+            if config.connect:
+                parts.append(f"connecting to {', '.join(config.connect)}")
+            parts.append("zenoh's regions" if lans is None else f"LANs: {', '.join(lans) or '(none)'} (+ any other way in)")
+            parts.append("multicast scouting on" if config.multicast else "no multicast scouting")
+            print(f"{'; '.join(parts)} (zenoh id {transport.id})", flush=True)
+            if stopper is not None:
+                stopper.wait()
+            else:
+                assert stop is not None
+                stop.wait()
     except MeshError as exc:  # the CLI would catch it too; handled here so both entry points behave alike
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return EXIT_FAILED
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)  # type: ignore[arg-type]  # whatever signal.signal returned before
     print("router stopped", flush=True)
     return EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="cmion-mesh router", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser = argparse.ArgumentParser(prog="cmion-mesh router", description="Run a zenoh router for cmion-mesh.")
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

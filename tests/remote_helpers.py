@@ -54,3 +54,25 @@ class EagerMind(Mind):
 
     def state(self) -> dict[str, Any]:
         return {"outcomes": list(self.outcomes)}
+
+
+class Diary(Mind):
+    """A mind whose memory is a list of notes (sent as raw messages); it records where it arrived."""
+
+    def __init__(self, name: str = "mind") -> None:
+        super().__init__(name)
+        self.entries: list[str] = []
+        self.arrivals: list[str] = []
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        self.entries.append(str(data.get("note")))
+
+    def on_arrived(self, world_model: dict[str, Any]) -> None:
+        self.arrivals.append(self.sim.embodiment)
+
+    def state(self) -> dict[str, Any]:
+        return {"entries": list(self.entries), "arrivals": list(self.arrivals)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.entries = list(state.get("entries", []))
+        self.arrivals = list(state.get("arrivals", []))

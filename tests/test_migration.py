@@ -15,31 +15,11 @@ from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import MigrateCommit, MigratePrepare, MigrateStatus
 from cmion_mesh.migration import Records
-from cmion_mesh.mind import Mind
 from cmion_mesh.procs import wait_for
 
+from .remote_helpers import Diary
+
 pytestmark = pytest.mark.timeout(60)
-
-
-class Diary(Mind):
-    """A mind whose memory is a list of entries; it notes where it arrived."""
-
-    def __init__(self, name: str = "mind") -> None:
-        super().__init__(name)
-        self.entries: list[str] = []
-        self.arrivals: list[str] = []
-
-    def on_message(self, data: dict[str, Any]) -> None:
-        self.entries.append(str(data.get("note")))
-
-    def on_arrived(self, world_model: dict[str, Any]) -> None:
-        self.arrivals.append(self.sim.embodiment)
-
-    def state(self) -> dict[str, Any]:
-        return {"entries": list(self.entries)}
-
-    def restore(self, state: dict[str, Any]) -> None:
-        self.entries = list(state.get("entries", []))
 
 
 @pytest.fixture
@@ -72,7 +52,7 @@ def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, me
         assert result["source"] == "robot" and result["epoch"] == 2
         assert screen.inhabitant == "spirit" and robot.inhabitant is None
         assert screen_mind.awake and not robot_mind.awake
-        assert screen_mind.entries == ["met Ada"] and screen_mind.arrivals == ["screen"]
+        assert screen_mind.entries == ["met Ada"] and screen_mind.arrivals == ["robot", "screen"]
         assert Records(tmp_path / "robot").get("spirit").state == "released"
         assert Records(tmp_path / "screen").get("spirit").state == "active"
         assert Records(tmp_path / "screen").get("spirit").epoch == 2

@@ -1,0 +1,188 @@
+"""Crash safety with real processes: kill -9 at each durable step, restart, exactly one inhabited.
+
+Each embodiment is a daemon in its own process with its own state folder. A crash point
+(``CMION_MESH_CRASH_AT``) makes the process SIGKILL itself right after writing that record;
+then it is restarted on the same state and port, and the mesh must settle with the companion
+inhabiting exactly one embodiment, its identity (the mind's memory) unchanged.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import MeshError
+from cmion_mesh.messages import Migrate, Request
+from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.transport import TransportConfig
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+pytestmark = pytest.mark.timeout(180)
+CMION_TEST = embodiment_dir("cmion_test")
+
+
+def write_config(folder: Path, name: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    config = folder / "ArchitectureConfiguration.xml"
+    config.write_text(
+        f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{CMION_TEST / "CompManagerRulesTest.xml"}"'
+        f' CompetencyLibraryConfigurationFile="{CMION_TEST / "CompetencyLibrary.xml"}">\n'
+        '  <ArchitectureComponent ClassName="tests.remote_helpers:Diary"/>\n'
+        "</ArchitectureConfiguration>\n")
+    return config
+
+
+@dataclass
+class Node:
+    name: str
+    mesh: str
+    config: Path
+    state: Path
+    port: int
+    peers: list[str]
+    companion: str | None = None
+    daemon: Daemon | None = None
+    history: list[Daemon] = field(default_factory=list)
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def start(self, crash_at: str = "") -> Node:
+        argv = ["up", str(self.config), "--mesh", self.mesh, "--listen", self.endpoint, "--no-multicast", "--state-dir", str(self.state)]
+        for peer in self.peers:
+            argv += ["--connect", peer]
+        if self.companion:
+            argv += ["--companion", self.companion]
+        self.daemon = Daemon(cli_argv(*argv), env={"CMION_MESH_CRASH_AT": crash_at}, name=self.name)
+        self.history.append(self.daemon)
+        self.daemon.wait_line("up in mesh", 30)
+        return self
+
+    def died(self, timeout: float = 30) -> int:
+        assert self.daemon is not None
+        return self.daemon.proc.wait(timeout)
+
+    def stop(self) -> None:
+        for daemon in self.history:
+            daemon.kill()
+
+
+@pytest.fixture
+def nodes(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node]]:
+    robot_port, screen_port = free_port(), free_port()
+    robot = Node("robot", mesh, write_config(tmp_path / "robot", "robot"), tmp_path / "state-robot", robot_port,
+                 [f"tcp/127.0.0.1:{screen_port}"], companion="spirit")
+    screen = Node("screen", mesh, write_config(tmp_path / "screen", "screen"), tmp_path / "state-screen", screen_port,
+                  [f"tcp/127.0.0.1:{robot_port}"])
+    try:
+        yield robot, screen
+    finally:
+        robot.stop()
+        screen.stop()
+
+
+def inhabitants(client: MeshClient) -> dict[str, Any]:
+    found: dict[str, Any] = {}
+    for name in ("robot", "screen"):
+        try:
+            found[name] = client.describe(name, timeout=1.0).get("inhabitant")
+        except MeshError:
+            found[name] = "?"
+    return found
+
+
+def memory(client: MeshClient, embodiment: str) -> list[str]:
+    state = client.request(embodiment, "mind", "state", timeout=5).value
+    assert isinstance(state, dict)
+    return list(state["entries"])
+
+
+class Watcher:
+    """Samples both embodiments while the test runs; records any moment with two inhabitants."""
+
+    def __init__(self, client: MeshClient) -> None:
+        self.client = client
+        self.both: list[dict[str, Any]] = []
+        self.samples = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="watcher")
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.05) and self.samples < 5000:
+            seen = inhabitants(self.client)
+            self.samples += 1
+            if seen.get("robot") == "spirit" and seen.get("screen") == "spirit":
+                self.both.append(seen)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+
+def settle(client: MeshClient, expected_home: str, notes: list[str]) -> None:
+    def one_home() -> bool:
+        seen = inhabitants(client)
+        return seen == {expected_home: "spirit", ("screen" if expected_home == "robot" else "robot"): None}
+
+    wait_for(one_home, 45, f"spirit inhabits exactly {expected_home}")
+    assert memory(client, expected_home) == notes, "the identity arrived unchanged"
+
+
+CASES = [
+    ("source:prepared", "robot"),   # never handed: the source aborts and resumes
+    ("source:handed", "screen"),    # past the commit point: the restarted source commits
+    ("source:released", "screen"),
+    ("target:incoming", "robot"),   # the source never heard 'prepared': it aborts; the target asks and drops
+    ("target:active", "screen"),    # the target activated before answering: the source's commit retry is acknowledged
+]
+
+
+@pytest.mark.parametrize(("crash_at", "home"), CASES)
+def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at: str, home: str) -> None:
+    robot, screen = nodes
+    side = robot if crash_at.startswith("source") else screen
+    robot.start(crash_at if side is robot else "")
+    screen.start(crash_at if side is screen else "")
+    with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
+        notes = ["met Ada", f"crash at {crash_at}"]
+        for note in notes:
+            assert client.request("robot", "mind", "message", Request({"note": note})).status == "accepted"
+        watcher = Watcher(client)
+        try:
+            started = client.request("robot", "migration", "migrate", Migrate("spirit", "screen"))
+            assert started.status == "accepted", started  # the end is not awaited: only the settled state counts
+            assert side.died() == -9, f"{side.name} did not die at {crash_at}"
+            side.start()  # restart on the same state, no crash point
+            settle(client, home, notes)
+        finally:
+            watcher.close()
+        assert not watcher.both, f"two inhabited embodiments seen: {watcher.both[:3]}"
+        assert watcher.samples > 0
+
+
+def test_both_killed_at_once_then_restarted(nodes: tuple[Node, Node], mesh: str) -> None:
+    robot, screen = nodes
+    robot.start("source:handed")
+    screen.start()
+    with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
+        client.request("robot", "mind", "message", Request({"note": "before the storm"}))
+        assert client.request("robot", "migration", "migrate", Migrate("spirit", "screen")).status == "accepted"
+        assert robot.died() == -9
+        assert screen.daemon is not None
+        screen.daemon.kill()  # the target dies too, holding 'incoming'
+        screen.start()
+        robot.start()
+        settle(client, "screen", ["before the storm"])
