@@ -11,7 +11,8 @@
 
 File names are relative to the configuration file. ``ArchitectureComponent`` entries name ION
 components (``package.module:Class``, subclasses of ``cmion_mesh.ion.Component``) built with
-comma-separated string parameters: minds, monitors, extra stores. ``Embodiment`` (an extension)
+comma-separated string parameters: minds, monitors, extra stores. A parameter starting with
+``./`` or ``../`` is a path relative to the configuration file. ``Embodiment`` (an extension)
 names the embodiment; without it the configuration's folder name is used. ``Companion`` (an
 extension) names a companion born here on the first start, if this embodiment holds no companion.
 """
@@ -53,8 +54,9 @@ class Architecture:
             if not issubclass(cls, Component):
                 raise ConfigError(f"{spec.class_name} is not an ION component (cmion_mesh.ion.Component)",
                                   path=str(self.path), line=spec.line)
+            parameters = [str((self.path.parent / p).resolve()) if p.startswith(("./", "../")) else p for p in spec.parameters]
             try:
-                built.append(cls(*spec.parameters))
+                built.append(cls(*parameters))
             except TypeError as exc:
                 raise ConfigError(f"cannot construct {spec.class_name} with {list(spec.parameters)}: {exc}",
                                   path=str(self.path), line=spec.line) from None

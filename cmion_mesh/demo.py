@@ -1,77 +1,183 @@
-"""``cmion-mesh demo``: the core walk-through, each embodiment a separate daemon process.
+"""``cmion-mesh demo``: the Spirit of the Building, end to end.
 
-Starts the ``robot`` embodiment as a daemon with the CMION test world model, then, from this
-process, reads its world model over the mesh, writes the blackboard, shows that a plain watcher
-sees every change and that conflicting writes in one update are mediated (one wins, every
-writer learns its outcome). Ends by itself and stops the daemon.
+Three embodiments, each a daemon in its own process, find each other on the mesh: the robot
+(where the companion "spirit" lives), the screen at the building entrance and a phone, all
+empty but the robot. The operator types "greet Guest" on the robot's console; the command
+reaches the companion's mind through the world model; the mind plans: migrate to the screen,
+ask the person there whether they are the guest, greet them, migrate to the phone to accompany
+them, and come back home to the robot, carrying its memory of the visit all the way.
+
+The demo plays the world: the guest is at the entrance when the companion arrives there and
+answers the question with a "yes" gesture. It prints a timeline and ends by itself.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import threading
+import queue
+import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.messages import Property, SetProperty
+from cmion_mesh.errors import MeshError
+from cmion_mesh.messages import Event
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh, wait_for
-from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
+BODIES = ("robot", "screen", "phone")
+COMPANION = "spirit"
+GUEST = "Guest"
+
 
 class Timeline:
-    def __init__(self) -> None:
+    def __init__(self, out: Callable[[str], None] = print) -> None:
         self.t0 = time.monotonic()
+        self.out = out
 
     def say(self, text: str) -> None:
-        print(f"[{time.monotonic() - self.t0:7.3f} s] {text}", flush=True)
+        self.out(f"[{time.monotonic() - self.t0:6.2f} s] {text}")
+
+
+@dataclass
+class Hop:
+    """One arrival of the companion: where, and its mind's state right after."""
+
+    embodiment: str
+    epoch: int
+    mind: dict[str, Any]
+
+
+@dataclass
+class Scenario:
+    """The running demo: daemons, a client, and what happened."""
+
+    mesh: str
+    endpoints: dict[str, str]
+    daemons: dict[str, Daemon] = field(default_factory=dict)
+    hops: list[Hop] = field(default_factory=list)
+
+
+def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = ()) -> Scenario:
+    ports = {name: free_port() for name in BODIES}
+    scenario = Scenario(mesh, {name: f"tcp/127.0.0.1:{port}" for name, port in ports.items()})
+    try:
+        for name in BODIES:
+            argv = ["up", name, "--mesh", mesh, "--listen", scenario.endpoints[name], "--no-multicast",
+                    "--state-dir", str(state / name), *extra]
+            for other in BODIES:
+                if other != name:
+                    argv += ["--connect", scenario.endpoints[other]]
+            scenario.daemons[name] = Daemon(cli_argv(*argv), name=name)
+        for daemon in scenario.daemons.values():
+            daemon.wait_line("up in mesh", 30)
+    except BaseException:
+        stop_bodies(scenario)
+        raise
+    return scenario
+
+
+def stop_bodies(scenario: Scenario) -> None:
+    for daemon in scenario.daemons.values():
+        daemon.stop()
+
+
+def mind_state(client: MeshClient, embodiment: str) -> dict[str, Any]:
+    value = client.request(embodiment, "mind", "state", timeout=5).value
+    return value if isinstance(value, dict) else {}
+
+
+def run_scenario(client: MeshClient, scenario: Scenario, tl: Timeline, *, timeout: float = 90.0) -> None:
+    """Drive the story to its end (the companion home with the guest welcomed and accompanied)."""
+    events: queue.SimpleQueue[Event] = queue.SimpleQueue()
+    with client.events(events.put):
+        wait_for(lambda: {d.get("name"): d.get("inhabitant") for d in client.describe_all(timeout=1.0)}
+                 == {"robot": COMPANION, "screen": None, "phone": None}, 30, "the three embodiments, spirit on the robot")
+        tl.say(f"robot, screen and phone found each other in mesh {scenario.mesh!r}; {COMPANION!r} lives on the robot")
+        tl.say(f'operator types "greet {GUEST}" on the robot\'s console')
+        client.set_property("robot", keys.BLACKBOARD, "sim", "command", f"greet {GUEST}")
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise MeshError(f"the demo did not finish within {timeout:g} s")
+            try:
+                event = events.get(timeout=left)
+            except queue.Empty:
+                continue
+            if _react(client, scenario, tl, event):
+                return
+
+
+def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event) -> bool:
+    """Print what matters and play the world; True once the story has ended."""
+    where, data = event.embodiment, event.data if isinstance(event.data, dict) else {}
+    name = event.name
+    if name == "MindDecision":
+        decision = data.get("decision")
+        if decision == "goal_added":
+            tl.say(f"{where}: the mind takes up the goal {data.get('goal')!r}")
+        elif decision == "plan":
+            steps = [" ".join([s.get("action", ""), *s.get("parameters", [])]) for s in data.get("steps", [])]
+            tl.say(f"{where}: plan -> {' ; '.join(steps)}")
+        elif decision == "goal_achieved":
+            tl.say(f"{where}: goal {data.get('goal')!r} achieved")
+            return where == "robot"
+        elif decision in ("goal_abandoned", "goal_unreachable"):
+            raise MeshError(f"{where}: goal {data.get('goal')!r} {decision}: {data.get('reason')}")
+    elif name == "ActionStarted" and event.component == "manager":
+        tl.say(f"{where}: action {' '.join([data.get('name', ''), *data.get('parameters', [])])}")
+    elif name == "ActionFailed" and event.component == "manager":
+        tl.say(f"{where}: action {data.get('name')} failed: {data.get('reason')}")
+    elif name == "MigrationStarting":
+        tl.say(f"{where}: migration of {data.get('companion')!r} to {data.get('target')} begins (the mind sleeps here)")
+        if data.get("target") == "screen":
+            tl.say(f"   (a visitor is standing at the entrance: the screen's camera will see {GUEST})")
+            client.set_property("screen", keys.BLACKBOARD, "sim", "userPresent", GUEST)
+    elif name == "MigrationOccurred":
+        state = mind_state(client, where)
+        scenario.hops.append(Hop(where, int(data.get("epoch", 0)), state))
+        memory = state.get("memory", [])
+        tl.say(f"{where}: {data.get('companion')!r} arrived (epoch {data.get('epoch')}), mind awake with "
+               f"{len(memory)} memories")
+    elif name == "MigrationSucceeded":
+        tl.say(f"{where}: handed over to {data.get('target')}; nothing of {data.get('companion')!r} runs here any more")
+    elif name == "StepStarted" and data.get("type") == "GestureDetect":
+        tl.say(f"{where}: asks {GUEST} whether they are the guest; {GUEST} nods: yes")
+        client.set_property(where, keys.BLACKBOARD, "sim", "gesture", "yes")
+    elif name == "Spoke":
+        tl.say(f"{where} says: {data.get('text')!r}")
+    return False
 
 
 def run_demo(args: argparse.Namespace) -> int:
     tl = Timeline()
     mesh = args.mesh if args.mesh != keys.DEFAULT_MESH else unique_mesh("demo")
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    wm_file = embodiment_dir("cmion_test") / "worldModelInit.xml"
-    tl.say(f"mesh {mesh!r}: starting the robot embodiment daemon on {endpoint}")
-    argv = cli_argv("up", "--name", "robot", "--mesh", mesh, "--listen", endpoint, "--no-multicast",
-                    "--world-model", str(wm_file))
-    with Daemon(argv, name="robot") as robot:
-        robot.wait_line("up in mesh")
-        tl.say("robot is up")
-        transport = ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False))
-        with transport:
-            client = MeshClient(transport, mesh)
-            wm = wait_for(lambda: client.read_store("robot", keys.WORLD_MODEL), 10, "robot's world model over the mesh")
-            tl.say(f"world model read over zenoh: {sum(1 for k in wm if '/' in k.split('/wm/', 1)[-1])} properties")
-            for key, entry in wm.items():
-                shown = json.dumps(entry.value) if isinstance(entry, Property) else f"[{entry.kind}]"
-                print(f"          {key.split('/wm', 1)[-1] or '/':<24} {shown}")
-            seen: list[str] = []
-            got = threading.Event()
-
-            def watch(key: str, entry: Any) -> None:
-                seen.append(f"{key.split('/bb/', 1)[-1]} -> {getattr(entry, 'value', None)!r}")
-                got.set()
-
-            with client.watch(keys.storage_selector(mesh, "robot", keys.BLACKBOARD), watch):
-                client.set_property("robot", keys.BLACKBOARD, "", "greeting", "hello, guest")
-                got.wait(5)
-                tl.say(f"blackboard written; a plain subscriber saw: {seen}")
-                writes = [SetProperty("", "mood", m) for m in ("happy", "curious", "sleepy")]
-                with ThreadPoolExecutor(3) as pool:
-                    outcomes = list(pool.map(lambda w: client.write("robot", keys.BLACKBOARD, w), writes))
-                for w, o in zip(writes, outcomes, strict=True):
-                    tl.say(f"write mood={w.value!r}: {o.status}{' (' + o.reason + ')' if o.reason else ''}")
-                final = client.get_property("robot", keys.BLACKBOARD, "", "mood")
-                lost = sum(o.status == "conflict" for o in outcomes)
-                tl.say(f"mood is now {final.value!r}; {lost} write(s) lost a conflict (the first write to a name in an update wins);"
-                       " every writer got a definite answer")
-        tl.say("stopping the robot daemon")
+    with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state:
+        tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
+        scenario = start_bodies(mesh, Path(state))
+        try:
+            config = TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)
+            with ZenohTransport(config) as transport:
+                client = MeshClient(transport, mesh)
+                run_scenario(client, scenario, tl)
+                final = mind_state(client, "robot")
+                kinds: dict[str, int] = {}
+                for episode in final.get("memory", []):
+                    kinds[episode.get("kind", "?")] = kinds.get(episode.get("kind", "?"), 0) + 1
+                guest = final.get("beliefs", {}).get(GUEST, {})
+                facts = ", ".join(k for k in ("confirmed", "welcomed", "accompanied") if guest.get(k))
+                episodes = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items()))
+                tl.say(f"back on the robot; it remembers the visit: {GUEST} {facts}; {sum(kinds.values())} episodes ({episodes})")
+                hosts = [h.embodiment for h in scenario.hops]
+                tl.say(f"journey: robot -> {' -> '.join(hosts)}; exactly one embodiment inhabited at every step")
+        finally:
+            tl.say("stopping the daemons")
+            stop_bodies(scenario)
     tl.say("done")
     return 0

@@ -184,6 +184,9 @@ class Operator:
     effects: tuple[Fact, ...] = ()
     cost: float = 1.0
     subject: str = ""
+    #: Its effects become persistent beliefs: the companion's own memory, kept across migration
+    #: (e.g. "Guest greeted"), where plain effects are body knowledge the next world model replaces.
+    remember: bool = False
 
     @functools.cached_property
     def variables(self) -> tuple[str, ...]:
@@ -204,6 +207,7 @@ class Operator:
             "preconditions": [list(f) for f in self.preconditions],
             "effects": [list(f) for f in self.effects],
             "cost": self.cost,
+            "remember": self.remember,
         }
 
 
@@ -238,9 +242,12 @@ class Trigger:
 
     when: Fact
     goal: dict[str, Any] = field(hash=False)
+    #: Facts the mind learns when the trigger fires (``?vars`` filled in), kept as its own
+    #: persistent beliefs, e.g. "Guest is expected": the reason for the goal travels with it.
+    believe: tuple[Fact, ...] = ()
 
     def to_data(self) -> dict[str, Any]:
-        return {"when": list(self.when), "goal": copy.deepcopy(self.goal)}
+        return {"when": list(self.when), "goal": copy.deepcopy(self.goal), "believe": [list(f) for f in self.believe]}
 
 
 #: Nudges (valence, arousal) per kind of episode; kinds not listed leave the emotion alone.
@@ -304,6 +311,7 @@ class _OperatorData(msgspec.Struct, forbid_unknown_fields=True):
     preconditions: list[_FactData] = []
     effects: list[_FactData] = []
     cost: float = 1.0
+    remember: bool = False
 
 
 class _GoalData(msgspec.Struct, forbid_unknown_fields=True):
@@ -316,6 +324,7 @@ class _GoalData(msgspec.Struct, forbid_unknown_fields=True):
 class _TriggerData(msgspec.Struct, forbid_unknown_fields=True):
     when: _FactData
     goal: dict[str, Any]
+    believe: list[_FactData] = []
 
 
 class _AppraisalData(msgspec.Struct, forbid_unknown_fields=True):
@@ -373,7 +382,7 @@ def _operator(d: _OperatorData, path: str | None) -> Operator:
     if d.cost < 0:
         raise ConfigError(f"{where}: cost {d.cost} is negative", path=path)
     return Operator(d.name, d.action, tuple(d.parameters), tuple(_fact(f, where, path) for f in d.preconditions),
-                    tuple(_fact(f, where, path) for f in d.effects), float(d.cost), d.subject)
+                    tuple(_fact(f, where, path) for f in d.effects), float(d.cost), d.subject, d.remember)
 
 
 def _goal(d: _GoalData, path: str | None) -> Goal:
@@ -393,7 +402,7 @@ def _trigger(d: _TriggerData, path: str | None) -> Trigger:
         check_value(d.goal)
     except ValueError as exc:
         raise ConfigError(f"trigger {list(when)!r}: {exc}", path=path) from None
-    return Trigger(when, dict(d.goal))
+    return Trigger(when, dict(d.goal), tuple(_fact(f, "trigger belief", path) for f in d.believe))
 
 
 def _emotion(d: _EmotionData, path: str | None) -> EmotionConfig:
@@ -909,6 +918,9 @@ class PlannerMind(Mind):
         except ConfigError as exc:
             log.warning("mind %s: trigger %r made no goal: %s", self.name, list(trigger.when), exc)
             return
+        for entity, prop, value in substitute([list(f) for f in trigger.believe], bindings):
+            self.beliefs.setdefault(str(entity), {})[str(prop)] = value
+            self.persistent.add((str(entity), str(prop)))
         self._add_goal(goal, source=f"trigger {_text(list(fact))}")
 
     # --- goals ----------------------------------------------------------------------------------
@@ -1138,6 +1150,8 @@ class PlannerMind(Mind):
                     self.persistent.discard((entity, prop))
                 else:
                     props[prop] = value
+                    if step.operator.remember:
+                        self.persistent.add((entity, prop))
         self._remember("action_succeeded", {"action_id": report.action_id, "action": report.name,
                                             "parameters": list(report.parameters), "goal": self.plan_goal,
                                             "operator": step.operator.name if step else None})

@@ -1,0 +1,54 @@
+"""The demo's path as a test: three daemons, four hops, the identity checked after each."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from cmion_mesh.client import MeshClient
+from cmion_mesh.demo import GUEST, Timeline, mind_state, run_scenario, start_bodies, stop_bodies
+from cmion_mesh.procs import cli_argv
+from cmion_mesh.transport import TransportConfig
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_spirit_of_the_building(tmp_path: Path, mesh: str) -> None:
+    lines: list[str] = []
+    scenario = start_bodies(mesh, tmp_path)
+    try:
+        with ZenohTransport(TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)) as t:
+            client = MeshClient(t, mesh)
+            run_scenario(client, scenario, Timeline(lines.append), timeout=90)
+            assert [h.embodiment for h in scenario.hops] == ["screen", "phone", "robot"]
+            assert [h.epoch for h in scenario.hops] == [2, 3, 4]
+            screen, phone, robot = (h.mind for h in scenario.hops)
+            # on arrival at the screen it carries the goal, and why it came (the guest is expected)
+            assert [g["name"] for g in screen["goals"]["pending"]] == [f"welcome {GUEST}"]
+            assert screen["beliefs"][GUEST]["expected"] is True
+            assert screen["beliefs"]["Self"]["embodiment"] == "screen", "body knowledge comes from the new world model"
+            # at the phone it remembers that the guest was confirmed and welcomed at the screen
+            assert phone["beliefs"][GUEST].items() >= {"confirmed": True, "welcomed": True}.items()
+            assert phone["beliefs"]["Self"]["embodiment"] == "phone"
+            # back home: the whole visit is in its memory, and every earlier memory is kept
+            assert robot["beliefs"][GUEST]["accompanied"] is True
+            assert robot["goals"]["pending"] == [] or all(g["name"] != f"welcome {GUEST}" for g in robot["goals"]["pending"])
+            for earlier, later in ((screen, phone), (phone, robot)):
+                assert later["memory"][: len(earlier["memory"])] == earlier["memory"], "memories are carried, never lost"
+            final = mind_state(client, "robot")
+            assert any(e["kind"] == "goal_achieved" for e in final["memory"])
+            inhabitants = {d["name"]: d["inhabitant"] for d in client.describe_all(timeout=1.0)}
+            assert inhabitants == {"robot": "spirit", "screen": None, "phone": None}
+    finally:
+        stop_bodies(scenario)
+    assert any("goal 'welcome Guest' achieved" in line for line in lines)
+
+
+def test_demo_command_runs_and_ends_by_itself() -> None:
+    result = subprocess.run(cli_argv("demo"), capture_output=True, text=True, timeout=150, stdin=subprocess.DEVNULL)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "journey: robot -> screen -> phone -> robot" in result.stdout
+    assert result.stdout.rstrip().endswith("done")
