@@ -2,7 +2,6 @@
 
     python -m bench [--quick] [--only events,get,set] [--samples N] [--json PATH] [--check]
     python -m bench --only breakdown             # diagnostic: per-hop timestamps
-    python -m bench --experiment keycache,inline # what-if patches (see bench/experiments.py)
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from bench import experiments
 from bench.registry import BENCHMARKS, Options, Row, select
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -83,8 +81,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=4, metavar="N", help="raw/cmion alternations (default %(default)s)")
     parser.add_argument("--json", metavar="PATH", help="write the whole run here (default bench/results/<benchmark>.json)")
     parser.add_argument("--check", action="store_true", help="exit 1 if a cmion metric misses its target ratio")
-    parser.add_argument("--experiment", metavar="LIST",
-                        help="what-if patches of cmion_mesh, e.g. keycache,inline (see bench/experiments.py)")
     args = parser.parse_args(argv)
 
     samples = args.samples if args.samples is not None else (300 if args.quick else 2000)
@@ -97,19 +93,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
 
-    try:
-        applied = experiments.apply(args.experiment.split(",") if args.experiment else [])
-    except ValueError as exc:
-        parser.error(str(exc))
-
     command = "python -m bench" + ("" if not sys.argv[1:] else " " + shlex.join(sys.argv[1:] if argv is None else argv))
     host = machine()
     meta: dict[str, Any] = {"command": command, "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                            "machine": host, "options": asdict(options), "experiments": applied}
+                            "machine": host, "options": asdict(options)}
     print(f"{command}: {samples} samples per metric in {options.rounds} interleaved rounds after {warmup} warm-up "
           f"iterations; {host['cpus']} CPUs, zenoh {host['zenoh']}", flush=True)
-    if applied:
-        print(f"EXPERIMENTS applied (patched cmion_mesh, not the real thing): {', '.join(applied)}", flush=True)
     everything: dict[str, Any] = {**meta, "benchmarks": {}}
     failed = False
     for bench, groups in chosen:

@@ -31,7 +31,6 @@ from typing import Any
 
 import zenoh
 
-from bench import experiments
 from bench.core import (
     A_NAME,
     B_NAME,
@@ -108,9 +107,9 @@ def instrument() -> None:
         BOOK.channel_out = ns()
         query_init(self, query)
 
-    def traced_event(self: Simulation, sample: Any) -> None:
+    def traced_event(self: Simulation, sub: Any, sample: Any) -> None:
         BOOK.worker_in = ns()
-        on_event(self, sample)
+        on_event(self, sub, sample)
         BOOK.worker_out = ns()
 
     def traced_query(self: Simulation, component: Any, query: Any) -> None:
@@ -449,7 +448,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     srv.add_argument("--tag", required=True)
     srv.add_argument("--parent", type=int)
     args = parser.parse_args(argv)
-    experiments.apply_from_env()
     return serve(args)
 
 

@@ -37,7 +37,6 @@ from typing import Any
 
 import zenoh
 
-from bench import experiments
 from bench.harness import (
     StopSignal,
     interleaved,
@@ -471,7 +470,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     mesh.add_argument("--peer", required=True, help="the embodiment whose pings to echo")
     mesh.add_argument("--parent", type=int)
     args = parser.parse_args(argv)
-    experiments.apply_from_env()
     if args.command == "serve-raw":
         return serve_raw(args)
     return serve_mesh(args)

@@ -14,6 +14,8 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
 * Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control);
   requests are zenoh queries on ``.../rq/<component>/<request>``. Local events and requests
   between components of one simulation are delivered directly, in order, and still published.
+  A remote event reaches each subscription whose pattern its key matches once (each ``on_event``
+  has its own zenoh subscriber), and only if its fields name the key it was published on.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from cmion_mesh import keys
-from cmion_mesh.errors import ClosedError, MeshError, OutcomeUnknown, ProtocolError, RequestRejected
+from cmion_mesh.errors import ClosedError, InvalidName, MeshError, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Event, Message, Outcome, Request, check_value, decode, encode
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
@@ -45,6 +47,9 @@ OutcomeHandler = Callable[[Outcome], None]
 MAX_EVENTS_PER_UPDATE = 10_000
 #: Work items taken into one update.
 MAX_ITEMS_PER_UPDATE = 10_000
+#: Bound of the per-simulation caches of event keys and of subscriptions matching a key
+#: (cleared when full: they only save work, and remote names are not ours to bound).
+MAX_CACHED_KEYS = 4096
 DEFAULT_REQUEST_TIMEOUT = 10.0
 
 
@@ -131,6 +136,17 @@ class _RequestItem:
         self.request = request
 
 
+class _RemoteEvent:
+    """A remote event on its way to the loop, for the one subscription whose zenoh subscriber got it."""
+
+    __slots__ = ("event", "key", "sub")
+
+    def __init__(self, event: Event, key: str, sub: _Subscription) -> None:
+        self.event = event
+        self.key = key
+        self.sub = sub
+
+
 class _Subscription(Handle):
     def __init__(self, sim: Simulation, pattern: str, handler: EventHandler) -> None:
         self.sim = sim
@@ -138,6 +154,9 @@ class _Subscription(Handle):
         self.handler = handler
         self.remote: Closeable | None = None
         self.closed = False
+
+    def on_sample(self, sample: Sample) -> None:
+        self.sim._on_remote_event(self, sample)
 
     def close(self) -> None:
         if self.closed:
@@ -162,7 +181,12 @@ class Simulation:
         self._components: dict[str, Component] = {}
         self._queryables: dict[str, Closeable] = {}
         self._subscriptions: list[_Subscription] = []
-        self._events: deque[Event] = deque()
+        # key -> the subscriptions matching it; replaced (under _lock) when subscriptions change
+        self._matching: dict[str, list[_Subscription]] = {}
+        # (embodiment, component, event) -> checked event key
+        self._event_keys: dict[tuple[str, str, str], str] = {}
+        # events to dispatch: (event, key, the one subscription of a remote event or None = all matching)
+        self._events: deque[tuple[Event, str, _Subscription | None]] = deque()
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_ids = itertools.count()
         self._seq = itertools.count(1)
@@ -296,26 +320,44 @@ class Simulation:
             return
         self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, requester, answer)))
 
-    def _on_remote_event(self, sample: Sample) -> None:
+    def _on_remote_event(self, sub: _Subscription, sample: Sample) -> None:
+        # Runs on the subscription's transport worker. zenoh matched the key against this
+        # subscription's pattern; the event's fields must name that same key.
         if sample.deleted:
             return
         try:
             event = decode(sample.payload, Event, where=sample.key)
-        except ProtocolError as exc:
+            if self._event_key(event.embodiment, event.component, event.name) != sample.key:
+                raise ProtocolError(f"{sample.key}: the event says it is {event.embodiment}/{event.component}/{event.name}")
+        except (ProtocolError, InvalidName) as exc:
             log.warning("ignored event: %s", exc)
             return
-        self._inbox.put(event)
+        self._inbox.put(_RemoteEvent(event, sample.key, sub))
 
     # --- events -----------------------------------------------------------------------------
 
+    def _event_key(self, embodiment: str, component: str, name: str) -> str:
+        """``keys.event_key`` in this mesh, cached: names are checked once, not per event."""
+        cache = self._event_keys
+        key = cache.get((embodiment, component, name))
+        if key is None:
+            key = keys.event_key(self.mesh, embodiment, component, name)  # raises InvalidName
+            if len(cache) >= MAX_CACHED_KEYS:
+                cache.clear()
+            cache[(embodiment, component, name)] = key
+        return key
+
     def raise_event(self, component: str, name: str, data: Any = None) -> None:
-        """Raise an event: published now, dispatched locally in order. Thread-safe."""
+        """Raise an event: published now, dispatched locally in order. Thread-safe.
+
+        Raises ``InvalidName`` at once (on any thread) if a name cannot be a key chunk.
+        """
+        key = self._event_key(self.embodiment, component, name)
         if not self.on_loop():
             self.call(lambda: self.raise_event(component, name, data))
             return
         event = Event(self.embodiment, component, name, check_value(data), next(self._seq), time.time())
-        self._events.append(event)
-        key = keys.event_key(self.mesh, self.embodiment, component, name)
+        self._events.append((event, key, None))
         try:
             self.transport.publish(key, encode(event), block=True)
         except Exception as exc:
@@ -329,13 +371,26 @@ class Simulation:
         sub = _Subscription(self, pattern, handler)
         with self._lock:
             self._subscriptions.append(sub)
-        sub.remote = self.transport.subscribe(pattern, self._on_remote_event, remote_only=True)
+            self._matching = {}
+        sub.remote = self.transport.subscribe(pattern, sub.on_sample, remote_only=True)
         return sub
 
     def _unsubscribe(self, sub: _Subscription) -> None:
         with self._lock:
             if sub in self._subscriptions:
                 self._subscriptions.remove(sub)
+                self._matching = {}
+
+    def _subscribers(self, key: str) -> list[_Subscription]:
+        """The subscriptions whose pattern matches ``key``, cached until the subscriptions change."""
+        subs = self._matching.get(key)
+        if subs is None:
+            with self._lock:  # computed and stored under the lock that guards changes: never stale
+                subs = [sub for sub in self._subscriptions if keys.matches(sub.pattern, key)]
+                if len(self._matching) >= MAX_CACHED_KEYS:
+                    self._matching = {}
+                self._matching[key] = subs
+        return subs
 
     # --- requests out -------------------------------------------------------------------------
 
@@ -395,25 +450,25 @@ class Simulation:
     # --- the loop -----------------------------------------------------------------------------
 
     def _run(self) -> None:
+        inbox = self._inbox
         try:
-            while True:
+            stop = False
+            while not stop:
                 timeout = None
                 if self._timers:
                     timeout = max(0.0, self._timers[0][0] - time.monotonic())
+                items: list[Any] = []
                 try:
-                    first = self._inbox.get(timeout=timeout)
-                except queue.Empty:
-                    first = None
-                items = [] if first is None else [first]
-                while len(items) < MAX_ITEMS_PER_UPDATE:
-                    try:
-                        items.append(self._inbox.get_nowait())
-                    except queue.Empty:
-                        break
-                stop = any(item is _STOP for item in items)
-                self._update([item for item in items if item is not _STOP])
-                if stop:
-                    break
+                    items.append(inbox.get(timeout=timeout))
+                except queue.Empty:  # only when a timer is due
+                    pass
+                # The loop is the inbox's only reader, so this many get_nowait() cannot fail.
+                for _ in range(min(inbox.qsize(), MAX_ITEMS_PER_UPDATE - len(items))):
+                    items.append(inbox.get_nowait())
+                if any(item is _STOP for item in items):
+                    stop = True
+                    items = [item for item in items if item is not _STOP]
+                self._update(items)
         finally:
             self._shutdown()
             self._stopped.set()
@@ -425,10 +480,10 @@ class Simulation:
             items.insert(0, heapq.heappop(self._timers)[2])
         batches: dict[str, list[IncomingRequest]] = {}
         for item in items:
-            if isinstance(item, _RequestItem):
+            if isinstance(item, _RemoteEvent):
+                self._events.append((item.event, item.key, item.sub))
+            elif isinstance(item, _RequestItem):
                 batches.setdefault(item.component.name, []).append(item.request)
-            elif isinstance(item, Event):
-                self._events.append(item)
             else:
                 self._guard("call", item)
         for name, batch in batches.items():
@@ -441,14 +496,17 @@ class Simulation:
             for request in batch:
                 if not request.answered:
                     request.reject(f"component {name!r} gave no answer to {request.name!r}")
+        events = self._events
         dispatched = 0
-        while self._events and dispatched < MAX_EVENTS_PER_UPDATE:
-            event = self._events.popleft()
+        while events and dispatched < MAX_EVENTS_PER_UPDATE:
+            event, key, target = events.popleft()
             dispatched += 1
-            key = keys.event_key(self.mesh, event.embodiment, event.component, event.name)
-            for sub in list(self._subscriptions):
-                if not sub.closed and keys.matches(sub.pattern, key):
-                    self._guard(f"handler of {key}", sub.handler, event)
+            for sub in self._subscribers(key) if target is None else (target,):
+                if not sub.closed:
+                    try:
+                        sub.handler(event)
+                    except Exception:
+                        log.exception("handler of %s failed in embodiment %s", key, self.embodiment)
         if self._events:
             self._inbox.put(lambda: None)  # carry the rest into the next update
 

@@ -16,6 +16,7 @@ ends, or nothing at all is refused with ``InvalidName`` naming it.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -32,10 +33,22 @@ COMPETENCY = "@competency"
 
 _FORBIDDEN = set("/*$#?")
 MAX_NAME = 200
+#: Exactly the names ``check_name`` accepts: 1..MAX_NAME characters, none of ``/ * $ # ?`` nor a
+#: control character, no leading ``@``, no white space at either end (``\s`` is ``str.isspace``,
+#: the test ``str.strip`` uses). Names are checked on every key built, so the valid case is one
+#: ``fullmatch``; the detailed checks below run only to word the error.
+_VALID_NAME = re.compile(rf"(?!@)(?!\s)[^/*$#?\x00-\x1f]{{1,{MAX_NAME}}}(?<!\s)")
 
 
 def check_name(name: str, what: str = "name") -> str:
     """Return ``name`` if it can be one key chunk, else raise ``InvalidName`` naming it."""
+    if isinstance(name, str) and _VALID_NAME.fullmatch(name) is not None:
+        return name
+    return _refuse(name, what)
+
+
+def _refuse(name: str, what: str) -> str:
+    """The slow path of ``check_name``: raise ``InvalidName`` saying what is wrong with ``name``."""
     if not isinstance(name, str):
         raise InvalidName(f"{what} must be a string, got {type(name).__name__}: {name!r}")
     if name == "":

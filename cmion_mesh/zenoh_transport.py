@@ -79,6 +79,8 @@ class _Query:
         self._query = query
         self._done = False
         self.key = str(query.key_expr)
+        # Taken now although cmion never reads it: it costs ~0.2 us, and read lazily it would
+        # raise once finish() has dropped the query (the memory transport's would not).
         self.selector = str(query.selector)
         raw = query.payload
         self.payload = raw.to_bytes() if raw is not None else None
