@@ -23,9 +23,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from cmion_mesh import keys, xmlsafe
+from cmion_mesh import keys, signing, xmlsafe
 from cmion_mesh.competency import import_class, split_parameters
-from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.ion import Component
 
 
@@ -46,6 +46,7 @@ class Architecture:
     components: tuple[ComponentSpec, ...]
     line: int | None = None
     companion: str | None = None
+    admit: dict[str, bytes | None] | None = None
 
     def build_components(self) -> list[Component]:
         built = []
@@ -104,4 +105,13 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
             keys.check_name(companion, "companion")
         except InvalidName as exc:
             raise ConfigError(str(exc), path=str(config), line=line) from None
-    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line, companion)
+    admit: dict[str, bytes | None] | None = None
+    for el in root:
+        if el.tag == "AdmitCompanion":
+            admit = admit or {}
+            key = el.get("PublicKey")
+            try:
+                admit[el.get("Name", "")] = signing.decode_public(key) if key else None
+            except MeshError as exc:
+                raise ConfigError(str(exc), path=str(config), line=_line(el)) from None
+    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line, companion, admit)

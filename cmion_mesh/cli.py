@@ -161,6 +161,19 @@ def state_dir(args: argparse.Namespace, name: str) -> str:
     return os.path.join(base, "cmion-mesh", args.mesh, name)
 
 
+def admit(args: argparse.Namespace) -> dict[str, bytes | None] | None:
+    """``--admit NAME[=PUBLICKEY]``: which companions may migrate in (default: any)."""
+    from cmion_mesh.signing import decode_public
+
+    if not args.admit:
+        return None
+    out: dict[str, bytes | None] = {}
+    for item in args.admit:
+        name, _, key = item.partition("=")
+        out[keys.check_name(name, "companion")] = decode_public(key) if key else None
+    return out
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from cmion_mesh.embodiment import Embodiment
 
@@ -171,13 +184,13 @@ def cmd_up(args: argparse.Namespace) -> int:
 
         name = args.name or load_architecture(config).embodiment
         embodiment = Embodiment.from_architecture(config, mesh=args.mesh, name=name, transport_config=transport_config(args),
-                                                  state_dir=state_dir(args, name), companion=args.companion)
+                                                  state_dir=state_dir(args, name), companion=args.companion, admit=admit(args))
     else:
         if not args.name:
             raise MeshError("give an architecture configuration (PATH) or at least --name")
         embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args),
                                 world_model_init=args.world_model, rules=args.rules, library=args.library,
-                                state_dir=state_dir(args, args.name), companion=args.companion)
+                                state_dir=state_dir(args, args.name), companion=args.companion, admit=admit(args))
     with embodiment:
         if args.no_multicast and not args.connect and not args.listen:
             print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
@@ -392,6 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed")
     p.add_argument("--state-dir", help="durable migration records (default: ~/.local/state/cmion-mesh/<mesh>/<name>)")
     p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none")
+    p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
+                   help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
     _common(p)
     p.set_defaults(func=cmd_up)
 

@@ -40,6 +40,7 @@ class Embodiment:
         components: Iterable[Component] = (),
         state_dir: str | os.PathLike[str] | None = None,
         companion: str | None = None,
+        admit: dict[str, bytes | None] | None = None,
     ) -> None:
         self.name = keys.check_name(name, "embodiment")
         self.version = __version__
@@ -85,7 +86,7 @@ class Embodiment:
             for component in extra:
                 self.sim.add(component)
             if state_dir is not None:
-                self.migration = MigrationManager(state_dir, companion=companion)
+                self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
         except BaseException:
             self.close()
@@ -96,6 +97,7 @@ class Embodiment:
         cls, path: str | os.PathLike[str], *, mesh: str = keys.DEFAULT_MESH, name: str | None = None,
         transport: Transport | None = None, transport_config: TransportConfig | None = None,
         state_dir: str | os.PathLike[str] | None = None, companion: str | None = None,
+        admit: dict[str, bytes | None] | None = None,
     ) -> Embodiment:
         """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``)."""
         arch = load_architecture(path)
@@ -103,6 +105,7 @@ class Embodiment:
             name or arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
             world_model_init=arch.world_model, rules=arch.rules, library=arch.library, components=arch.build_components(),
             state_dir=state_dir, companion=companion or arch.companion,
+            admit=arch.admit if admit is None else {**(arch.admit or {}), **admit},
         )
 
     def add(self, component: Component) -> Component:
@@ -122,6 +125,8 @@ class Embodiment:
             "actions": self.rules.actions(),
             "minds": [m.name for m in self.minds],
             "inhabitant": self.inhabitant,
+            "companion_key": self.migration.public_key() if self.migration is not None else None,
+            "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
             "version": self.version,
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,

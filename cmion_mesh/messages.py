@@ -182,6 +182,9 @@ class MigratePrepare(Message, frozen=True, tag="migrate_prepare"):
     source: str
     target: str
     document: bytes
+    envelope: bytes = b""  # canonical MessagePack of ``signing.Envelope``
+    signature: bytes = b""  # Ed25519 by the companion's key over ``envelope``
+    companion_key: bytes = b""  # the companion's private key: it lives with the companion
 
 
 class MigrateCommit(Message, frozen=True, tag="migrate_commit"):

@@ -48,7 +48,7 @@ from typing import Any, Literal
 
 import msgspec
 
-from cmion_mesh import keys
+from cmion_mesh import keys, signing
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
 from cmion_mesh.identity import Identity, unpack
@@ -70,6 +70,7 @@ class Record(msgspec.Struct, frozen=True):
     attempt: str = ""
     peer: str = ""  # the target (source side) or the source (target side) of ``attempt``
     updated: float = 0.0
+    public_key: str = ""  # the companion's key, pinned when first seen (base64)
 
 
 class Records:
@@ -112,6 +113,14 @@ class Records:
             self._cache[record.companion] = record
         return record
 
+    def move(self, companion: str, state: State, epoch: int, attempt: str = "", peer: str = "",
+             public_key: str | None = None) -> Record:
+        """Write the companion's next state; the pinned public key is kept unless a new one is given."""
+        with self._lock:
+            current = self._cache.get(companion)
+            pinned = public_key if public_key is not None else (current.public_key if current else "")
+            return self.put(Record(companion, state, epoch, attempt, peer, public_key=pinned))
+
     def all(self) -> list[Record]:
         with self._lock:
             return list(self._cache.values())
@@ -128,6 +137,14 @@ class Records:
 
     def document(self, companion: str) -> bytes | None:
         path = self.dir / f"{companion}.identity.xml"
+        return path.read_bytes() if path.exists() else None
+
+    def put_key(self, companion: str, private: bytes) -> None:
+        with self._lock:
+            signing.save_private(self.dir / f"{keys.check_name(companion, 'companion')}.key", private)
+
+    def key(self, companion: str) -> bytes | None:
+        path = self.dir / f"{companion}.key"
         return path.read_bytes() if path.exists() else None
 
 
@@ -164,8 +181,12 @@ class MigrationManager(Component):
                 "status": MigrateStatus}
 
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = 5.0,
-                 request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0)) -> None:
+                 request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
+                 admit: dict[str, bytes | None] | None = None) -> None:
+        """``admit``: which companions may enter (name -> trusted public key, or None to pin it on
+        first sight); None admits any companion (its key is pinned on first sight)."""
         super().__init__("migration")
+        self.admit = admit
         self.records = Records(state_dir)
         self.seed = keys.check_name(companion, "companion") if companion else None
         self.section_deadline = section_deadline
@@ -183,6 +204,12 @@ class MigrationManager(Component):
         identity = self.identity
         return identity.companion if identity is not None else None
 
+    def public_key(self) -> str | None:
+        """The inhabitant's public key (base64), for admission lists elsewhere."""
+        identity = self.identity
+        record = self.records.get(identity.companion) if identity is not None else None
+        return record.public_key or None if record is not None else None
+
     def section(self, component: str) -> Any:
         """The section ``component`` contributed to the identity living here (None if absent)."""
         return None if self.identity is None else self.identity.sections.get(component)
@@ -193,12 +220,14 @@ class MigrationManager(Component):
         if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
             # First start of the companion's home: it is born here, at epoch 1.
             identity = Identity(self.seed, 1, {})
+            private = signing.new_key()
+            self.records.put_key(self.seed, private)
             self.records.put_document(self.seed, identity.pack())
-            self.records.put(Record(self.seed, "active", 1))
+            self.records.move(self.seed, "active", 1, public_key=signing.encode_public(signing.public_of(private)))
         for record in self.records.all():
             if record.state == "prepared":
                 # Never handed: the target cannot have activated. Abort and resume here.
-                self.records.put(Record(record.companion, "active", record.epoch))
+                self.records.move(record.companion, "active", record.epoch)
                 self._send_abort_later(record)
                 self._resume(record.companion, "recovered: a migration had not reached its commit point")
             elif record.state == "active":
@@ -313,6 +342,10 @@ class MigrationManager(Component):
         if record is None or record.state != "active":
             refuse(f"{identity.companion!r} is not active here")
             return None
+        refused_by = refuses(identity, request.target)
+        if refused_by:
+            refuse(refused_by)
+            return None
         out = _Outgoing(identity.companion, request.target, record.epoch, uuid.uuid4().hex, future)
         self._outgoing = out
         self.raise_event("MigrationStarting", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
@@ -382,9 +415,13 @@ class MigrationManager(Component):
 
     def _send(self, out: _Outgoing, document: bytes) -> None:
         self.records.put_document(out.companion, document)
-        prepared = self.records.put(Record(out.companion, "prepared", out.epoch, out.attempt, out.target))
+        prepared = self.records.move(out.companion, "prepared", out.epoch, out.attempt, out.target)
         crash_point("source:prepared")
-        message = MigratePrepare(out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document)
+        private = self.records.key(out.companion) or b""
+        envelope, signature = (signing.seal(private, out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document)
+                               if private else (b"", b""))
+        message = MigratePrepare(out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document,
+                                 envelope, signature, private)
         key = keys.request_key(self.sim.mesh, out.target, "migration", "prepare")
         reply: Outcome | None = None
         unknown = ""
@@ -399,12 +436,12 @@ class MigrationManager(Component):
         if reply is None or reply.status != "accepted":
             reason = (f"{out.target} refused: {reply.reason}" if reply is not None
                       else f"outcome unknown ({unknown}); the companion resumes here")
-            self.records.put(Record(out.companion, "active", out.epoch))
+            self.records.move(out.companion, "active", out.epoch)
             if reply is None:
                 self._send_abort_later(prepared)
             self._post(self._aborted, out, reason)
             return
-        handed = self.records.put(Record(out.companion, "handed", out.epoch, out.attempt, out.target))
+        handed = self.records.move(out.companion, "handed", out.epoch, out.attempt, out.target)
         crash_point("source:handed")
         self._post(self._handed, out)
         self._commit_until_acked(handed)
@@ -435,7 +472,7 @@ class MigrationManager(Component):
             delay = min(self.retry[1], delay * 2)
         else:
             return
-        self.records.put(Record(handed.companion, "released", handed.epoch, handed.attempt, handed.peer))
+        self.records.move(handed.companion, "released", handed.epoch, handed.attempt, handed.peer)
         crash_point("source:released")
         self._post(self._released, handed)
 
@@ -490,11 +527,15 @@ class MigrationManager(Component):
         if msg.target != me:
             request.reject(f"this is {me!r}, not {msg.target!r}")
             return
+        record = self.records.get(msg.companion)
+        refusal = self._check_signature(msg, record)
+        if refusal:
+            request.reject(refusal)
+            return
         held = self.records.hosting()
         if held is not None and held.companion != msg.companion:
             request.reject(f"{me!r} is occupied by companion {held.companion!r}")
             return
-        record = self.records.get(msg.companion)
         if record is not None:
             if record.state == "incoming" and record.attempt == msg.attempt:
                 request.accept({"state": "prepared"})  # a repeated prepare: same answer
@@ -510,10 +551,34 @@ class MigrationManager(Component):
             request.reject(f"document is for {identity.companion!r} at epoch {identity.epoch}, "
                            f"not {msg.companion!r} at epoch {msg.epoch}")
             return
+        refused_by = refuses(identity, me)
+        if refused_by:
+            request.reject(refused_by)
+            return
+        self.records.put_key(msg.companion, msg.companion_key)
         self.records.put_document(msg.companion, msg.document)
-        self.records.put(Record(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source))
+        public = signing.encode_public(signing.public_of(msg.companion_key))
+        self.records.move(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, public_key=public)
         crash_point("target:incoming")
         request.accept({"state": "prepared"})
+
+    def _check_signature(self, msg: MigratePrepare, record: Record | None) -> str:
+        """Why this prepare is refused before its XML is read ("" when the envelope holds)."""
+        if self.admit is not None and msg.companion not in self.admit:
+            return f"admission: companion {msg.companion!r} may not enter {self.sim.embodiment!r}"
+        trusted = self.admit.get(msg.companion) if self.admit is not None else None
+        if trusted is None and record is not None and record.public_key:
+            trusted = signing.decode_public(record.public_key)  # pinned when first seen
+        if not msg.envelope or not msg.signature:
+            return f"refused: the identity of {msg.companion!r} is not signed"
+        expected = signing.Envelope(msg.companion, msg.epoch, msg.attempt, msg.source, msg.target, b"", b"")
+        try:
+            envelope = signing.verify(msg.envelope, msg.signature, expected=expected, document=msg.document, trusted_key=trusted)
+            if len(msg.companion_key) != 32 or signing.public_of(msg.companion_key) != envelope.public_key:
+                return "refused: the companion's key does not match its signature"
+        except signing.SignatureRefused as exc:
+            return f"refused: {exc}"
+        return ""
 
     def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
         record = self.records.get(msg.companion)
@@ -527,7 +592,7 @@ class MigrationManager(Component):
         request.accept({"state": "committed"})
 
     def _activate(self, incoming: Record) -> None:
-        active = self.records.put(Record(incoming.companion, "active", incoming.epoch + 1, incoming.attempt, incoming.peer))
+        active = self.records.move(incoming.companion, "active", incoming.epoch + 1, incoming.attempt, incoming.peer)
         crash_point("target:active")
         data = self.records.document(incoming.companion)
         identity = unpack(data or b"", name=f"{incoming.companion}.identity.xml")
@@ -537,7 +602,7 @@ class MigrationManager(Component):
     def _on_abort(self, request: IncomingRequest, msg: MigrateAbort) -> None:
         record = self.records.get(msg.companion)
         if record is not None and record.state == "incoming" and record.attempt == msg.attempt:
-            self.records.put(Record(msg.companion, "dropped", record.epoch, record.attempt, record.peer))
+            self.records.move(msg.companion, "dropped", record.epoch, record.attempt, record.peer)
         request.accept()
 
     def _resolve_incoming(self, record: Record) -> None:
@@ -568,9 +633,23 @@ class MigrationManager(Component):
         if state == "committed":
             self._activate(current)
         else:
-            self.records.put(Record(record.companion, "dropped", record.epoch, record.attempt, record.peer))
+            self.records.move(record.companion, "dropped", record.epoch, record.attempt, record.peer)
             self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,
                                                   "source": record.peer})
+
+
+POLICY_SECTION = "policy"
+
+
+def refuses(identity: Identity, embodiment: str) -> str:
+    """Why the companion itself refuses ``embodiment`` ("" if it accepts it).
+
+    A companion's identity may hold a ``policy`` section ``{"accepts": [embodiment names]}``."""
+    policy = identity.sections.get(POLICY_SECTION)
+    accepts = policy.get("accepts") if isinstance(policy, dict) else None
+    if isinstance(accepts, list) and embodiment not in accepts:
+        return f"companion {identity.companion!r} does not accept embodiment {embodiment!r} (its policy: {accepts})"
+    return ""
 
 
 class _AnswerFuture(Future[Outcome]):

@@ -6,14 +6,16 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 
+from cmion_mesh import signing
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateCommit, MigratePrepare, MigrateStatus
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.migration import Records
 from cmion_mesh.procs import wait_for
 
@@ -82,17 +84,27 @@ def test_refusals_leave_the_companion_running_at_the_source(network: MemoryNetwo
         close(robot, phone)
 
 
+def signed(companion: str, epoch: int, attempt: str, source: str, target: str, document: bytes, private: bytes,
+           *, envelope_target: str | None = None) -> MigratePrepare:
+    envelope, signature = signing.seal(private, companion, epoch, attempt, source, envelope_target or target, document)
+    return MigratePrepare(companion, epoch, attempt, source, target, document, envelope, signature, private)
+
+
 def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork, mesh: str, tmp_path: Path,
                                                           client: MeshClient) -> None:
     screen = body(network, mesh, "screen", tmp_path).start()
+    key = signing.new_key()
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
         hostile = b'<!DOCTYPE Identity [<!ENTITY x SYSTEM "file:///etc/passwd">]><Identity SchemaVersion="1" Companion="s" Epoch="1"/>'
-        bad = client.request("screen", "migration", "prepare", MigratePrepare("s", 1, "a1", "robot", "screen", hostile))
+        bad = client.request("screen", "migration", "prepare", signed("s", 1, "a1", "robot", "screen", hostile, key))
         assert bad.status == "rejected" and "internal DTD subset" in bad.reason and "identity of s from robot" in bad.reason
+        huge = b"<Identity" + b" " * (50 * 1024 * 1024) + b"/>"
+        too_big = client.request("screen", "migration", "prepare", signed("s", 1, "a0", "robot", "screen", huge, key))
+        assert too_big.status == "rejected"
         doc = Identity("s", 4, {"mind": {"entries": []}, "face": {"smile": 0.7}}).pack()
-        ok = client.request("screen", "migration", "prepare", MigratePrepare("s", 4, "a2", "robot", "screen", doc))
-        again = client.request("screen", "migration", "prepare", MigratePrepare("s", 4, "a2", "robot", "screen", doc))
+        ok = client.request("screen", "migration", "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
+        again = client.request("screen", "migration", "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
         assert ok.status == again.status == "accepted", "a duplicated prepare gets the same answer"
         stale = client.request("screen", "migration", "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen"))
         assert stale.status == "rejected" and "old-attempt" in stale.reason
@@ -101,7 +113,7 @@ def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork
         assert client.request("screen", "migration", "commit", commit).status == "accepted"
         assert client.request("screen", "migration", "commit", commit).status == "accepted", "duplicate commit: same answer"
         assert screen.inhabitant == "s"
-        older = client.request("screen", "migration", "prepare", MigratePrepare("s", 3, "a3", "robot", "screen", doc))
+        older = client.request("screen", "migration", "prepare", signed("s", 3, "a3", "robot", "screen", doc, key))
         assert older.status == "rejected" and "stale" in older.reason
         # the unknown "face" section is kept and carried on
         kept = unpack(Records(tmp_path / "screen").document("s") or b"")
@@ -110,6 +122,62 @@ def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork
         assert status.value == {"state": "aborted"}
     finally:
         close(screen)
+
+
+def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+    screen = body(network, mesh, "screen", tmp_path).start()
+    key, other = signing.new_key(), signing.new_key()
+    doc = Identity("s", 1, {"mind": {"entries": ["x"]}}).pack()
+
+    def prepare(message: MigratePrepare) -> Outcome:
+        return client.request("screen", "migration", "prepare", message)
+
+    try:
+        wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
+        unsigned = prepare(MigratePrepare("s", 1, "a1", "robot", "screen", doc))
+        assert unsigned.status == "rejected" and "not signed" in unsigned.reason
+        redirected = prepare(signed("s", 1, "a1", "robot", "screen", doc, key, envelope_target="phone"))
+        assert redirected.status == "rejected" and "target is 'phone'" in redirected.reason
+        altered = signed("s", 1, "a1", "robot", "screen", doc, key)
+        altered = msgspec.structs.replace(altered, document=doc.replace(b'"x"', b'"y"'))
+        assert "truncated or altered" in prepare(altered).reason
+        truncated = msgspec.structs.replace(signed("s", 1, "a1", "robot", "screen", doc, key), document=doc[:-5])
+        assert "truncated or altered" in prepare(truncated).reason
+        bad_sig = signed("s", 1, "a1", "robot", "screen", doc, key)
+        bad_sig = msgspec.structs.replace(bad_sig, signature=bytes(64))
+        assert "bad signature" in prepare(bad_sig).reason
+        mismatched = msgspec.structs.replace(signed("s", 1, "a1", "robot", "screen", doc, key), companion_key=other)
+        assert "does not match" in prepare(mismatched).reason
+        # the first good prepare pins the companion's key; another key is refused afterwards
+        assert prepare(signed("s", 1, "a1", "robot", "screen", doc, key)).status == "accepted"
+        assert client.request("screen", "migration", "abort", MigrateAbort("s", 1, "a1")).status == "accepted"
+        impostor = prepare(signed("s", 2, "a2", "robot", "screen", Identity("s", 2, {}).pack(), other))
+        assert impostor.status == "rejected" and "key other than the one trusted" in impostor.reason
+        assert screen.inhabitant is None
+    finally:
+        close(screen)
+
+
+def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    kiosk = Embodiment("kiosk", mesh=mesh, transport=MemoryTransport(network, "kiosk"), state_dir=tmp_path / "kiosk",
+                       components=[Diary()], admit={"someone-else": None}).start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    try:
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born")
+        with pytest.raises(RequestRejected, match="admission: companion 'spirit' may not enter 'kiosk'"):
+            client.migrate("spirit", "kiosk", timeout=20)
+        assert robot.inhabitant == "spirit" and robot.minds[0].awake
+        # the companion's own policy: it accepts only the robot and the phone
+        client.request("robot", "mind", "message", _note("policy"))
+        assert robot.migration is not None
+        robot.sim.call(lambda: robot.migration.identity.sections.update({"policy": {"accepts": ["robot", "phone"]}})  # type: ignore[union-attr]
+                       if robot.migration and robot.migration.identity else None)
+        with pytest.raises(RequestRejected, match="does not accept embodiment 'screen'"):
+            client.migrate("spirit", "screen", timeout=20)
+        assert robot.inhabitant == "spirit"
+    finally:
+        close(robot, kiosk, screen)
 
 
 def _note(text: str) -> Any:
