@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cmion_mesh import keys, signing, xmlsafe
-from cmion_mesh.competency import import_class, split_parameters
+from cmion_mesh.classes import construct, split_parameters
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.ion import Component
 
@@ -51,16 +51,8 @@ class Architecture:
     def build_components(self) -> list[Component]:
         built = []
         for spec in self.components:
-            cls = import_class(spec.class_name, path=str(self.path), line=spec.line)
-            if not issubclass(cls, Component):
-                raise ConfigError(f"{spec.class_name} is not an ION component (cmion_mesh.ion.Component)",
-                                  path=str(self.path), line=spec.line)
             parameters = [str((self.path.parent / p).resolve()) if p.startswith(("./", "../")) else p for p in spec.parameters]
-            try:
-                built.append(cls(*parameters))
-            except TypeError as exc:
-                raise ConfigError(f"cannot construct {spec.class_name} with {list(spec.parameters)}: {exc}",
-                                  path=str(self.path), line=spec.line) from None
+            built.append(construct(spec.class_name, Component, parameters, path=str(self.path), line=spec.line))
         return built
 
 

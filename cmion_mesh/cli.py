@@ -19,6 +19,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
+from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Container, Property, RemoveContainer, RemoveProperty
 from cmion_mesh.signals import Stopper
@@ -205,21 +206,31 @@ def cmd_up(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_serve_competency(args: argparse.Namespace) -> int:
-    from cmion_mesh.competency import Competency, import_class, split_parameters
-    from cmion_mesh.remote import serve
+def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:
+    """Host a component built from ``CLASS --parameters`` for ``--embodiment`` until stopped."""
+    from cmion_mesh.classes import construct, split_parameters
+    from cmion_mesh.ion import serve
+    from cmion_mesh.remote import CompetencyHost
     from cmion_mesh.zenoh_transport import ZenohTransport
 
-    cls = import_class(args.cls)
-    if not issubclass(cls, Competency):
-        raise MeshError(f"{args.cls} is not a Competency subclass")
-    competency = cls(*split_parameters(args.parameters))
+    built = construct(args.cls, base, split_parameters(args.parameters))
+    component = CompetencyHost(built) if isinstance(built, Competency) else built
     stop = _stop_on_signals()
-    with ZenohTransport(transport_config(args)) as transport, serve(competency, embodiment=args.embodiment, transport=transport,
+    with ZenohTransport(transport_config(args)) as transport, serve(component, embodiment=args.embodiment, transport=transport,
                                                                     mesh=args.mesh):
-        print(f"competency {competency.name!r} ({competency.type}) serving embodiment {args.embodiment!r}", flush=True)
+        print(f"{what} {built.name!r} serving embodiment {args.embodiment!r}", flush=True)
         stop.wait()
     return EXIT_OK
+
+
+def cmd_serve_competency(args: argparse.Namespace) -> int:
+    return _serve(args, Competency, "competency")
+
+
+def cmd_serve_mind(args: argparse.Namespace) -> int:
+    from cmion_mesh.mind import Mind
+
+    return _serve(args, Mind, "mind")
 
 
 def cmd_peers(args: argparse.Namespace) -> int:
@@ -346,23 +357,6 @@ def cmd_router(args: argparse.Namespace) -> int:
     from cmion_mesh import router
 
     return router.run(args)
-
-
-def cmd_serve_mind(args: argparse.Namespace) -> int:
-    from cmion_mesh.competency import import_class, split_parameters
-    from cmion_mesh.mind import Mind, serve_mind
-    from cmion_mesh.zenoh_transport import ZenohTransport
-
-    cls = import_class(args.cls)
-    if not issubclass(cls, Mind):
-        raise MeshError(f"{args.cls} is not a Mind subclass")
-    mind = cls(*split_parameters(args.parameters))
-    stop = _stop_on_signals()
-    with ZenohTransport(transport_config(args)) as transport, serve_mind(mind, embodiment=args.embodiment, transport=transport,
-                                                                         mesh=args.mesh):
-        print(f"mind {mind.name!r} driving embodiment {args.embodiment!r}", flush=True)
-        stop.wait()
-    return EXIT_OK
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:

@@ -19,7 +19,6 @@ parameters, passed as strings.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 import queue
@@ -29,6 +28,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cmion_mesh import keys
+from cmion_mesh.classes import construct, split_parameters
 from cmion_mesh.errors import ConfigError, MeshError, RequestRejected
 from cmion_mesh.messages import AddContainer, RemoveContainer, RemoveProperty, SetProperty
 
@@ -288,33 +288,6 @@ class LibraryEntry:
     line: int | None
 
 
-def import_class(spec: str, *, path: str | None = None, line: int | None = None) -> type[Any]:
-    """Import ``package.module:Class`` (or ``package.module.Class``); ``ConfigError`` naming the line."""
-    module_name, sep, attr = spec.partition(":")
-    if not sep:
-        module_name, _, attr = spec.rpartition(".")
-    if not module_name or not attr:
-        raise ConfigError(f"class name {spec!r} is not of the form package.module:Class", path=path, line=line)
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise ConfigError(f"cannot import module {module_name!r} for {spec!r}: {exc}", path=path, line=line) from None
-    try:
-        cls = getattr(module, attr)
-    except AttributeError:
-        raise ConfigError(f"module {module_name!r} has no class {attr!r}", path=path, line=line) from None
-    if not isinstance(cls, type):
-        raise ConfigError(f"{spec!r} is not a class", path=path, line=line)
-    return cls
-
-
-def split_parameters(raw: str | None) -> tuple[str, ...]:
-    """CMION's comma-separated constructor parameters; an absent or empty attribute means none."""
-    if raw is None or raw.strip() == "":
-        return ()
-    return tuple(p.strip() for p in raw.split(","))
-
-
 def read_library(path: str | os.PathLike[str]) -> list[LibraryEntry]:
     from cmion_mesh import xmlsafe
 
@@ -334,18 +307,7 @@ def load_library(path: str | os.PathLike[str]) -> list[Competency]:
     competencies: list[Competency] = []
     names: set[str] = set()
     for entry in read_library(path):
-        spec = entry.class_name
-        cls = import_class(spec, path=name, line=entry.line)
-        if not (isinstance(cls, type) and issubclass(cls, Competency)):
-            raise ConfigError(f"{spec!r} is not a Competency subclass", path=name, line=entry.line)
-        try:
-            competency = cls(*entry.parameters)
-        except TypeError as exc:
-            raise ConfigError(
-                f"cannot construct {spec} with parameters {list(entry.parameters)}: {exc}", path=name, line=entry.line
-            ) from None
-        except MeshError as exc:
-            raise ConfigError(f"{spec}: {exc}", path=name, line=entry.line) from None
+        competency = construct(entry.class_name, Competency, entry.parameters, path=name, line=entry.line)
         if competency.name in names:
             raise ConfigError(f"a competency named {competency.name!r} is already in the library", path=name, line=entry.line)
         names.add(competency.name)

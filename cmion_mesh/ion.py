@@ -20,6 +20,7 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import itertools
@@ -28,7 +29,7 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
@@ -561,3 +562,12 @@ def require_accepted(outcome: Outcome, key: str) -> Any:
     if outcome.status != "accepted":
         raise RequestRejected(f"{key}: {outcome.status}: {outcome.reason}", key=key, status=outcome.status, reason=outcome.reason)
     return outcome.value
+
+
+@contextlib.contextmanager
+def serve(component: Component, *, embodiment: str, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> Iterator[Simulation]:
+    """Host ``component`` for ``embodiment`` from this process (a remote mind, a remote competency):
+    a simulation carrying the embodiment's name, so requests and events travel over the mesh."""
+    with Simulation(transport, mesh=mesh, embodiment=embodiment) as sim:
+        sim.add(component)
+        yield sim

@@ -13,7 +13,7 @@ A ``Mind`` is an ION component that drives the body and perceives it:
   nothing and its ``act`` is refused; ``on_sleep`` / ``on_wake`` tell it.
 
 The same class runs inside the daemon (named in the architecture config) or in another process
-(``serve_mind``): there its simulation carries the embodiment's name, so its requests and
+(``ion.serve``, ``cmion-mesh serve-mind``): there its simulation carries the embodiment's name, so its requests and
 subscriptions travel over zenoh. The key-space protocol is therefore only: requests
 ``.../rq/manager/act|cancel``, events ``.../ev/manager/Action*`` and ``.../ev/wm/*``, events
 ``.../ev/*/RemoteAction``, and the mind's own ``.../rq/<mind>/sleep|wake|message|state``. Any
@@ -24,10 +24,8 @@ zenoh client can be a mind. Several minds may drive one body (each has its own c
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
-from collections.abc import Iterator
 from typing import Any
 
 import msgspec
@@ -37,7 +35,6 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import Act, ActionReport, CancelAction, Event, Outcome, Request, StorageChange
 from cmion_mesh.rules import MindAction
-from cmion_mesh.transport import Transport
 
 log = logging.getLogger(__name__)
 
@@ -176,11 +173,3 @@ class Mind(Component):
 def raise_remote_action(component: Component, name: str, parameters: list[str] | tuple[str, ...] = (), subject: str = "") -> None:
     """What a perception component calls when it sees another agent act (e.g. the user)."""
     component.raise_event("RemoteAction", {"name": name, "parameters": list(parameters), "subject": subject})
-
-
-@contextlib.contextmanager
-def serve_mind(mind: Mind, *, embodiment: str, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> Iterator[Simulation]:
-    """Run ``mind`` in this process, driving ``embodiment`` over the mesh."""
-    with Simulation(transport, mesh=mesh, embodiment=embodiment) as sim:
-        sim.add(mind)
-        yield sim

@@ -14,15 +14,14 @@ competency named ``N`` of type ``T``:
    ``RunCancelled`` (an ``event`` whose ``data`` is a ``run_ended`` map: ``run_id``, ``status``, ``reason``).
 
 ``RemoteCompetency`` is the proxy on the embodiment's side (created automatically from the
-liveliness tokens); ``serve`` hosts any ``Competency`` subclass in another Python process.
+liveliness tokens); ``ion.serve(CompetencyHost(competency), ...)`` hosts any ``Competency``
+subclass in another Python process (``cmion-mesh serve-competency``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import queue
-from collections.abc import Iterator
 from typing import Any
 
 import msgspec
@@ -32,7 +31,7 @@ from cmion_mesh.competency import Competency, RunContext, RunResult
 from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import CancelRun, Event, RunEnded, StartRun, decode
-from cmion_mesh.transport import Closeable, Sample, Transport
+from cmion_mesh.transport import Closeable, Sample
 
 log = logging.getLogger(__name__)
 
@@ -148,11 +147,3 @@ class CompetencyHost(Component):
             self.sim.raise_event(self.name, event, msgspec.to_builtins(RunEnded(result.run_id, result.status, result.reason)))  # type: ignore[arg-type]
         except MeshError:
             pass  # closing
-
-
-@contextlib.contextmanager
-def serve(competency: Competency, *, embodiment: str, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> Iterator[Simulation]:
-    """Host ``competency`` for ``embodiment`` until the block ends (it then vanishes from the embodiment)."""
-    with Simulation(transport, mesh=mesh, embodiment=embodiment) as sim:
-        sim.add(CompetencyHost(competency))
-        yield sim

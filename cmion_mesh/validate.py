@@ -36,7 +36,8 @@ def _library(path: str) -> None:
 
 def _architecture(path: str) -> None:
     from cmion_mesh.architecture import load_architecture
-    from cmion_mesh.competency import import_class, load_library
+    from cmion_mesh.classes import import_class
+    from cmion_mesh.competency import load_library
     from cmion_mesh.ion import Component
     from cmion_mesh.rules import load_rules
 
@@ -47,9 +48,7 @@ def _architecture(path: str) -> None:
         _world_model(str(arch.world_model))
     rules.check_types({c.type for c in library})
     for spec in arch.components:
-        cls = import_class(spec.class_name, path=str(arch.path), line=spec.line)
-        if not issubclass(cls, Component):
-            raise ConfigError(f"{spec.class_name} is not an ION component", path=str(arch.path), line=spec.line)
+        import_class(spec.class_name, Component, path=str(arch.path), line=spec.line)
 
 
 #: Root element -> (schema, semantic check run after the schema passed).

@@ -111,7 +111,7 @@ def test_remote_mind_drives_a_daemon(two: tuple[Daemon, Daemon, str], mesh: str)
     mind = Daemon(cli_argv("serve-mind", "tests.remote_helpers:EagerMind", "--embodiment", "alpha",
                            "--parameters", "eager,TestAction2", *net(mesh, endpoint)), name="mind")
     with mind, ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as t:
-        mind.wait_line("driving embodiment", 20)
+        mind.wait_line("serving embodiment", 20)
         client = MeshClient(t, mesh)
         seen: list[Event] = []
         client.events(seen.append, embodiment="alpha", component="eager")

@@ -76,7 +76,7 @@ def test_library_loads_constructor_parameters_and_background() -> None:
     [
         ('<Competency ClassName="no.such.module:X"/>', "cannot import module 'no.such.module'"),
         ('<Competency ClassName="cmion_mesh.competency:Nope"/>', "has no class 'Nope'"),
-        ('<Competency ClassName="cmion_mesh.messages:Property"/>', "is not a Competency subclass"),
+        ('<Competency ClassName="cmion_mesh.messages:Property"/>', "is not a cmion_mesh.competency.Competency subclass"),
         ('<Competency ClassName="cmion_mesh.competencies.cmion_test:TestCompetency1" ConstructorParameters="a"/>'
          '\n<Competency ClassName="cmion_mesh.competencies.cmion_test:TestCompetency1"/>', "already in the library"),
     ],

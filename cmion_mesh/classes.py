@@ -1,0 +1,59 @@
+"""Classes named in configuration files (``package.module:Class``), as CMION named Java classes.
+
+Libraries, architecture configurations and the ``serve-*`` commands build competencies, minds and
+components this way, with CMION's comma-separated string constructor parameters.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from typing import Any, TypeVar
+
+from cmion_mesh.errors import ConfigError, MeshError
+
+T = TypeVar("T")
+
+
+def import_class(spec: str, base: type[T] | None = None, *, path: str | None = None, line: int | None = None) -> type[T]:
+    """Import ``package.module:Class`` (or ``package.module.Class``), a subclass of ``base`` if given;
+    ``ConfigError`` naming the file and line otherwise."""
+    module_name, sep, attr = spec.partition(":")
+    if not sep:
+        module_name, _, attr = spec.rpartition(".")
+    if not module_name or not attr:
+        raise ConfigError(f"class name {spec!r} is not of the form package.module:Class", path=path, line=line)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"cannot import module {module_name!r} for {spec!r}: {exc}", path=path, line=line) from None
+    try:
+        cls = getattr(module, attr)
+    except AttributeError:
+        raise ConfigError(f"module {module_name!r} has no class {attr!r}", path=path, line=line) from None
+    if not isinstance(cls, type):
+        raise ConfigError(f"{spec!r} is not a class", path=path, line=line)
+    if base is not None and not issubclass(cls, base):
+        raise ConfigError(f"{spec!r} is not a {base.__module__}.{base.__name__} subclass", path=path, line=line)
+    found: type[T] = cls
+    return found
+
+
+def construct(spec: str, base: type[T], parameters: Sequence[str] = (), *, path: str | None = None, line: int | None = None) -> T:
+    """Import and build ``spec`` with string parameters; every failure a ``ConfigError`` at the line."""
+    cls = import_class(spec, base, path=path, line=line)
+    try:
+        instance: Any = cls(*parameters)
+    except TypeError as exc:
+        raise ConfigError(f"cannot construct {spec} with parameters {list(parameters)}: {exc}", path=path, line=line) from None
+    except MeshError as exc:
+        raise ConfigError(f"{spec}: {exc}", path=path, line=line) from None
+    built: T = instance
+    return built
+
+
+def split_parameters(raw: str | None) -> tuple[str, ...]:
+    """CMION's comma-separated constructor parameters; an absent or empty attribute means none."""
+    if raw is None or raw.strip() == "":
+        return ()
+    return tuple(p.strip() for p in raw.split(","))
