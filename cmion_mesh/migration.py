@@ -196,6 +196,8 @@ class MigrationManager(Component):
         self._outgoing: _Outgoing | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._alive: set[str] = set()  # embodiments whose liveliness token is present
+        self._alive_watch: Any = None
 
     # --- state seen from outside ---------------------------------------------------------------
 
@@ -217,6 +219,8 @@ class MigrationManager(Component):
     # --- life cycle -----------------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
+        # Kept current by the transport's worker, so that choosing a target never blocks the loop.
+        self._alive_watch = sim.transport.watch_liveliness(f"{keys.mesh_prefix(sim.mesh)}/{keys.ALIVE}/*", self._on_token)
         if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
             # First start of the companion's home: it is born here, at epoch 1.
             identity = Identity(self.seed, 1, {})
@@ -239,7 +243,17 @@ class MigrationManager(Component):
         if self.identity is None:
             self._minds_sleep()
 
+    def _on_token(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        if alive:
+            self._alive.add(name)
+        else:
+            self._alive.discard(name)
+
     def detach(self) -> None:
+        if self._alive_watch is not None:
+            self._alive_watch.close()
+            self._alive_watch = None
         self._stop.set()
         for thread in self._threads:
             thread.join(10.0)
@@ -334,8 +348,7 @@ class MigrationManager(Component):
         if request.target == self.sim.embodiment:
             refuse(f"{identity.companion!r} already lives on {request.target!r}")
             return None
-        alive = self.sim.transport.alive(keys.alive_key(self.sim.mesh, request.target), timeout=2.0)
-        if not alive:
+        if request.target not in self._alive:
             refuse(f"unknown target: embodiment {request.target!r} is not alive in mesh {self.sim.mesh!r}")
             return None
         record = self.records.get(identity.companion)
