@@ -28,8 +28,12 @@ from cmion_mesh.transport import TransportConfig
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
 
 
-def transport_config(args: argparse.Namespace) -> TransportConfig:
-    return TransportConfig(
+def transport_config(args: argparse.Namespace, name: str | None = None) -> TransportConfig:
+    """The session settings from the common options; ``--certs`` turns them into mutual TLS with
+    access control for identity ``name`` (see docs/security.md)."""
+    from cmion_mesh import security
+
+    config = TransportConfig(
         connect=tuple(args.connect or ()),
         listen=tuple(args.listen or ()),
         config_file=args.config,
@@ -37,6 +41,7 @@ def transport_config(args: argparse.Namespace) -> TransportConfig:
         multicast_interface=getattr(args, "multicast_interface", None),
         lease_ms=getattr(args, "lease_ms", None),
     )
+    return security.apply(args, config, name=name)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -48,6 +53,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-multicast", action="store_true", help="do not scout for peers by multicast")
     group.add_argument("--multicast-interface", metavar="IFACE", help="interface to scout on (default: zenoh's choice)")
     group.add_argument("--json", action="store_true", help="machine-readable output")
+    from cmion_mesh import security
+
+    security.add_arguments(group)
 
 
 def parse_value(text: str, as_string: bool) -> Any:
@@ -184,15 +192,19 @@ def cmd_up(args: argparse.Namespace) -> int:
         from cmion_mesh.architecture import load_architecture
 
         name = args.name or load_architecture(config).embodiment
-        embodiment = Embodiment.from_architecture(config, mesh=args.mesh, name=name, transport_config=transport_config(args),
+        embodiment = Embodiment.from_architecture(config, mesh=args.mesh, name=name, transport_config=transport_config(args, name),
                                                   state_dir=state_dir(args, name), companion=args.companion, admit=admit(args))
     else:
         if not args.name:
             raise MeshError("give an architecture configuration (PATH) or at least --name")
-        embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args),
+        embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args, args.name),
                                 world_model_init=args.world_model, rules=args.rules, library=args.library,
                                 state_dir=state_dir(args, args.name), companion=args.companion, admit=admit(args))
     with embodiment:
+        from cmion_mesh import security
+
+        mode = security.describe(args, name=embodiment.name)
+        print(mode, file=sys.stderr if mode.startswith("plain") else sys.stdout, flush=True)
         if args.no_multicast and not args.connect and not args.listen:
             print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
@@ -216,8 +228,8 @@ def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:
     built = construct(args.cls, base, split_parameters(args.parameters))
     component = CompetencyHost(built) if isinstance(built, Competency) else built
     stop = _stop_on_signals()
-    with ZenohTransport(transport_config(args)) as transport, serve(component, embodiment=args.embodiment, transport=transport,
-                                                                    mesh=args.mesh):
+    config = transport_config(args, args.embodiment)
+    with ZenohTransport(config) as transport, serve(component, embodiment=args.embodiment, transport=transport, mesh=args.mesh):
         print(f"{what} {built.name!r} serving embodiment {args.embodiment!r}", flush=True)
         stop.wait()
     return EXIT_OK
@@ -482,6 +494,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     router_module.add_arguments(p)
     p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("certs", help="a certificate authority and certificates for an authenticated mesh (mutual TLS)")
+    from cmion_mesh import certs as certs_module
+
+    certs_module.add_arguments(p)
+    p.set_defaults(func=certs_module.run)
 
     p = sub.add_parser("doctor", help="explain why peers are (not) found: interfaces, multicast, zenoh config")
     p.add_argument("--timeout", type=float, default=2.0)

@@ -93,9 +93,9 @@ class MeshClient:
 
     def request(
         self, embodiment: str, component: str, name: str, payload: Message | None = None,
-        *, timeout: float = DEFAULT_REQUEST_TIMEOUT,
+        *, timeout: float = DEFAULT_REQUEST_TIMEOUT, sender: str | None = None,
     ) -> Outcome:
-        key = keys.request_key(self.mesh, embodiment, component, name)
+        key = keys.request_key(self.mesh, embodiment, component, name, sender)
         return send_request(self.transport, key, payload if payload is not None else Request(), timeout=timeout)
 
     def act(

@@ -100,6 +100,10 @@ class Component:
     """
 
     requests: Mapping[str, Any] = {}
+    #: Requests that must arrive on the per-sender key ``.../rq/<component>/<request>/<sender>``;
+    #: the sender (``IncomingRequest.requester``) is then known from the key, which access
+    #: control ties to the sender's certificate in secure mode.
+    sender_requests: frozenset[str] = frozenset()
 
     def __init__(self, name: str) -> None:
         self.name = keys.check_name(name, "component")
@@ -245,7 +249,8 @@ class Simulation:
             self._components[component.name] = component
         component._sim = self
         if component.requests:
-            selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/*"
+            tail = "**" if component.sender_requests else "*"
+            selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/{tail}"
             self._queryables[component.name] = self.transport.declare_queryable(
                 selector, functools.partial(self._on_query, component)
             )
@@ -297,7 +302,8 @@ class Simulation:
     def _on_query(self, component: Component, query: IncomingQuery) -> None:
         # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
         # component state are answered here so a bad request never costs an update.
-        name = query.key.rsplit("/", 1)[-1]
+        prefix_len = len(keys.embodiment_prefix(self.mesh, self.embodiment)) + len(keys.REQUESTS) + len(component.name) + 3
+        name, _, sender = query.key[prefix_len:].partition("/")
 
         def answer(outcome: Outcome) -> None:
             try:
@@ -310,12 +316,16 @@ class Simulation:
             known = ", ".join(sorted(component.requests)) or "none"
             answer(Outcome("rejected", f"component {component.name!r} has no request {name!r} (known: {known})"))
             return
+        if (name in component.sender_requests) != bool(sender) or "/" in sender:
+            form = f"{name}/<sender>" if name in component.sender_requests else name
+            answer(Outcome("rejected", f"{query.key}: request {name!r} of {component.name!r} is sent on .../{form}"))
+            return
         try:
             payload = decode(query.payload or b"", kind, where=query.key)
         except ProtocolError as exc:
             answer(Outcome("rejected", str(exc)))
             return
-        requester = payload.requester if isinstance(payload, Request) else ""
+        requester = sender or (payload.requester if isinstance(payload, Request) else "")
         if self._closed:
             answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down"))
             return

@@ -6,6 +6,7 @@
     cmion/<mesh>/<embodiment>/wm/<entity>/.../<property>      world-model property or entity
     cmion/<mesh>/<embodiment>/ev/<component>/<event>          event publications
     cmion/<mesh>/<embodiment>/rq/<component>/<request>        request queryables
+    cmion/<mesh>/<embodiment>/rq/<component>/<request>/<sender>   per-sender requests (migration handshake)
     cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
     cmion/<mesh>/@competency/<embodiment>/<type>/<name>       remote competencies (liveliness)
 
@@ -95,8 +96,11 @@ def event_key(mesh: str, embodiment: str, component: str, event: str) -> str:
     return f"{embodiment_prefix(mesh, embodiment)}/{EVENTS}/{check_name(component, 'component')}/{check_name(event, 'event')}"
 
 
-def request_key(mesh: str, embodiment: str, component: str, request: str) -> str:
-    return f"{embodiment_prefix(mesh, embodiment)}/{REQUESTS}/{check_name(component, 'component')}/{check_name(request, 'request')}"
+def request_key(mesh: str, embodiment: str, component: str, request: str, sender: str | None = None) -> str:
+    """Key of a request; with ``sender``, the per-sender form ``.../rq/<component>/<request>/<sender>``
+    that access control can restrict to the sender's own certificate."""
+    key = f"{embodiment_prefix(mesh, embodiment)}/{REQUESTS}/{check_name(component, 'component')}/{check_name(request, 'request')}"
+    return key if sender is None else f"{key}/{check_name(sender, 'sender')}"
 
 
 def alive_key(mesh: str, embodiment: str) -> str:
@@ -148,8 +152,10 @@ def parse(key: str) -> ParsedKey:
     embodiment = check_name(chunks[2], "embodiment")
     kind = chunks[3]
     rest = tuple(check_name(c, "key element") for c in chunks[4:])
-    if kind in (EVENTS, REQUESTS) and len(rest) != 2:
+    if kind == EVENTS and len(rest) != 2:
         raise InvalidName(f"key {key!r}: {kind} keys are .../{kind}/<component>/<name>")
+    if kind == REQUESTS and len(rest) not in (2, 3):
+        raise InvalidName(f"key {key!r}: {kind} keys are .../{kind}/<component>/<name>[/<sender>]")
     if kind not in (EVENTS, REQUESTS, BLACKBOARD, WORLD_MODEL):
         raise InvalidName(f"key {key!r}: unknown kind {kind!r}")
     return ParsedKey(mesh, embodiment, kind, rest)

@@ -179,6 +179,8 @@ class MigrationManager(Component):
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
                 "status": MigrateStatus}
+    # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
+    sender_requests = frozenset({"prepare", "commit", "abort", "status"})
 
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = 5.0,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
@@ -435,7 +437,7 @@ class MigrationManager(Component):
                                if private else (b"", b""))
         message = MigratePrepare(out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document,
                                  envelope, signature, private)
-        key = keys.request_key(self.sim.mesh, out.target, "migration", "prepare")
+        key = keys.request_key(self.sim.mesh, out.target, "migration", "prepare", self.sim.embodiment)
         reply: Outcome | None = None
         unknown = ""
         for _ in range(3):  # prepare is idempotent: a lost reply may be asked again
@@ -468,7 +470,7 @@ class MigrationManager(Component):
 
     def _commit_until_acked(self, handed: Record) -> None:
         message = MigrateCommit(handed.companion, handed.epoch, handed.attempt, self.sim.embodiment, handed.peer)
-        key = keys.request_key(self.sim.mesh, handed.peer, "migration", "commit")
+        key = keys.request_key(self.sim.mesh, handed.peer, "migration", "commit", self.sim.embodiment)
         delay = self.retry[0]
         while not self._stop.is_set():
             try:
@@ -499,7 +501,7 @@ class MigrationManager(Component):
 
     def _send_abort_later(self, record: Record) -> None:
         def abort() -> None:
-            key = keys.request_key(self.sim.mesh, record.peer, "migration", "abort")
+            key = keys.request_key(self.sim.mesh, record.peer, "migration", "abort", self.sim.embodiment)
             try:
                 send_request(self.sim.transport, key, MigrateAbort(record.companion, record.epoch, record.attempt), timeout=2.0)
             except OutcomeUnknown:
@@ -518,13 +520,19 @@ class MigrationManager(Component):
                     if out is not None:  # started: the end is reported by MigrationSucceeded/Failed events
                         request.accept({"attempt": out.attempt, "companion": out.companion, "target": out.target})
                 elif isinstance(payload, MigratePrepare):
-                    self._on_prepare(request, payload)
+                    if request.requester != payload.source:
+                        request.reject(f"{request.requester!r} cannot send a prepare on behalf of {payload.source!r}")
+                    else:
+                        self._on_prepare(request, payload)
                 elif isinstance(payload, MigrateCommit):
-                    self._on_commit(request, payload)
+                    if request.requester != payload.source:
+                        request.reject(f"{request.requester!r} cannot send a commit on behalf of {payload.source!r}")
+                    else:
+                        self._on_commit(request, payload)
                 elif isinstance(payload, MigrateAbort):
                     self._on_abort(request, payload)
                 elif isinstance(payload, MigrateStatus):
-                    request.accept({"state": self.attempt_state(payload.companion, payload.attempt)})
+                    self._on_status(request, payload)
             except ConfigError as exc:
                 request.reject(str(exc))
 
@@ -595,6 +603,9 @@ class MigrationManager(Component):
 
     def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
         record = self.records.get(msg.companion)
+        if record is not None and record.peer != msg.source:
+            request.reject(f"{msg.source!r} is not the source of {msg.companion!r}'s migration here")
+            return
         if record is not None and record.state == "active" and record.attempt == msg.attempt:
             request.accept({"state": "committed"})
             return
@@ -615,12 +626,22 @@ class MigrationManager(Component):
     def _on_abort(self, request: IncomingRequest, msg: MigrateAbort) -> None:
         record = self.records.get(msg.companion)
         if record is not None and record.state == "incoming" and record.attempt == msg.attempt:
+            if record.peer != request.requester:
+                request.reject(f"only {record.peer!r}, the source of attempt {msg.attempt}, may abort it")
+                return
             self.records.move(msg.companion, "dropped", record.epoch, record.attempt, record.peer)
         request.accept()
 
+    def _on_status(self, request: IncomingRequest, msg: MigrateStatus) -> None:
+        record = self.records.get(msg.companion)
+        if record is not None and record.attempt == msg.attempt and record.peer != request.requester:
+            request.reject(f"attempt {msg.attempt} is not {request.requester!r}'s to ask about")
+            return
+        request.accept({"state": self.attempt_state(msg.companion, msg.attempt)})
+
     def _resolve_incoming(self, record: Record) -> None:
         """After a restart in ``incoming``: ask the source until it says committed or aborted."""
-        key = keys.request_key(self.sim.mesh, record.peer, "migration", "status")
+        key = keys.request_key(self.sim.mesh, record.peer, "migration", "status", self.sim.embodiment)
         delay = self.retry[0]
         while not self._stop.is_set():
             current = self.records.get(record.companion)

@@ -84,6 +84,11 @@ def test_refusals_leave_the_companion_running_at_the_source(network: MemoryNetwo
         close(robot, phone)
 
 
+def handshake(client: MeshClient, op: str, message: Any, sender: str = "robot") -> Outcome:
+    """A handshake message to the screen, on the per-sender key of ``sender``."""
+    return client.request("screen", "migration", op, message, sender=sender)
+
+
 def signed(companion: str, epoch: int, attempt: str, source: str, target: str, document: bytes, private: bytes,
            *, envelope_target: str | None = None) -> MigratePrepare:
     envelope, signature = signing.seal(private, companion, epoch, attempt, source, envelope_target or target, document)
@@ -97,28 +102,28 @@ def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
         hostile = b'<!DOCTYPE Identity [<!ENTITY x SYSTEM "file:///etc/passwd">]><Identity SchemaVersion="1" Companion="s" Epoch="1"/>'
-        bad = client.request("screen", "migration", "prepare", signed("s", 1, "a1", "robot", "screen", hostile, key))
+        bad = handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", hostile, key))
         assert bad.status == "rejected" and "internal DTD subset" in bad.reason and "identity of s from robot" in bad.reason
         huge = b"<Identity" + b" " * (50 * 1024 * 1024) + b"/>"
-        too_big = client.request("screen", "migration", "prepare", signed("s", 1, "a0", "robot", "screen", huge, key))
+        too_big = handshake(client, "prepare", signed("s", 1, "a0", "robot", "screen", huge, key))
         assert too_big.status == "rejected"
         doc = Identity("s", 4, {"mind": {"entries": []}, "face": {"smile": 0.7}}).pack()
-        ok = client.request("screen", "migration", "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
-        again = client.request("screen", "migration", "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
+        ok = handshake(client, "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
+        again = handshake(client, "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
         assert ok.status == again.status == "accepted", "a duplicated prepare gets the same answer"
-        stale = client.request("screen", "migration", "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen"))
+        stale = handshake(client, "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen"))
         assert stale.status == "rejected" and "old-attempt" in stale.reason
         assert screen.inhabitant is None
         commit = MigrateCommit("s", 4, "a2", "robot", "screen")
-        assert client.request("screen", "migration", "commit", commit).status == "accepted"
-        assert client.request("screen", "migration", "commit", commit).status == "accepted", "duplicate commit: same answer"
+        assert handshake(client, "commit", commit).status == "accepted"
+        assert handshake(client, "commit", commit).status == "accepted", "duplicate commit: same answer"
         assert screen.inhabitant == "s"
-        older = client.request("screen", "migration", "prepare", signed("s", 3, "a3", "robot", "screen", doc, key))
+        older = handshake(client, "prepare", signed("s", 3, "a3", "robot", "screen", doc, key))
         assert older.status == "rejected" and "stale" in older.reason
         # the unknown "face" section is kept and carried on
         kept = unpack(Records(tmp_path / "screen").document("s") or b"")
         assert kept.sections["face"] == {"smile": 0.7}
-        status = client.request("screen", "migration", "status", MigrateStatus("s", "zzz"))
+        status = handshake(client, "status", MigrateStatus("s", "zzz"))
         assert status.value == {"state": "aborted"}
     finally:
         close(screen)
@@ -130,7 +135,7 @@ def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str,
     doc = Identity("s", 1, {"mind": {"entries": ["x"]}}).pack()
 
     def prepare(message: MigratePrepare) -> Outcome:
-        return client.request("screen", "migration", "prepare", message)
+        return handshake(client, "prepare", message)
 
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
@@ -150,10 +155,32 @@ def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str,
         assert "does not match" in prepare(mismatched).reason
         # the first good prepare pins the companion's key; another key is refused afterwards
         assert prepare(signed("s", 1, "a1", "robot", "screen", doc, key)).status == "accepted"
-        assert client.request("screen", "migration", "abort", MigrateAbort("s", 1, "a1")).status == "accepted"
+        assert handshake(client, "abort", MigrateAbort("s", 1, "a1")).status == "accepted"
         impostor = prepare(signed("s", 2, "a2", "robot", "screen", Identity("s", 2, {}).pack(), other))
         assert impostor.status == "rejected" and "key other than the one trusted" in impostor.reason
         assert screen.inhabitant is None
+    finally:
+        close(screen)
+
+
+def test_handshake_senders_are_known_from_their_keys(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                     client: MeshClient) -> None:
+    screen = body(network, mesh, "screen", tmp_path).start()
+    key = signing.new_key()
+    doc = Identity("s", 1, {}).pack()
+    try:
+        wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
+        sender_less = client.request("screen", "migration", "prepare", signed("s", 1, "a1", "robot", "screen", doc, key))
+        assert sender_less.status == "rejected" and "prepare/<sender>" in sender_less.reason
+        spoofed = handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", doc, key), sender="phone")
+        assert spoofed.status == "rejected" and "on behalf of 'robot'" in spoofed.reason
+        assert handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", doc, key)).status == "accepted"
+        assert handshake(client, "abort", MigrateAbort("s", 1, "a1"), sender="phone").status == "rejected"
+        assert handshake(client, "status", MigrateStatus("s", "a1"), sender="phone").status == "rejected"
+        assert handshake(client, "commit", MigrateCommit("s", 1, "a1", "phone", "screen"), sender="phone").status == "rejected"
+        assert screen.inhabitant is None
+        assert handshake(client, "commit", MigrateCommit("s", 1, "a1", "robot", "screen")).status == "accepted"
+        assert screen.inhabitant == "s"
     finally:
         close(screen)
 
