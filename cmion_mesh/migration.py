@@ -579,9 +579,12 @@ class MigrationManager(Component):
         self.records.put_key(msg.companion, msg.companion_key)
         self.records.put_document(msg.companion, msg.document)
         public = signing.encode_public(signing.public_of(msg.companion_key))
-        self.records.move(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, public_key=public)
+        incoming = self.records.move(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, public_key=public)
         crash_point("target:incoming")
         request.accept({"state": "prepared"})
+        # The commit (or abort) normally follows at once. If the link fails now, the source's one
+        # abort may be lost for good: once overdue, ask the source, as after a restart.
+        self._spawn(f"resolve-{msg.companion}", self._resolve_incoming, incoming, self.retry[1])
 
     def _check_signature(self, msg: MigratePrepare, record: Record | None) -> str:
         """Why this prepare is refused before its XML is read ("" when the envelope holds)."""
@@ -639,8 +642,11 @@ class MigrationManager(Component):
             return
         request.accept({"state": self.attempt_state(msg.companion, msg.attempt)})
 
-    def _resolve_incoming(self, record: Record) -> None:
-        """After a restart in ``incoming``: ask the source until it says committed or aborted."""
+    def _resolve_incoming(self, record: Record, overdue: float = 0.0) -> None:
+        """Ask the source until it says committed or aborted: after a restart in ``incoming``, and
+        ``overdue`` seconds after a prepare if neither a commit nor an abort has come by then."""
+        if overdue and self._stop.wait(overdue):
+            return
         key = keys.request_key(self.sim.mesh, record.peer, "migration", "status", self.sim.embodiment)
         delay = self.retry[0]
         while not self._stop.is_set():
