@@ -26,7 +26,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunResult
 from cmion_mesh.errors import MeshError, PlanError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer
 from cmion_mesh.messages import Request
 from cmion_mesh.rules import MindAction, Plan, Step, substitute_step
 from cmion_mesh.transport import Closeable
@@ -56,6 +56,7 @@ class PlanRun:
     steps: dict[str, _StepRun]
     state: str = "running"  # running | failing | cancelling | done
     reason: str = ""
+    deadline: Timer | None = None
 
     def running(self) -> list[_StepRun]:
         return [s for s in self.steps.values() if s.status == "running"]
@@ -152,7 +153,7 @@ class ExecutionSystem(Component):
         self._plans[plan_id] = run
         self.raise_event("PlanStarted", {"run_id": plan_id, "action": _describe(action), "steps": len(plan.steps)})
         if deadline > 0:
-            self.sim.call_later(deadline, functools.partial(self._deadline, run, deadline))
+            run.deadline = self.sim.call_later(deadline, functools.partial(self._deadline, run, deadline))
         self._advance(run)
         return plan_id
 
@@ -281,6 +282,8 @@ class ExecutionSystem(Component):
             status, event = "failed", "PlanFailed"
         run.state = "done"
         self._plans.pop(run.id, None)
+        if run.deadline is not None:
+            run.deadline.cancel()  # or the finished run would be held until its deadline
         self.raise_event(event, {"run_id": run.id, "action": _describe(run.action), "reason": run.reason})
         run.on_done(status, run.reason)
 

@@ -28,6 +28,8 @@ SCHEMA = "identity.xsd"
 SCHEMA_VERSION = 1
 #: Largest identity document accepted (the 10 MB benchmark documents fit with room).
 MAX_DOCUMENT = 48 * 1024 * 1024
+#: Largest section: libxml2 refuses longer text nodes unless "huge tree" mode, which stays off.
+MAX_SECTION = 9_000_000
 
 
 @dataclass
@@ -42,7 +44,11 @@ class Identity:
         root = etree.Element("Identity", SchemaVersion=str(self.schema_version), Companion=self.companion, Epoch=str(self.epoch))
         for name in sorted(self.sections):
             section = etree.SubElement(root, "Section", Component=keys.check_name(name, "section"))
-            section.text = msgspec.json.encode(check_value(self.sections[name])).decode()
+            text = msgspec.json.encode(check_value(self.sections[name]))
+            if len(text) > MAX_SECTION:
+                raise ValueError(f"section {name!r} of {self.companion!r} is {len(text)} bytes of JSON; "
+                                 f"the most a section may hold is {MAX_SECTION} (split it into several sections)")
+            section.text = text.decode()
         data: bytes = etree.tostring(root, xml_declaration=True, encoding="UTF-8")
         return data
 

@@ -133,6 +133,27 @@ class Component:
         self.sim.raise_event(self.name, name, data)
 
 
+class Timer:
+    """A pending ``call_later``; ``cancel`` must be called on the loop (as timers are armed there)."""
+
+    __slots__ = ("sim", "due", "id", "fn")
+
+    def __init__(self, sim: Simulation, due: float, timer_id: int, fn: Callable[[], None]) -> None:
+        self.sim = sim
+        self.due = due
+        self.id = timer_id
+        self.fn: Callable[[], None] | None = fn
+
+    def cancel(self) -> None:
+        if self.fn is not None:
+            self.fn = None
+            self.sim._timer_cancelled()
+
+    def fire(self) -> Callable[[], None] | None:
+        fn, self.fn = self.fn, None
+        return fn
+
+
 class _RequestItem:
     __slots__ = ("component", "request")
 
@@ -192,7 +213,8 @@ class Simulation:
         self._event_keys: dict[tuple[str, str, str], str] = {}
         # events to dispatch: (event, key, the one subscription of a remote event or None = all matching)
         self._events: deque[tuple[Event, str, _Subscription | None]] = deque()
-        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._timers: list[tuple[float, int, Timer]] = []
+        self._cancelled_timers = 0
         self._timer_ids = itertools.count()
         self._seq = itertools.count(1)
         self._lock = threading.Lock()
@@ -287,17 +309,30 @@ class Simulation:
             raise ClosedError(f"simulation {self.embodiment!r} is closed")
         self._inbox.put(fn)
 
-    def call_later(self, delay: float, fn: Callable[[], None]) -> None:
-        """Run ``fn`` on the loop after ``delay`` seconds (the loop sleeps until then, it does not poll)."""
-        due = time.monotonic() + max(0.0, delay)
+    def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
+        """Run ``fn`` on the loop after ``delay`` seconds (the loop sleeps until then, it does not poll).
+
+        ``cancel()`` on the returned timer drops ``fn`` at once, so a long deadline for work that
+        ended early holds nothing (a plan's deadline, for instance)."""
+        timer = Timer(self, time.monotonic() + max(0.0, delay), next(self._timer_ids), fn)
 
         def arm() -> None:
-            heapq.heappush(self._timers, (due, next(self._timer_ids), fn))
+            if timer.fn is not None:
+                heapq.heappush(self._timers, (timer.due, timer.id, timer))
 
         if self.on_loop():
             arm()
         else:
             self.call(arm)
+        return timer
+
+    def _timer_cancelled(self) -> None:
+        # Cancelled timers stay in the heap until due; rebuild it when they are most of it.
+        self._cancelled_timers += 1
+        if self._cancelled_timers > 64 and self._cancelled_timers * 2 > len(self._timers):
+            self._timers = [t for t in self._timers if t[2].fn is not None]
+            heapq.heapify(self._timers)
+            self._cancelled_timers = 0
 
     def _on_query(self, component: Component, query: IncomingQuery) -> None:
         # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
@@ -488,7 +523,9 @@ class Simulation:
         self.updates += 1
         now = time.monotonic()
         while self._timers and self._timers[0][0] <= now:
-            items.insert(0, heapq.heappop(self._timers)[2])
+            fn = heapq.heappop(self._timers)[2].fire()
+            if fn is not None:
+                items.insert(0, fn)
         batches: dict[str, list[IncomingRequest]] = {}
         for item in items:
             if isinstance(item, _RemoteEvent):

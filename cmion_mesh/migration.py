@@ -199,14 +199,20 @@ class MigrationManager(Component):
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._alive: set[str] = set()  # embodiments whose liveliness token is present
+        self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit
         self._alive_watch: Any = None
 
     # --- state seen from outside ---------------------------------------------------------------
 
     @property
     def inhabitant(self) -> str | None:
+        """The companion living here: active, or frozen in a handshake it may still abort. Read
+        from the durable record, which the handshake thread moves past its commit point at once."""
         identity = self.identity
-        return identity.companion if identity is not None else None
+        if identity is None:
+            return None
+        record = self.records.get(identity.companion)
+        return identity.companion if record is not None and record.state in ("active", "prepared") else None
 
     def public_key(self) -> str | None:
         """The inhabitant's public key (base64), for admission lists elsewhere."""
@@ -576,6 +582,7 @@ class MigrationManager(Component):
         if refused_by:
             request.reject(refused_by)
             return
+        self._prepared = {msg.attempt: identity}  # one handshake at a time: parsing it again at commit is waste
         self.records.put_key(msg.companion, msg.companion_key)
         self.records.put_document(msg.companion, msg.document)
         public = signing.encode_public(signing.public_of(msg.companion_key))
@@ -621,8 +628,10 @@ class MigrationManager(Component):
     def _activate(self, incoming: Record) -> None:
         active = self.records.move(incoming.companion, "active", incoming.epoch + 1, incoming.attempt, incoming.peer)
         crash_point("target:active")
-        data = self.records.document(incoming.companion)
-        identity = unpack(data or b"", name=f"{incoming.companion}.identity.xml")
+        identity = self._prepared.pop(incoming.attempt, None)
+        if identity is None:  # restarted since the prepare: the stored document is the truth
+            data = self.records.document(incoming.companion)
+            identity = unpack(data or b"", name=f"{incoming.companion}.identity.xml")
         identity.epoch = active.epoch
         self._inhabit(identity, "MigrationOccurred", f"arrived from {incoming.peer}")
 

@@ -60,6 +60,11 @@ def test_cmion_test_scenario(transport: MemoryTransport, client: MeshClient, mes
 
         with pytest.raises(RequestRejected, match="no rule matches action 'TestAction a b'"):
             client.act("robot", "TestAction", ["a", "b"])
+        for _ in range(50):
+            client.act("robot", "TestAction2", timeout=20)
+        pending = wait_for(lambda: robot.sim.call(lambda: None) or True, 1, "loop alive") and \
+            [t for t in robot.sim._timers if t[2].fn is not None]
+        assert not pending, "a finished plan's deadline timer is dropped, not kept until it expires"
         # the background competency (type 6) is running
         wait_for(lambda: robot.blackboard.get("", "TestCompetency6Ticks"), 5, "background ticks")
 
