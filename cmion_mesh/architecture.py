@@ -74,8 +74,12 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
             if required:
                 raise ConfigError(f"{attribute} is required", path=str(config), line=line)
             return None
-        target = (config.parent / value).resolve()
-        if not target.is_file():
+        try:
+            target = (config.parent / value).resolve()
+            found = target.is_file()
+        except OSError as exc:
+            raise ConfigError(f"{attribute} {value[:80]!r}: {exc.strerror or exc}", path=str(config), line=line) from None
+        if not found:
             raise ConfigError(f"{attribute} {value!r} not found (looked at {target})", path=str(config), line=line)
         return target
 

@@ -25,7 +25,7 @@ def import_class(spec: str, base: type[T] | None = None, *, path: str | None = N
         raise ConfigError(f"class name {spec!r} is not of the form package.module:Class", path=path, line=line)
     try:
         module = importlib.import_module(module_name)
-    except ImportError as exc:
+    except Exception as exc:  # ImportError; TypeError for a relative name; whatever the module raised
         raise ConfigError(f"cannot import module {module_name!r} for {spec!r}: {exc}", path=path, line=line) from None
     try:
         cls = getattr(module, attr)

@@ -21,7 +21,7 @@ import msgspec
 from lxml import etree
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.errors import ConfigError
+from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.messages import check_value
 
 SCHEMA = "identity.xsd"
@@ -57,11 +57,29 @@ def unpack(data: bytes, *, name: str = "<identity>") -> Identity:
     """Parse and validate a document; ``XmlError``/``ConfigError`` naming ``name`` and line on any fault."""
     tree = xmlsafe.loads(data, SCHEMA, name=name, max_bytes=MAX_DOCUMENT, max_depth=8, max_elements=2000)
     root = tree.getroot()
+    root_line = root.sourceline if isinstance(root.sourceline, int) else None
     sections: dict[str, Any] = {}
     for element in root:
         line = element.sourceline if isinstance(element.sourceline, int) else None
+        component = element.get("Component", "")
         try:
-            sections[element.get("Component", "")] = check_value(msgspec.json.decode((element.text or "null").encode()))
-        except (msgspec.DecodeError, ValueError) as exc:
-            raise ConfigError(f"section {element.get('Component')!r}: not plain JSON data: {exc}", path=name, line=line) from None
-    return Identity(root.get("Companion", ""), int(root.get("Epoch", "0")), sections, int(root.get("SchemaVersion", "1")))
+            keys.check_name(component, "section")
+        except InvalidName as exc:
+            raise ConfigError(str(exc), path=name, line=line) from None
+        try:
+            sections[component] = check_value(msgspec.json.decode((element.text or "null").encode()))
+        except (msgspec.DecodeError, ValueError, RecursionError) as exc:
+            raise ConfigError(f"section {component!r}: not plain JSON data: {exc}", path=name, line=line) from None
+    companion = root.get("Companion", "")
+    try:
+        keys.check_name(companion, "companion")
+    except InvalidName as exc:
+        raise ConfigError(str(exc), path=name, line=root_line) from None
+    numbers = []
+    for attribute, default in (("Epoch", "0"), ("SchemaVersion", "1")):
+        raw = root.get(attribute, default)
+        digits = raw.strip().lstrip("+").lstrip("0") or "0"  # the schema made it a non-negative integer
+        if len(digits) > 19 or int(digits) >= 2**63:
+            raise ConfigError(f"{attribute} {raw[:24]!r}... does not fit in 63 bits", path=name, line=root_line)
+        numbers.append(int(digits))
+    return Identity(companion, numbers[0], sections, numbers[1])

@@ -52,6 +52,8 @@ MAX_ITEMS_PER_UPDATE = 10_000
 #: (cleared when full: they only save work, and remote names are not ours to bound).
 MAX_CACHED_KEYS = 4096
 DEFAULT_REQUEST_TIMEOUT = 10.0
+#: Longest timer delay: queue.get cannot wait past threading.TIMEOUT_MAX, and a later timer is 'never'.
+MAX_TIMER_DELAY = 30 * 24 * 3600.0
 
 
 class IncomingRequest:
@@ -136,7 +138,7 @@ class Component:
 class Timer:
     """A pending ``call_later``; ``cancel`` must be called on the loop (as timers are armed there)."""
 
-    __slots__ = ("sim", "due", "id", "fn")
+    __slots__ = ("due", "fn", "id", "sim")
 
     def __init__(self, sim: Simulation, due: float, timer_id: int, fn: Callable[[], None]) -> None:
         self.sim = sim
@@ -314,7 +316,7 @@ class Simulation:
 
         ``cancel()`` on the returned timer drops ``fn`` at once, so a long deadline for work that
         ended early holds nothing (a plan's deadline, for instance)."""
-        timer = Timer(self, time.monotonic() + max(0.0, delay), next(self._timer_ids), fn)
+        timer = Timer(self, time.monotonic() + min(max(0.0, delay), MAX_TIMER_DELAY), next(self._timer_ids), fn)  # NaN -> 0
 
         def arm() -> None:
             if timer.fn is not None:
@@ -375,8 +377,11 @@ class Simulation:
             event = decode(sample.payload, Event, where=sample.key)
             if self._event_key(event.embodiment, event.component, event.name) != sample.key:
                 raise ProtocolError(f"{sample.key}: the event says it is {event.embodiment}/{event.component}/{event.name}")
-        except (ProtocolError, InvalidName) as exc:
+        except ProtocolError as exc:
             log.warning("ignored event: %s", exc)
+            return
+        except InvalidName as exc:
+            log.warning("ignored event: %s: %s", sample.key, exc)
             return
         self._inbox.put(_RemoteEvent(event, sample.key, sub))
 

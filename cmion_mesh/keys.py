@@ -172,17 +172,27 @@ def matches_chunks(pattern: Sequence[str], chunks: Sequence[str]) -> bool:
 
 
 def _match(pat: list[str], chunks: list[str]) -> bool:
-    # Iterative over the pattern; recursion only at ``**``, whose count is tiny in our patterns.
-    i = 0
-    while i < len(pat):
-        p = pat[i]
-        if p == "**":
-            rest = pat[i + 1 :]
-            return any(_match(rest, chunks[j:]) for j in range(len(chunks) + 1))
-        if not chunks:
+    # The set of pattern positions reachable after each chunk: O(len(pat) * len(chunks)) whatever the
+    # number of ``**`` (a selector comes from the network: backtracking would be exponential).
+    def closure(states: set[int]) -> set[int]:
+        todo = list(states)
+        while todo:  # ``**`` may match no chunk at all
+            i = todo.pop()
+            if i < len(pat) and pat[i] == "**" and i + 1 not in states:
+                states.add(i + 1)
+                todo.append(i + 1)
+        return states
+
+    states = closure({0})
+    for chunk in chunks:
+        following: set[int] = set()
+        for i in states:
+            if i < len(pat):
+                if pat[i] == "**":
+                    following.add(i)
+                elif pat[i] == "*" or pat[i] == chunk:
+                    following.add(i + 1)
+        if not following:
             return False
-        if p != "*" and p != chunks[0]:
-            return False
-        chunks = chunks[1:]
-        i += 1
-    return not chunks
+        states = closure(following)
+    return len(pat) in states

@@ -22,11 +22,13 @@ reason collected.
 from __future__ import annotations
 
 import itertools
+import math
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import msgspec
 
+from cmion_mesh import keys
 from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest
@@ -44,6 +46,10 @@ class _Active:
     attempts: int = 0
     reasons: list[str] = field(default_factory=list)
     cancel_requested: bool = False
+
+
+#: Longest plan deadline an action may ask for (a day).
+MAX_DEADLINE = 24 * 3600.0
 
 
 class CompetencyManager(Component):
@@ -86,6 +92,12 @@ class CompetencyManager(Component):
             request.reject(f"no action with id {action_id!r} is running or recently finished")
 
     def _act(self, request: IncomingRequest, act: Act) -> None:
+        if not (math.isfinite(act.deadline) and 0.0 <= act.deadline <= MAX_DEADLINE):
+            request.reject(f"deadline {act.deadline!r} is not a number of seconds from 0 (the default) to {MAX_DEADLINE:g}")
+            return
+        if len(act.action_id) > keys.MAX_NAME:
+            request.reject(f"action id {act.action_id[:40]!r}... is longer than {keys.MAX_NAME} characters")
+            return
         action = MindAction(act.name, tuple(act.parameters), act.subject)
         action_id = act.action_id or f"{self.sim.embodiment}-{next(self._ids)}"
         if action_id in self._active:

@@ -240,11 +240,11 @@ def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
         decoder = _decoders.setdefault(kind, msgspec.msgpack.Decoder(kind))
     try:
         message = decoder.decode(data)
-    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+    except (msgspec.DecodeError, msgspec.ValidationError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"{where or 'payload'}: malformed message: {exc}") from None
     except RecursionError:
         raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
-    for field in ("value", "data", "args"):
+    for field in ("value", "data", "args", "parameters"):
         if hasattr(message, field):
             try:
                 check_value(getattr(message, field))
@@ -257,7 +257,11 @@ def check_value(value: Value, _depth: int = 0) -> Value:
     """Return ``value`` if it is plain data (see module doc), else raise ``ValueError`` saying where."""
     if _depth > MAX_DEPTH:
         raise ValueError(f"value nested deeper than {MAX_DEPTH} levels")
-    if value is None or isinstance(value, (str, bool, int, float)):
+    if value is None or isinstance(value, (str, bool, float)):
+        return value
+    if isinstance(value, int):
+        if not -(2**63) <= value <= 2**64 - 1:
+            raise ValueError("integer does not fit in 64 bits (MessagePack's range)")
         return value
     if isinstance(value, (list, tuple)):
         for item in value:

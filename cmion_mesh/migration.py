@@ -50,8 +50,8 @@ import msgspec
 
 from cmion_mesh import keys, signing
 from cmion_mesh.competency import Competency, RunContext
-from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
-from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.errors import ConfigError, InvalidName, MeshError, OutcomeUnknown
+from cmion_mesh.identity import MAX_DOCUMENT, Identity, unpack
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
 
@@ -59,6 +59,8 @@ log = logging.getLogger(__name__)
 
 State = Literal["active", "prepared", "handed", "released", "incoming", "dropped"]
 HOSTING: frozenset[str] = frozenset({"active", "prepared", "handed", "incoming"})
+#: Largest record file read (a record is a few hundred bytes).
+MAX_RECORD = 64 * 1024
 
 
 class Record(msgspec.Struct, frozen=True):
@@ -82,11 +84,32 @@ class Records:
         self._lock = threading.RLock()
         self._cache: dict[str, Record] = {}
         for path in sorted(self.dir.glob("*.record.json")):
-            try:
-                record = msgspec.json.decode(path.read_bytes(), type=Record)
-            except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-                raise ConfigError(f"unreadable migration record: {exc}", path=str(path)) from None
-            self._cache[record.companion] = record
+            companion, record = self._load(path)
+            self._cache[companion] = record
+
+    @staticmethod
+    def _load(path: Path) -> tuple[str, Record]:
+        try:
+            with open(path, "rb") as f:
+                raw = f.read(MAX_RECORD + 1)
+        except OSError as exc:
+            raise ConfigError(f"unreadable migration record: {exc.strerror or exc}", path=str(path)) from None
+        if len(raw) > MAX_RECORD:
+            raise ConfigError(f"migration record larger than {MAX_RECORD} bytes", path=str(path))
+        try:
+            record = msgspec.json.decode(raw, type=Record)
+        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
+            raise ConfigError(f"unreadable migration record: {exc}", path=str(path)) from None
+        try:
+            keys.check_name(record.companion, "companion")
+        except InvalidName as exc:
+            raise ConfigError(f"unusable migration record: {exc}", path=str(path)) from None
+        if path.name != f"{record.companion}.record.json":
+            raise ConfigError(f"the record is of companion {record.companion!r}, not of the one its file is named after",
+                              path=str(path))
+        if record.epoch < 0:
+            raise ConfigError(f"unusable migration record: negative epoch {record.epoch}", path=str(path))
+        return record.companion, record
 
     def _write(self, name: str, data: bytes) -> None:
         target = self.dir / name
@@ -137,7 +160,20 @@ class Records:
 
     def document(self, companion: str) -> bytes | None:
         path = self.dir / f"{companion}.identity.xml"
-        return path.read_bytes() if path.exists() else None
+        try:
+            with open(path, "rb") as f:
+                return f.read(MAX_DOCUMENT + 1)  # one more than unpack takes, so excess is noticed
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise ConfigError(f"unreadable identity document: {exc.strerror or exc}", path=str(path)) from None
+
+    def check_documents(self) -> None:
+        """``ConfigError`` naming the file if the document of a companion held here is unusable."""
+        for record in self.all():
+            data = self.document(record.companion) if record.state in HOSTING else None
+            if data is not None:
+                unpack(data, name=str(self.dir / f"{record.companion}.identity.xml"))
 
     def put_key(self, companion: str, private: bytes) -> None:
         with self._lock:
@@ -190,6 +226,7 @@ class MigrationManager(Component):
         super().__init__("migration")
         self.admit = admit
         self.records = Records(state_dir)
+        self.records.check_documents()
         self.seed = keys.check_name(companion, "companion") if companion else None
         self.section_deadline = section_deadline
         self.request_timeout = request_timeout
@@ -551,6 +588,13 @@ class MigrationManager(Component):
 
     def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
         me = self.sim.embodiment
+        try:
+            keys.check_name(msg.companion, "companion")
+            keys.check_name(msg.source, "source")
+            keys.check_name(msg.attempt, "attempt")
+        except InvalidName as exc:
+            request.reject(str(exc))
+            return
         if msg.target != me:
             request.reject(f"this is {me!r}, not {msg.target!r}")
             return

@@ -467,7 +467,7 @@ def _read_json(path: str | os.PathLike[str]) -> Any:
         raise ConfigError("planner spec is larger than 16 MiB", path=name)
     try:
         return msgspec.json.decode(raw)
-    except msgspec.DecodeError as exc:
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise ConfigError(f"not JSON: {exc}", path=name) from None
 
 

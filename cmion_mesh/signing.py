@@ -85,7 +85,7 @@ def verify(envelope_bytes: bytes, signature: bytes, *, expected: Envelope, docum
         raise SignatureRefused("envelope larger than 4 KiB")
     try:
         envelope = _decoder.decode(envelope_bytes)
-    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+    except (msgspec.DecodeError, msgspec.ValidationError, UnicodeDecodeError) as exc:
         raise SignatureRefused(f"malformed envelope: {exc}") from None
     if len(envelope.public_key) != 32:
         raise SignatureRefused("envelope public key is not an Ed25519 key")

@@ -49,6 +49,9 @@ from cmion_mesh.messages import (
 )
 from cmion_mesh.transport import IncomingQuery
 
+#: Deepest container path (a store's tree is walked recursively).
+MAX_CONTAINER_DEPTH = 32
+
 EVENT_FOR_OP = {
     "set_property": "PropertyChanged",
     "remove_property": "PropertyRemoved",
@@ -257,6 +260,8 @@ class Store(Component):
             change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
             wire = None
         elif isinstance(write, AddContainer):
+            if len(path) >= MAX_CONTAINER_DEPTH:
+                raise StorageError(f"{where}: containers nest at most {MAX_CONTAINER_DEPTH} deep")
             if name in node.properties or name in node.children:
                 raise StorageError(f"{where} already exists")
             kind = write.kind
@@ -339,7 +344,7 @@ def _typed(raw: str, kind: str, where: str) -> Any:
         if kind == "string":
             return raw
         if kind == "int":
-            return int(raw)
+            return check_value(int(raw))
         if kind == "float":
             return float(raw)
         if kind == "bool":
@@ -349,7 +354,7 @@ def _typed(raw: str, kind: str, where: str) -> Any:
             raise ValueError(f"not a boolean: {raw!r}")
         if kind == "json":
             return check_value(msgspec.json.decode(raw))
-    except (ValueError, msgspec.DecodeError) as exc:
+    except (ValueError, msgspec.DecodeError, RecursionError) as exc:
         raise ValueError(f"{where}: {exc}") from None
     raise ValueError(f"{where}: unknown Type {kind!r}")
 

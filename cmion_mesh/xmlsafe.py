@@ -178,7 +178,7 @@ def _decode(data: bytes, name: str) -> str:
     if declared is not None:
         try:
             declared_codec = codecs.lookup(declared).name
-        except LookupError:
+        except (LookupError, ValueError):  # ValueError: a NUL in the name
             raise XmlError(f"unsupported encoding {declared!r}; use UTF-8", path=name, line=1) from None
         if family == "utf-16":
             if declared_codec not in _UTF16:
