@@ -1,7 +1,12 @@
 """``python -m bench``: run the registered benchmarks, print a table, write JSON.
 
-    python -m bench [--quick] [--only events,get,set] [--samples N] [--json PATH] [--check]
+    python -m bench [--quick] [--full] [--only events,get,set] [--samples N] [--json PATH] [--check] [--png PATH]
     python -m bench --only breakdown             # diagnostic: per-hop timestamps
+    python -m bench soak [--seconds N]           # the soak (not part of the default set)
+
+Exit status: 1 if a correctness check failed (a row's ``failures``: lost events or writes, a lost
+or duplicated companion, growth during the soak...), or with ``--check`` if a target is missed;
+else 0.
 """
 
 from __future__ import annotations
@@ -43,30 +48,74 @@ def _fmt(value: float | None, spec: str, suffix: str = "") -> str:
     return "-" if value is None else f"{value:{spec}}{suffix}"
 
 
-def table(rows: Sequence[Row]) -> str:
-    labels = {row.metric: row.label for row in rows}
-    header = ("metric", "n", "median (ms)", "p99 (ms)", "ratio vs raw", "vs", "target")
-    body = []
-    for row in rows:
-        meets = row.meets
-        verdict = "-" if meets is None else (f"<= {row.target:g}x " + ("met" if meets else "MISSED"))
-        body.append((
-            row.label,
-            str(row.summary.n),
-            f"{row.summary.median_ms:.3f}",
-            f"{row.summary.p99_ms:.3f}",
-            _fmt(row.ratio, ".2f", "x"),
-            "-" if row.baseline is None else labels.get(row.baseline, row.baseline).split(",")[0],
-            verdict,
-        ))
+def value(number: float, unit: str) -> str:
+    """A median or p99 as the table shows it: the precision its unit and size call for."""
+    if unit in ("events/s", "threads") or abs(number) >= 10_000:
+        return f"{number:.0f}"
+    if unit == "MiB" or abs(number) >= 1000:
+        return f"{number:.1f}"
+    if unit == "%":
+        return f"{number:.2f}"
+    return f"{number:.3f}"
+
+
+def grid(header: Sequence[str], body: Sequence[Sequence[str]], right: set[int]) -> str:
     widths = [max(len(r[i]) for r in (header, *body)) for i in range(len(header))]
-    right = {1, 2, 3, 4}
 
     def line(cells: Sequence[str]) -> str:
         return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths, strict=True)))
 
     rule = "  ".join("-" * w for w in widths)
     return "\n".join(text.rstrip() for text in [line(header), rule, *(line(r) for r in body)])
+
+
+def table(rows: Sequence[Row]) -> str:
+    labels = {row.metric: row.label for row in rows}
+    header = ("metric", "n", "median", "p99", "unit", "ratio vs raw", "vs", "target")
+    body = []
+    for row in rows:
+        body.append((
+            row.label,
+            str(row.summary.n),
+            value(row.summary.median_ms, row.unit),
+            value(row.summary.p99_ms, row.unit),
+            row.unit,
+            _fmt(row.ratio, ".2f", "x"),
+            "-" if row.baseline is None else labels.get(row.baseline, row.baseline).split(",")[0],
+            row.verdict(),
+        ))
+    return grid(header, body, {1, 2, 3, 5})
+
+
+def curve_tables(rows: Sequence[Row]) -> list[str]:
+    """One table per growth curve among ``rows``: x down, one column of medians per series."""
+    curves: dict[str, list[Row]] = {}
+    for row in rows:
+        if "curve" in row.extra:
+            curves.setdefault(str(row.extra["curve"]), []).append(row)
+    out = []
+    for members in curves.values():
+        first = members[0].extra
+        series = list(dict.fromkeys(str(r.extra.get("series", "")) for r in members))
+        xs = list(dict.fromkeys(r.extra["x"] for r in members))
+        cell = {(r.extra["x"], str(r.extra.get("series", ""))): r for r in members}
+        header = [str(first.get("x_label", "x")), *series]
+        if len(series) == 2:
+            header.append(f"{series[1]} / {series[0]}")
+        body = []
+        for x in xs:
+            cells = [str(x)]
+            for name in series:
+                found = cell.get((x, name))
+                cells.append("-" if found is None else value(found.summary.median_ms, found.unit))
+            if len(series) == 2:
+                a, b = cell.get((x, series[0])), cell.get((x, series[1]))
+                ok = a is not None and b is not None and a.summary.median_ms > 0
+                cells.append(f"{b.summary.median_ms / a.summary.median_ms:.2f}x" if ok and b is not None and a is not None else "-")
+            body.append(cells)
+        title = f"{first.get('curve_title', first['curve'])} ({members[0].unit}, median)"
+        out.append(title + "\n" + grid(header, body, set(range(1, len(header)))))
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -81,19 +130,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=4, metavar="N", help="raw/cmion alternations (default %(default)s)")
     parser.add_argument("--json", metavar="PATH", help="write the whole run here (default bench/results/<benchmark>.json)")
     parser.add_argument("--check", action="store_true", help="exit 1 if a cmion metric misses its target ratio")
+    parser.add_argument("--full", action="store_true", help="also the slow parts (the 32-daemon point of the discovery curve)")
+    parser.add_argument("--soak-seconds", type=float, default=20.0, metavar="N",
+                        help="traffic phase of the soak (with --only soak; default %(default)s)")
+    parser.add_argument("--png", metavar="PATH", help="draw the growth curves into PATH (needs matplotlib)")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["soak"]:
+        soak = argparse.ArgumentParser(prog="python -m bench soak", description="the soak: see bench/soak.py")
+        soak.add_argument("--seconds", type=float, default=20.0, help="traffic phase, seconds (default %(default)s)")
+        soak.add_argument("--json", metavar="PATH")
+        known = soak.parse_args(argv[1:])
+        argv = ["--only", "soak", "--soak-seconds", str(known.seconds), *(["--json", known.json] if known.json else [])]
     args = parser.parse_args(argv)
+    if not 0 < args.soak_seconds <= 3600:
+        parser.error("--soak-seconds must be in (0, 3600]")
 
     samples = args.samples if args.samples is not None else (300 if args.quick else 2000)
     warmup = args.warmup if args.warmup is not None else (100 if args.quick else 200)
     if samples < 1 or warmup < 0 or args.rounds < 1:
         parser.error("--samples and --rounds must be at least 1, --warmup at least 0")
-    options = replace(Options(), quick=args.quick, samples=samples, warmup=warmup, rounds=args.rounds)
+    options = replace(Options(), quick=args.quick, samples=samples, warmup=warmup, rounds=args.rounds, full=args.full,
+                      soak_seconds=args.soak_seconds)
     try:
         chosen = select(args.only.split(",") if args.only else None)
     except ValueError as exc:
         parser.error(str(exc))
 
-    command = "python -m bench" + ("" if not sys.argv[1:] else " " + shlex.join(sys.argv[1:] if argv is None else argv))
+    command = "python -m bench" + ("" if not argv else " " + shlex.join(argv))
     host = machine()
     meta: dict[str, Any] = {"command": command, "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                             "machine": host, "options": asdict(options)}
@@ -101,15 +164,23 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"iterations; {host['cpus']} CPUs, zenoh {host['zenoh']}", flush=True)
     everything: dict[str, Any] = {**meta, "benchmarks": {}}
     failed = False
+    broken: list[str] = []
+    all_rows: list[Row] = []
+    run_started = time.monotonic()
     for bench, groups in chosen:
         print(f"\n== {bench.name}: {bench.description} [{', '.join(sorted(groups))}]", flush=True)
         started = time.monotonic()
         rows = bench.load()(options, groups)
         elapsed = time.monotonic() - started
         print(table(rows), flush=True)
+        for text in curve_tables(rows):
+            print("\n" + text, flush=True)
+        all_rows.extend(rows)
         for row in rows:
             if row.meets is False:
                 failed = True
+            if row.failures:
+                broken.append(f"{bench.name}: {row.label}: {'; '.join(row.failures)}")
         doc = {**meta, "benchmark": bench.name, "groups": sorted(groups), "seconds": round(elapsed, 1),
                "rows": [row.to_json() for row in rows]}
         everything["benchmarks"][bench.name] = doc
@@ -118,11 +189,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             path = RESULTS / f"{bench.name}.json"
             path.write_text(json.dumps(doc, indent=2) + "\n")
             print(f"({elapsed:.1f} s; written to {os.path.relpath(path)})")
+    everything["seconds"] = round(time.monotonic() - run_started, 1)
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(everything, indent=2) + "\n")
         print(f"\nwritten to {path}")
+    if args.png:
+        from bench.charts import draw
+
+        print(draw(all_rows, Path(args.png)))
+    print(f"\ntotal {everything['seconds']:.1f} s")
+    if broken:
+        print("\nFAILED checks:\n  " + "\n  ".join(broken), flush=True)
+        return 1
     return 1 if args.check and failed else 0
 
 

@@ -2,8 +2,15 @@
 
 A benchmark is a function ``run(options, groups) -> list[Row]`` in some module under ``bench/``;
 it is registered below by name with the metric groups it can measure (``--only`` selects
-benchmarks by name or by group). To add one (competency actions, discovery, migration...):
-write ``bench/<name>.py`` with a ``run`` function and append a ``Benchmark`` to ``BENCHMARKS``.
+benchmarks by name or by group). To add one: write ``bench/<name>.py`` with a ``run`` function
+and append a ``Benchmark`` to ``BENCHMARKS``.
+
+A row is usually a latency in milliseconds compared with a raw-zenoh row (``ratio``, ``target``);
+it may instead hold another quantity (``unit``: "%", "MiB", "events/s", "s"...), have an absolute
+``limit`` on its median, carry ``failures`` (a correctness check that did not hold: lost events,
+a lost companion...; any failure makes ``python -m bench`` exit 1) and belong to a growth curve
+(``extra["curve"]``, ``extra["x"]``, ``extra["series"]``), which is printed as its own table and
+drawn by ``--png``.
 """
 
 from __future__ import annotations
@@ -25,11 +32,13 @@ class Options:
     warmup: int = 200  # unrecorded iterations per metric before the first round
     rounds: int = 4  # raw and cmion measurements alternate this many times
     rewarm: int = 20  # unrecorded iterations at the start of every chunk of a round
+    full: bool = False  # also the slow parts (32 daemons)
+    soak_seconds: float = 20.0  # length of the soak's traffic phase
 
 
 @dataclass(slots=True)
 class Row:
-    """One measured metric: ``median``/``p99`` in milliseconds; ``ratio`` = median / baseline's median."""
+    """One measured metric: ``median``/``p99`` in ``unit``; ``ratio`` = median / baseline's median."""
 
     metric: str  # stable id, used in JSON and as a baseline reference
     label: str  # what the table shows
@@ -38,29 +47,54 @@ class Row:
     ratio: float | None = None
     target: float | None = None  # the ratio the issue asks for (at most)
     extra: dict[str, Any] = field(default_factory=dict)
+    unit: str = "ms"
+    limit: float | None = None  # the median the issue asks for (at most), in ``unit``
+    failures: list[str] = field(default_factory=list)  # correctness checks that did not hold
 
     @property
     def meets(self) -> bool | None:
-        if self.ratio is None or self.target is None:
-            return None
-        return self.ratio <= self.target
+        """Whether the row meets its target ratio and/or absolute limit (None: it has neither)."""
+        checks = []
+        if self.ratio is not None and self.target is not None:
+            checks.append(self.ratio <= self.target)
+        if self.limit is not None:
+            checks.append(self.summary.median_ms <= self.limit)
+        return all(checks) if checks else None
+
+    def verdict(self) -> str:
+        """The table's target column: the failures, else each target with met/MISSED."""
+        if self.failures:
+            return "FAILED: " + "; ".join(self.failures)
+        parts = []
+        if self.limit is not None:
+            parts.append(f"<= {self.limit:g} {self.unit} " + ("met" if self.summary.median_ms <= self.limit else "MISSED"))
+        if self.ratio is not None and self.target is not None:
+            parts.append(f"<= {self.target:g}x " + ("met" if self.ratio <= self.target else "MISSED"))
+        return ", ".join(parts) or "-"
 
     def to_json(self) -> dict[str, Any]:
+        summary = asdict(self.summary)
+        if self.unit != "ms":
+            summary = {k.removesuffix("_ms"): v for k, v in summary.items()}
         out: dict[str, Any] = {
             "metric": self.metric,
             "label": self.label,
-            **asdict(self.summary),
+            "unit": self.unit,
+            **summary,
             "baseline": self.baseline,
             "ratio_vs_raw": self.ratio,
             "target_ratio": self.target,
+            "limit": self.limit,
             "meets_target": self.meets,
+            "failures": list(self.failures),
         }
         out.update(self.extra)
         return out
 
 
-def compare(rows: Iterable[Row], pairs: dict[str, str], target: float) -> None:
-    """Fill ``ratio`` of each row whose id is a key of ``pairs`` against the row named by its value."""
+def compare(rows: Iterable[Row], pairs: dict[str, str], target: float | None) -> None:
+    """Fill ``ratio`` of each row whose id is a key of ``pairs`` against the row named by its value
+    (``target`` None: the ratio is given for context, with no target)."""
     by_id = {row.metric: row for row in rows}
     for metric, baseline in pairs.items():
         row, base = by_id.get(metric), by_id.get(baseline)
@@ -94,6 +128,50 @@ BENCHMARKS: list[Benchmark] = [
         "bench.core:run",
         ("events", "get", "set"),
         "event delivery, property get and set round trips vs raw zenoh pub/sub and get",
+    ),
+    Benchmark(
+        "actions",
+        "bench.actions:run",
+        ("actions",),
+        "mind action -> succeeded, one-step and four-step plans, in the daemon and from another process",
+    ),
+    Benchmark(
+        "discovery",
+        "bench.discovery:run",
+        ("discovery",),
+        "spawning `cmion-mesh up` -> its liveliness token seen by a watcher, vs a raw zenoh process",
+    ),
+    Benchmark(
+        "idle",
+        "bench.idle:run",
+        ("idle",),
+        "CPU, memory and threads of an idle `cmion-mesh up robot` daemon vs an idle raw zenoh peer",
+    ),
+    Benchmark(
+        "migration",
+        "bench.migration:run",
+        ("migration",),
+        "migration command -> companion awake at the target, 10 KiB / 1 MiB / 10 MiB, vs raw transfer + fsync",
+    ),
+    Benchmark(
+        "growth",
+        "bench.growth:run",
+        ("fanout", "wildcard", "convergence"),
+        "growth curves: event throughput vs subscribers, wildcard get vs blackboard size, discovery vs daemons",
+    ),
+    Benchmark(
+        "soak",
+        "bench.soak:run",
+        (),
+        "three daemons, a migrating companion, actions and writes; nothing lost, nothing growing",
+        default=False,
+    ),
+    Benchmark(
+        "migtrace",
+        "bench.migtrace:run",
+        (),
+        "diagnostic: where a migration's time goes (timed calls inside both daemons)",
+        default=False,
     ),
     Benchmark(
         "breakdown",

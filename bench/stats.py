@@ -1,4 +1,5 @@
-"""Summaries of latency samples (seconds in, milliseconds out)."""
+"""Summaries of samples: latencies in seconds come out in milliseconds; other quantities
+(CPU %, MiB, events/s, seconds) are summarized as they are with ``scale=1``."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ def percentile(ordered: Sequence[float], q: float) -> float:
 
 @dataclass(frozen=True, slots=True)
 class Summary:
+    """Field names say ``_ms`` because most rows are latencies; a row's ``unit`` says what they hold."""
+
     n: int
     median_ms: float
     p99_ms: float
@@ -28,9 +31,10 @@ class Summary:
     max_ms: float
 
 
-def summarize(samples: Sequence[float]) -> Summary:
+def summarize(samples: Sequence[float], scale: float = 1000.0) -> Summary:
+    """Sorted-sample statistics of ``samples`` multiplied by ``scale`` (default: seconds to ms)."""
     ordered = sorted(samples)
-    ms = 1000.0
+    ms = scale
     return Summary(
         n=len(ordered),
         median_ms=percentile(ordered, 50) * ms,

@@ -365,6 +365,16 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``cmion-mesh bench ...`` is ``python -m bench ...`` from a source checkout (bench/ is not installed)."""
+    try:
+        from bench.__main__ import main as bench_main
+    except ImportError:
+        raise MeshError("the benchmarks live in the source checkout's bench/ folder: run this command from there") from None
+    code: int = bench_main(args.bench_args)
+    return code
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     from cmion_mesh import router
 
@@ -501,6 +511,10 @@ def build_parser() -> argparse.ArgumentParser:
     certs_module.add_arguments(p)
     p.set_defaults(func=certs_module.run)
 
+    p = sub.add_parser("bench", help="run the benchmarks (from a source checkout; see bench/README.md)", add_help=False)
+    p.add_argument("bench_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_bench)
+
     p = sub.add_parser("doctor", help="explain why peers are (not) found: interfaces, multicast, zenoh config")
     p.add_argument("--timeout", type=float, default=2.0)
     _common(p)
@@ -518,7 +532,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # After "bench", every argument is the benchmark's own, options included.
+    bench = argv[:1] == ["bench"]
+    args = argparse.Namespace(func=cmd_bench, bench_args=argv[1:]) if bench else parser.parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)

@@ -1,0 +1,267 @@
+"""Migration end to end: command -> companion awake at the target, for identity documents of
+10 KiB, 1 MiB and 10 MiB, beside a raw zenoh transfer of the same bytes plus an fsync of them.
+
+Processes (loopback only): two daemons ``cmion-mesh up`` of the bench embodiment, ``mig-a``
+(where the companion ``bench`` is born) and ``mig-b``, each with its migration records in a
+temporary ``--state-dir``; ``python -m bench.core serve-raw``; the measuring process, connected
+to all three.
+
+The companion's mind (``bench.minds:CarryMind``) carries a blob: a raw message sets it so that
+the packed identity document has the size asked for (its actual size, read from the target's
+state folder, is in the JSON). For each size, after warm-up migrations, every round measures:
+
+* ``raw``: a raw zenoh get whose payload is that many random bytes, to a queryable in another
+  process that replies 64 bytes (three per round);
+* ``fsync``: writing that many bytes to a new file in a temporary folder and ``os.fsync`` (three
+  per round); ``raw + fsync`` pairs them (the baseline);
+* ``migration``: the ``migrate`` request to the embodiment holding the companion -> the
+  ``MigrationOccurred`` event of the target (the companion restored and its minds awake there),
+  as seen by the measuring process; the companion then goes back the other way next round.
+  ``-> released``: until the source's ``MigrationSucceeded`` (the commit acknowledged).
+
+Targets (the issue's): a small document (10 KiB) under 50 ms median; large ones (1 MiB, 10 MiB)
+within 2x of raw transfer plus fsync. The identity parser refuses a text node over
+10,000,000 bytes, so a 10 MiB blob travels in sections of at most 4 MiB (``CarryMind``); one
+attempt with the whole blob in one section shows the refusal.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import tempfile
+import time
+from contextlib import ExitStack
+from pathlib import Path
+
+import zenoh
+
+from bench.core import open_session, raw_keys
+from bench.daemons import Node, client_config, stop_and_report
+from bench.harness import loopback_config, loopback_endpoint, start_child, stop_child
+from bench.registry import Options, Row
+from bench.stats import summarize
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import MeshError
+from cmion_mesh.messages import Event, Migrate, Request
+from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+COMPANION = "bench"
+A, B = "mig-a", "mig-b"
+KIB = 1024
+SIZES = (10 * KIB, 1024 * KIB, 10 * 1024 * KIB)
+SMALL_LIMIT_MS = 50.0
+LARGE_TARGET = 2.0
+#: bytes of the document that are not the blob (XML, the other sections): subtracted from the blob
+OVERHEAD = 600
+
+
+def size_name(size: int) -> str:
+    return f"{size // (1024 * KIB)} MiB" if size >= 1024 * KIB else f"{size // KIB} KiB"
+
+
+def log(text: str) -> None:
+    print(f"  [migration] {text}", flush=True)
+
+
+class Migrations:
+    """Drives the companion between two daemons and times each hop from the measuring process."""
+
+    def __init__(self, client: MeshClient, nodes: dict[str, Node]) -> None:
+        self.client = client
+        self.nodes = nodes
+        self.home = A
+        self.events: queue.SimpleQueue[tuple[float, Event]] = queue.SimpleQueue()
+        self.subscription = client.events(self._on_event, component="migration")
+
+    def _on_event(self, event: Event) -> None:
+        self.events.put((time.perf_counter(), event))
+
+    def close(self) -> None:
+        self.subscription.close()
+
+    @property
+    def other(self) -> str:
+        return B if self.home == A else A
+
+    def tell_mind(self, args: dict[str, int]) -> None:
+        outcome = self.client.request(self.home, "mind", "message", Request(dict(args)), timeout=30.0)
+        if outcome.status != "accepted":
+            raise MeshError(f"the companion's mind on {self.home} refused {args}: {outcome.reason}")
+
+    def once(self, timeout: float = 60.0) -> tuple[float, float]:
+        """One migration home -> other: (to MigrationOccurred at the target, to MigrationSucceeded)."""
+        while not self.events.empty():
+            self.events.get_nowait()
+        source, target = self.home, self.other
+        t0 = time.perf_counter()
+        outcome = self.client.request(source, "migration", "migrate", Migrate(COMPANION, target), timeout=timeout)
+        if outcome.status != "accepted":
+            raise MeshError(f"migrate {source} -> {target} refused: {outcome.reason}")
+        occurred = succeeded = 0.0
+        deadline = time.monotonic() + timeout
+        seen: list[str] = []
+        while True:
+            try:
+                if time.monotonic() > deadline:
+                    raise queue.Empty
+                at, event = self.events.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                raise MeshError(f"migration {source} -> {target}: no end within {timeout:g} s; {self.diagnose(seen)}") from None
+            seen.append(f"{event.embodiment}:{event.name}")
+            data = event.data if isinstance(event.data, dict) else {}
+            if data.get("companion") != COMPANION:
+                continue
+            if event.name == "MigrationOccurred" and event.embodiment == target:
+                occurred = at
+            elif event.name == "MigrationFailed" and event.embodiment == source:
+                raise MeshError(f"migration {source} -> {target} failed: {data.get('reason')}")
+            elif event.name == "MigrationSucceeded" and event.embodiment == source:
+                succeeded = at  # may arrive before the target's event: they come from two processes
+            if occurred and succeeded:
+                self.home = target
+                return occurred - t0, succeeded - t0
+
+    def diagnose(self, seen: list[str]) -> str:
+        """What the daemons say after a migration did not end: for the error message."""
+        parts = [f"events seen: {seen}"]
+        for name, node in self.nodes.items():
+            try:
+                inhabitant = self.client.describe(name, timeout=2.0).get("inhabitant")
+            except MeshError as exc:
+                inhabitant = f"? ({exc})"
+            tail = " | ".join(node.daemon.lines[-5:]) if node.daemon is not None else ""
+            parts.append(f"{name}: inhabitant {inhabitant}; output: {tail}")
+        return "; ".join(parts)
+
+    def document_size(self) -> int:
+        path = self.nodes[self.home].workdir / "state" / f"{COMPANION}.identity.xml"
+        return path.stat().st_size
+
+
+class RawTransfer:
+    def __init__(self, session: zenoh.Session, tag: str) -> None:
+        self.session = session
+        self.key = raw_keys(tag)[2]
+
+    def once(self, payload: bytes) -> float:
+        t0 = time.perf_counter()
+        got = 0
+        for reply in self.session.get(self.key, payload=payload, timeout=30.0):
+            if reply.ok is not None:
+                got += 1
+        elapsed = time.perf_counter() - t0
+        if got != 1:
+            raise MeshError(f"raw transfer of {len(payload)} bytes: {got} replies")
+        return elapsed
+
+
+def fsync_once(folder: Path, payload: bytes, i: int) -> float:
+    path = folder / f"fsync-{i}.bin"
+    t0 = time.perf_counter()
+    with open(path, "wb") as f:
+        f.write(payload)
+        f.flush()
+        os.fsync(f.fileno())
+    elapsed = time.perf_counter() - t0
+    path.unlink()
+    return elapsed
+
+
+def single_section_probe(mig: Migrations, size: int) -> str:
+    """Try the whole blob in one section: the target's parser refuses it (returns the reason)."""
+    mig.tell_mind({"part": 64 * 1024 * KIB})
+    try:
+        mig.once()
+        return "accepted (the parser's limit did not apply)"
+    except MeshError as exc:
+        return str(exc)
+    finally:
+        wait_for(lambda: mig.client.describe(mig.home, timeout=2.0).get("inhabitant") == COMPANION, 20.0,
+                 "the companion resumed at its source")
+        mig.tell_mind({"part": 4 * 1024 * KIB})
+        _ = size
+
+
+def run(options: Options, groups: frozenset[str]) -> list[Row]:
+    rounds = {SIZES[0]: 4, SIZES[1]: 4, SIZES[2]: 2} if options.quick else {SIZES[0]: 12, SIZES[1]: 12, SIZES[2]: 8}
+    warmups = 1 if options.quick else 2
+    mesh = unique_mesh("bench")
+    raw_ep = loopback_endpoint()
+    rows: list[Row] = []
+    started = time.monotonic()
+    with ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-migration-")))
+        raw_child = start_child("bench.core", "serve-raw", "--listen", raw_ep, "--tag", mesh, name="serve-raw")
+        stack.callback(stop_child, raw_child)
+        a = Node(A, mesh, tmp / A, companion=COMPANION)
+        b = Node(B, mesh, tmp / B, connect=(a.listen,))
+        nodes = {A: a, B: b}
+        for node in nodes.values():
+            node.start()
+        stack.callback(stop_and_report, list(nodes.values()), log)
+        raw_child.wait_line("ready", 30.0)
+        for node in nodes.values():
+            node.wait_up(60.0)
+        session = open_session(loopback_config(connect=raw_ep))
+        stack.callback(session.close)
+        transport = ZenohTransport(client_config(a.listen, b.listen))
+        stack.callback(transport.close)
+        client = MeshClient(transport, mesh)
+        for name in nodes:
+            client.wait_for_embodiment(name, timeout=20.0)
+        wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
+        mig = Migrations(client, nodes)
+        stack.callback(mig.close)
+        raw = RawTransfer(session, mesh)
+        raw.once(b"x")  # first contact
+        log(f"daemons up after {time.monotonic() - started:.2f} s (mesh {mesh})")
+        scratch = tmp / "fsync"
+        scratch.mkdir()
+        for size in SIZES:
+            name = size_name(size)
+            payload = os.urandom(size)
+            mig.tell_mind({"size": max(0, size - OVERHEAD)})
+            for _ in range(warmups):
+                mig.once()
+                raw.once(payload)
+                fsync_once(scratch, payload, 0)
+            samples: dict[str, list[float]] = {"raw": [], "fsync": [], "occurred": [], "released": []}
+            for i in range(rounds[size]):
+                for j in range(3):
+                    samples["raw"].append(raw.once(payload))
+                    samples["fsync"].append(fsync_once(scratch, payload, i * 3 + j))
+                occurred, released = mig.once()
+                samples["occurred"].append(occurred)
+                samples["released"].append(released)
+            doc = mig.document_size()
+            extra: dict[str, object] = {"document_bytes": doc, "rounds": rounds[size]}
+            if size == SIZES[-1]:
+                reason = single_section_probe(mig, size)
+                extra["one_section_attempt"] = reason
+                log(f"{name} in one identity section: {reason}")
+            log(f"{name}: {rounds[size]} migrations (document {doc} bytes), {time.monotonic() - started:.1f} s")
+            key = name.replace(" ", "").lower()
+            both = [r + f for r, f in zip(samples["raw"], samples["fsync"], strict=True)]
+            curve = {"curve": "migration_vs_size", "curve_title": "migration vs identity document size",
+                     "x_label": "document KiB", "x": round(doc / KIB, 1)}
+            base = Row(f"raw_fsync_{key}", f"raw transfer + fsync, {name} (baseline)", summarize(both),
+                       extra={**curve, "series": "raw zenoh transfer + fsync"})
+            occurred_row = Row(f"migration_{key}", f"migration {name}: command -> awake at target", summarize(samples["occurred"]),
+                               baseline=base.metric, ratio=summarize(samples["occurred"]).median_ms / base.summary.median_ms,
+                               extra={**extra, **curve, "series": "cmion migration"})
+            if size == SIZES[0]:
+                occurred_row.limit = SMALL_LIMIT_MS
+            else:
+                occurred_row.target = LARGE_TARGET
+            rows += [
+                Row(f"raw_{key}", f"raw zenoh get carrying {name}, round trip", summarize(samples["raw"])),
+                Row(f"fsync_{key}", f"write + fsync {name} to a new file", summarize(samples["fsync"])),
+                base,
+                occurred_row,
+                Row(f"migration_released_{key}", f"migration {name}: command -> source released", summarize(samples["released"]),
+                    extra=dict(extra)),
+            ]
+        log(f"measured in {time.monotonic() - started:.1f} s")
+    return rows

@@ -1,0 +1,225 @@
+"""Where a migration's time goes (diagnostic): ``python -m bench --only migtrace``.
+
+Runs the migration benchmark's two daemons through ``python -m bench.migtrace up ...``, which
+wraps, before handing over to ``cmion_mesh.cli``, the functions a migration passes through and
+prints one ``TRACE <label> <start_ns> <duration_ns> <thread>`` line per call
+(``time.perf_counter_ns``: ``CLOCK_MONOTONIC``, one clock for every process). The measuring
+process notes the window of each migration and adds up, per label, the calls of both daemons
+that started inside it. Calls nest (``_on_prepare`` includes ``unpack`` and the record writes),
+so the rows are not to be summed; the ``on loop`` / ``on a worker`` labels say where each runs.
+Wrappers cost a few microseconds per call.
+
+For digging further, two environment variables of the wrapped daemons: ``BENCH_STACKS=<seconds>``
+prints every thread's innermost frames (``STACK`` lines) at that interval, and
+``BENCH_SWITCH_INTERVAL=<seconds>`` sets ``sys.setswitchinterval`` (to test GIL hand-over effects).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+import sys
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+from bench.daemons import Node, client_config, stop_and_report
+from bench.migration import COMPANION, OVERHEAD, SIZES, A, B, Migrations, size_name
+from bench.registry import Options, Row
+from bench.stats import summarize
+from cmion_mesh.client import MeshClient
+from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+TRACE = re.compile(r"^TRACE (.+) (\d+) (\d+) (\S+)$")
+_print_lock = threading.Lock()
+
+
+def log(text: str) -> None:
+    print(f"  [migtrace] {text}", flush=True)
+
+
+def _emit(label: str, start: int, duration: int) -> None:
+    thread = f"{threading.current_thread().name.replace(' ', '_')}@{threading.get_native_id()}"
+    line = f"TRACE {label} {start} {duration} {thread}\n"
+    with _print_lock:
+        sys.stdout.write(line)
+        sys.stdout.flush()
+
+
+def wrap(owner: Any, attr: str, label: str | Callable[..., str], min_ns: int = 0) -> None:
+    original = getattr(owner, attr)
+
+    @functools.wraps(original)
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        start = time.perf_counter_ns()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            duration = time.perf_counter_ns() - start
+            if duration >= min_ns:
+                _emit(label(*args, **kwargs) if callable(label) else label, start, duration)
+
+    setattr(owner, attr, timed)
+
+
+def request_of(key: str) -> str:
+    """``<component>/<request>`` of a request key (``.../rq/<component>/<request>[/<sender>]``), else its last chunk."""
+    parts = key.split("/")
+    if "rq" in parts[:-2]:
+        i = parts.index("rq")
+        return f"{parts[i + 1]}/{parts[i + 2]}"
+    return parts[-1]
+
+
+def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
+    """``ZenohTransport.get`` with the ``session.get()`` call and the wait for replies timed apart."""
+    import zenoh
+
+    from cmion_mesh.transport import Reply
+
+    what = request_of(selector)
+    t0 = time.perf_counter_ns()
+    replies = self._session.get(selector, payload=payload, timeout=timeout, target=zenoh.QueryTarget.ALL,
+                                consolidation=zenoh.ConsolidationMode.NONE)
+    t1 = time.perf_counter_ns()
+    _emit(f"zenoh:session.get() call:{what}", t0, t1 - t0)
+    out: list[Reply] = []
+    for reply in replies:
+        ok = reply.ok
+        if not out:
+            t2 = time.perf_counter_ns()
+            _emit(f"zenoh:get -> first reply:{what}", t1, t2 - t1)
+        if ok is not None:
+            out.append(Reply(str(ok.key_expr), ok.payload.to_bytes(), True))
+        else:
+            err = reply.err
+            out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
+    t3 = time.perf_counter_ns()
+    _emit(f"zenoh:get -> final:{what}", t1, t3 - t1)
+    return out
+
+
+def install() -> None:
+    from cmion_mesh import identity, ion, migration, signing, zenoh_transport
+    from cmion_mesh.migration import MigrationManager, Records
+
+    def write_label(_self: Any, name: str, _data: bytes) -> str:
+        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") else "file"
+        return f"write+fsync:{kind}"
+
+    def request_label(_transport: Any, key: str, *_a: Any, **_k: Any) -> str:
+        return f"send_request:{request_of(key)}"
+
+    wrap(Records, "_write", write_label)
+    wrap(signing, "save_private", "write+fsync:key")
+    wrap(migration, "unpack", "unpack(parse+XSD)")
+    wrap(identity.Identity, "pack", "pack(JSON+XML)")
+    wrap(signing, "seal", "sign(sha256+ed25519)")
+    wrap(signing, "verify", "verify(sha256+ed25519)")
+    wrap(migration, "send_request", request_label)
+    wrap(zenoh_transport.ZenohTransport, "alive", "liveliness_get(target alive?)")
+    zenoh_transport.ZenohTransport.get = _traced_get  # type: ignore[method-assign]
+    wrap(ion.Simulation, "_on_query",
+         lambda _sim, component, query: f"on a worker:query {request_of(query.key)}")
+    wrap(ion, "decode", lambda data, kind, **_: f"decode:{getattr(kind, '__name__', 'msg')}", min_ns=100_000)
+    wrap(ion, "encode", lambda msg: f"encode:{type(msg).__name__}", min_ns=100_000)
+    for method, label in (("_start", "on loop:_start(checks)"), ("_maybe_pack", "on loop:_maybe_pack"),
+                          ("_refresh_sections", "on loop:mind.state()"), ("_on_prepare", "on loop:_on_prepare(target)"),
+                          ("_on_commit", "on loop:_on_commit(target)"), ("_inhabit", "on loop:_inhabit(restore+wake)"),
+                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)")):
+        wrap(MigrationManager, method, label)
+
+
+def run(options: Options, groups: frozenset[str]) -> list[Row]:
+    count = 3 if options.quick else 6
+    mesh = unique_mesh("bench")
+    launcher = (sys.executable, "-m", "bench.migtrace")
+    rows: list[Row] = []
+    with ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-migtrace-")))
+        a = Node(A, mesh, tmp / A, companion=COMPANION, launcher=launcher)
+        b = Node(B, mesh, tmp / B, connect=(a.listen,), launcher=launcher)
+        nodes = {A: a, B: b}
+        for node in nodes.values():
+            node.start()
+        stack.callback(stop_and_report, list(nodes.values()), log)
+        for node in nodes.values():
+            node.wait_up(60.0)
+        transport = ZenohTransport(client_config(a.listen, b.listen))
+        stack.callback(transport.close)
+        client = MeshClient(transport, mesh)
+        for name in nodes:
+            client.wait_for_embodiment(name, timeout=20.0)
+        wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
+        mig = Migrations(client, nodes)
+        stack.callback(mig.close)
+        for size in SIZES:
+            mig.tell_mind({"size": max(0, size - OVERHEAD)})
+            mig.once()
+            windows: list[tuple[int, int, float]] = []
+            for _ in range(count):
+                start = time.perf_counter_ns()
+                occurred, _released = mig.once()
+                windows.append((start, time.perf_counter_ns(), occurred))
+            threading.Event().wait(0.2)  # the last trace lines
+            traces = [(m.group(1), int(m.group(2)), int(m.group(3)))
+                      for node in nodes.values() if node.daemon is not None
+                      for line in list(node.daemon.lines) if (m := TRACE.match(line))]
+            per_label: dict[str, list[float]] = defaultdict(list)
+            for start, end, _occ in windows:
+                sums: dict[str, int] = defaultdict(int)
+                for label, t, d in traces:
+                    if start <= t <= end:
+                        sums[label] += d
+                for label, total in sums.items():
+                    per_label[label].append(total / 1e9)
+            name = size_name(size)
+            rows.append(Row(f"trace_total_{size}", f"{name}: command -> awake at target (whole)", summarize([w[2] for w in windows])))
+            for label in sorted(per_label, key=lambda k: -sorted(per_label[k])[len(per_label[k]) // 2]):
+                values = per_label[label] + [0.0] * (count - len(per_label[label]))
+                rows.append(Row(f"trace_{label}_{size}", f"{name}: {label} (sum per migration)", summarize(values)))
+            log(f"{name}: {count} traced migrations")
+    return rows
+
+
+def _stacks(interval: float) -> None:
+    import traceback
+
+    me = threading.get_ident()
+    names = {}
+    while True:
+        time.sleep(interval)
+        now = time.perf_counter_ns()
+        for ident, frame in sys._current_frames().items():
+            if ident == me:
+                continue
+            if ident not in names:
+                names = {t.ident: t.name for t in threading.enumerate()}
+            stack = traceback.extract_stack(frame)[-3:]
+            where = " < ".join(f"{Path(f.filename).name}:{f.name}:{f.lineno}" for f in reversed(stack))
+            with _print_lock:
+                sys.stdout.write(f"STACK {now} {names.get(ident, ident)} {where}\n")
+                sys.stdout.flush()
+
+
+def main(argv: list[str]) -> int:
+    if os.environ.get("BENCH_STACKS"):
+        threading.Thread(target=_stacks, args=(float(os.environ["BENCH_STACKS"]),), daemon=True).start()
+    if os.environ.get("BENCH_SWITCH_INTERVAL"):
+        sys.setswitchinterval(float(os.environ["BENCH_SWITCH_INTERVAL"]))
+    install()
+    from cmion_mesh.cli import main as cli_main
+
+    return cli_main(argv)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(main(sys.argv[1:]))

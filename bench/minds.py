@@ -1,0 +1,123 @@
+"""Minds for the benchmark embodiment; a daemon builds them from its ArchitectureConfiguration.
+
+* ``TimingMind`` (component ``timer``): told by a raw message ``{"action", "count", "tag"}``, it
+  sends that action ``count`` times back to back, each from the handler of the previous one's
+  end, and times ``act()`` -> ``on_action_succeeded`` in the daemon's own process. The samples
+  come back as its event ``Measured`` ``{"tag", "samples"}`` (seconds), or ``{"tag", "error"}``.
+* ``CarryMind`` (component ``mind``): a companion's mind whose state carries a blob (message
+  ``{"size": N}`` sets it to N characters) and the list of embodiments it arrived on, so that the
+  identity document has the size a benchmark asks for and a soak can check where it has been.
+  The identity parser refuses a text node over 10,000,000 bytes (libxml2's limit without
+  ``huge_tree``), so a blob over ``PART`` characters (message ``{"part": N}`` changes it) travels
+  in extra sections ``<mind>-part<i>``,
+  contributed through the migration manager's ``wait``/``resolve`` when ``MigrationStarting`` is
+  raised and read back with ``section()`` on arrival.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import time
+from typing import Any
+
+from cmion_mesh.ion import Simulation
+from cmion_mesh.messages import ActionReport, Event
+from cmion_mesh.migration import MigrationManager
+from cmion_mesh.mind import Mind
+
+#: Largest piece of the blob in one identity section (characters).
+PART = 4 * 1024 * 1024
+
+
+class TimingMind(Mind):
+    def __init__(self, name: str = "timer") -> None:
+        super().__init__(name)
+        self.tag = ""
+        self.action = ""
+        self.remaining = 0
+        self.samples: list[float] = []
+        self.t_sent = 0.0
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        self.tag = str(data.get("tag", ""))
+        self.action = str(data.get("action", "One"))
+        self.remaining = max(1, int(data.get("count", 1)))
+        self.samples = []
+        self._send()
+
+    def _send(self) -> None:
+        self.t_sent = time.perf_counter()
+        self.act(self.action)
+
+    def on_action_succeeded(self, report: ActionReport) -> None:
+        now = time.perf_counter()
+        if self.remaining <= 0:
+            return
+        self.samples.append(now - self.t_sent)
+        self.remaining -= 1
+        if self.remaining:
+            self._send()
+        else:
+            self.raise_event("Measured", {"tag": self.tag, "samples": self.samples})
+
+    def on_action_failed(self, report: ActionReport) -> None:
+        self.remaining = 0
+        self.raise_event("Measured", {"tag": self.tag, "error": f"{report.name} failed: {report.reason}"})
+
+
+def blob(size: int) -> str:
+    """``size`` characters of incompressible base64 text (JSON and XML carry it unescaped)."""
+    return base64.b64encode(os.urandom(size * 3 // 4 + 3)).decode()[:size] if size > 0 else ""
+
+
+class CarryMind(Mind):
+    def __init__(self, name: str = "mind", size: str = "0") -> None:
+        super().__init__(name)
+        self.blob = blob(int(size))
+        self.arrivals: list[str] = []
+        self.parts_max = 0  # most extra sections ever carried: unused ones are blanked, not left stale
+        self.part = PART
+
+    def attach(self, sim: Simulation) -> None:
+        super().attach(sim)
+        sim.on_event(self._migration_starting, component="migration", event="MigrationStarting")
+
+    def _migration(self) -> MigrationManager | None:
+        manager = self.sim.components_by_name().get("migration")
+        return manager if isinstance(manager, MigrationManager) else None
+
+    def _parts(self) -> list[str]:
+        return [self.blob[start:start + self.part] for start in range(self.part, len(self.blob), self.part)]
+
+    def _migration_starting(self, event: Event) -> None:
+        manager = self._migration()
+        if manager is None:
+            return
+        parts = self._parts()
+        self.parts_max = max(self.parts_max, len(parts))
+        for i in range(1, self.parts_max + 1):
+            manager.resolve(manager.wait(f"{self.name}-part{i}"), parts[i - 1] if i <= len(parts) else "")
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        if "part" in data:  # the largest piece in one section (to show the parser's limit)
+            self.part = max(1, int(data["part"]))
+        if "size" in data:
+            self.blob = blob(int(data["size"]))
+
+    def on_arrived(self, world_model: dict[str, Any]) -> None:
+        manager = self._migration()
+        if manager is not None:
+            for i in range(1, self.parts_max + 1):
+                part = manager.section(f"{self.name}-part{i}")
+                if isinstance(part, str):
+                    self.blob += part
+        self.arrivals.append(self.sim.embodiment)
+
+    def state(self) -> dict[str, Any]:
+        return {"blob": self.blob[:self.part], "parts_max": self.parts_max, "arrivals": list(self.arrivals)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.blob = str(state.get("blob", ""))
+        self.parts_max = int(state.get("parts_max", 0))
+        self.arrivals = [str(a) for a in state.get("arrivals", [])]
