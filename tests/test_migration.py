@@ -211,3 +211,21 @@ def _note(text: str) -> Any:
     from cmion_mesh.messages import Request
 
     return Request({"note": text})
+
+
+def test_several_companions_and_an_emptied_body_taken_by_another(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                                 client: MeshClient) -> None:
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    phone = body(network, mesh, "phone", tmp_path, companion="buddy").start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    try:
+        wait_for(lambda: robot.inhabitant == "spirit" and phone.inhabitant == "buddy", 5, "two companions born")
+        client.migrate("spirit", "screen", timeout=20)
+        assert robot.inhabitant is None and screen.inhabitant == "spirit"
+        client.migrate("buddy", "robot", timeout=20)  # the body spirit left is free for another companion
+        homes = {e.name: e.inhabitant for e in (robot, phone, screen)}
+        assert homes == {"robot": "buddy", "phone": None, "screen": "spirit"}
+        with pytest.raises(RequestRejected, match="occupied by companion 'spirit'"):
+            client.migrate("buddy", "screen", timeout=20)
+    finally:
+        close(robot, phone, screen)
