@@ -33,8 +33,8 @@ nodding, the operator typing); the background competencies create it when they s
 
 Sensors do not poll: they subscribe to the blackboard's change events and sleep until one of
 their inputs changes or they are cancelled (``_interrupt``). Their ``interval`` constructor
-parameter is only a fallback re-check, in case a change event was missed (e.g. over a lossy
-link when the competency is hosted remotely).
+parameter is an optional fallback re-check for a competency hosted remotely over a lossy link;
+the default, 0, means none: an idle embodiment uses no CPU.
 """
 
 from __future__ import annotations
@@ -435,7 +435,7 @@ class UserDetection(SimulatedCompetency):
     removed, empty or null means nobody. Each user who appears gets WM agent ``<user>`` (created
     if unknown) with ``present = true`` and ``location`` = this body's ``Self.location`` (if it
     has one); each who leaves gets ``present = false``. Names that cannot be WM entity names are
-    skipped with a warning. Constructor parameters: fallback re-check interval (``0.5`` s), the
+    skipped with a warning. Constructor parameters: fallback re-check interval (``0``: none), the
     self agent (``Self``).
     """
 
@@ -443,7 +443,7 @@ class UserDetection(SimulatedCompetency):
     background = True
     INPUT = f"{SIM}/userPresent"
 
-    def __init__(self, interval: str = "0.5", agent: str = SELF, *, name: str | None = None) -> None:
+    def __init__(self, interval: str = "0", agent: str = SELF, *, name: str | None = None) -> None:
         super().__init__(interval, agent, name=name)
         self.interval = _seconds(interval, "UserDetection: re-check interval")
         self.agent = keys.check_name(agent, "UserDetection: self agent")
@@ -464,7 +464,7 @@ class UserDetection(SimulatedCompetency):
                     if location is not None:
                         _wm_set(ctx, user, "location", location)
                     present.add(user)
-                self._wake.wait(self.interval)
+                self._wake.wait(self.interval or None)
         return True
 
     def _users(self, raw: Any) -> set[str]:
@@ -550,7 +550,7 @@ class CommandInput(SimulatedCompetency):
     property such as the planner's ``["Command", "greet", "?who"]`` trigger; skipped when the verb
     is not a valid property name or is one of the names above) and ``verb`` (the first word),
     written in that order: ``verb`` comes last, so a mind reacting to it sees the whole command.
-    Constructor parameter: fallback re-check interval (``0.5`` s).
+    Constructor parameter: fallback re-check interval (``0``: none).
     """
 
     type = "CommandInput"
@@ -559,7 +559,7 @@ class CommandInput(SimulatedCompetency):
     ENTITY = "Command"
     FIELDS = frozenset({"text", "object", "count", "verb"})
 
-    def __init__(self, interval: str = "0.5", *, name: str | None = None) -> None:
+    def __init__(self, interval: str = "0", *, name: str | None = None) -> None:
         super().__init__(interval, name=name)
         self.interval = _seconds(interval, "CommandInput: re-check interval")
 
@@ -572,7 +572,7 @@ class CommandInput(SimulatedCompetency):
             while self._rearm(ctx):
                 raw = ctx.bb_get(self.INPUT)
                 if raw is None:
-                    self._wake.wait(self.interval)
+                    self._wake.wait(self.interval or None)
                     continue
                 text = " ".join(str(raw).split())
                 if text:
