@@ -111,16 +111,11 @@ class DaemonMind:
         return self._run(count, 30.0 + 0.05 * count)
 
 
-class ClientAct:
-    def __init__(self, client: MeshClient, action: str, metric: str) -> None:
-        self.client = client
-        self.action = action
-        self.metric = metric
+class _TimedOnce:
+    """An action sent from this process, timed round trip by round trip (subclasses define ``once``)."""
 
     def once(self) -> None:
-        report = self.client.act(EMBODIMENT, self.action, timeout=10.0)
-        if report.status != "succeeded":
-            raise MeshError(f"{self.action}: {report.status}: {report.reason}")
+        raise NotImplementedError
 
     def contact(self) -> None:
         self.once()
@@ -134,7 +129,20 @@ class ClientAct:
         return out
 
 
-class WireAct:
+class ClientAct(_TimedOnce):
+    def __init__(self, client: MeshClient, action: str, metric: str) -> None:
+        self.client = client
+        self.action = action
+        self.metric = metric
+
+    def once(self) -> None:
+        report = self.client.act(EMBODIMENT, self.action, timeout=10.0)
+        if report.status != "succeeded":
+            raise MeshError(f"{self.action}: {report.status}: {report.reason}")
+
+
+
+class WireAct(_TimedOnce):
     """The act protocol with one subscription kept for the whole run."""
 
     def __init__(self, client: MeshClient, action: str, metric: str) -> None:
@@ -165,16 +173,6 @@ class WireAct:
                     raise MeshError(f"{self.action}: {report.status}: {report.reason}")
                 return
 
-    def contact(self) -> None:
-        self.once()
-
-    def measure(self, count: int) -> list[float]:
-        out = []
-        for _ in range(count):
-            t0 = time.perf_counter()
-            self.once()
-            out.append(time.perf_counter() - t0)
-        return out
 
 
 def run(options: Options, groups: frozenset[str]) -> list[Row]:

@@ -6,6 +6,7 @@ Never proof that the network works: tests that say so use ``ZenohTransport`` acr
 from __future__ import annotations
 
 import itertools
+import logging
 import queue
 import threading
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from cmion_mesh.keys import matches
 from cmion_mesh.transport import Closeable, Handle, LivelinessHandler, QueryHandler, Reply, Sample, SampleHandler
 
 _STOP = object()
+log = logging.getLogger(__name__)
 
 
 def _intersects(a: str, b: str) -> bool:
@@ -38,9 +40,7 @@ class _Worker:
             try:
                 self._handle(item)
             except Exception:  # mirror zenoh_transport: a failing handler does not kill the worker
-                import logging
-
-                logging.getLogger(__name__).exception("handler failed")
+                log.exception("handler failed")
 
     def stop(self) -> None:
         self.queue.put(_STOP)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from cmion_mesh.competency import Competency, RunContext
@@ -76,3 +77,18 @@ class Diary(Mind):
     def restore(self, state: dict[str, Any]) -> None:
         self.entries = list(state.get("entries", []))
         self.arrivals = list(state.get("arrivals", []))
+
+
+def diary_embodiment_config(folder: Path, name: str) -> Path:
+    """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a Diary mind."""
+    from cmion_mesh.resources import embodiment_dir
+
+    cmion_test = embodiment_dir("cmion_test")
+    folder.mkdir(parents=True, exist_ok=True)
+    config = folder / "ArchitectureConfiguration.xml"
+    config.write_text(
+        f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{cmion_test / "CompManagerRulesTest.xml"}"'
+        f' CompetencyLibraryConfigurationFile="{cmion_test / "CompetencyLibrary.xml"}">\n'
+        '  <ArchitectureComponent ClassName="tests.remote_helpers:Diary"/>\n'
+        "</ArchitectureConfiguration>\n")
+    return config

@@ -20,23 +20,14 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Migrate, Request
 from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
-from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
+from .remote_helpers import diary_embodiment_config
+
 pytestmark = pytest.mark.timeout(180)
-CMION_TEST = embodiment_dir("cmion_test")
 
 
-def write_config(folder: Path, name: str) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    config = folder / "ArchitectureConfiguration.xml"
-    config.write_text(
-        f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{CMION_TEST / "CompManagerRulesTest.xml"}"'
-        f' CompetencyLibraryConfigurationFile="{CMION_TEST / "CompetencyLibrary.xml"}">\n'
-        '  <ArchitectureComponent ClassName="tests.remote_helpers:Diary"/>\n'
-        "</ArchitectureConfiguration>\n")
-    return config
 
 
 @dataclass
@@ -78,9 +69,9 @@ class Node:
 @pytest.fixture
 def nodes(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node]]:
     robot_port, screen_port = free_port(), free_port()
-    robot = Node("robot", mesh, write_config(tmp_path / "robot", "robot"), tmp_path / "state-robot", robot_port,
+    robot = Node("robot", mesh, diary_embodiment_config(tmp_path / "robot", "robot"), tmp_path / "state-robot", robot_port,
                  [f"tcp/127.0.0.1:{screen_port}"], companion="spirit")
-    screen = Node("screen", mesh, write_config(tmp_path / "screen", "screen"), tmp_path / "state-screen", screen_port,
+    screen = Node("screen", mesh, diary_embodiment_config(tmp_path / "screen", "screen"), tmp_path / "state-screen", screen_port,
                   [f"tcp/127.0.0.1:{robot_port}"])
     try:
         yield robot, screen

@@ -74,14 +74,14 @@ from cmion_mesh import netns
 from cmion_mesh.messages import Outcome, encode
 from cmion_mesh.netns import Host, Lan
 from cmion_mesh.procs import Daemon, cli_argv, wait_for
-from cmion_mesh.resources import embodiment_dir
+
+from .remote_helpers import diary_embodiment_config
 
 pytestmark = pytest.mark.timeout(180)
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Daemons and probes import ``tests.*`` (the Diary mind, the probe), wherever pytest runs from.
 ENV = {"PYTHONPATH": str(ROOT)}
-CMION_TEST = embodiment_dir("cmion_test")
 PORT = 7447
 COMPANION = "spirit"
 LEASE_MS = 2000
@@ -173,7 +173,7 @@ class Body:
     frozen: bool = field(default=False)
 
     def start(self, mesh: str, folder: Path, *extra: str, companion: str | None = None) -> Body:
-        config = write_config(folder / self.name, self.name)
+        config = diary_embodiment_config(folder / self.name, self.name)
         argv = ["up", str(config), "--mesh", mesh, "--state-dir", str(self.state), "--lease-ms", str(LEASE_MS), *extra]
         if companion:
             argv += ["--companion", companion]
@@ -224,15 +224,6 @@ class Body:
         return self.daemon.stop()
 
 
-def write_config(folder: Path, name: str) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    config = folder / "ArchitectureConfiguration.xml"
-    config.write_text(
-        f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{CMION_TEST / "CompManagerRulesTest.xml"}"'
-        f' CompetencyLibraryConfigurationFile="{CMION_TEST / "CompetencyLibrary.xml"}">\n'
-        '  <ArchitectureComponent ClassName="tests.remote_helpers:Diary"/>\n'
-        "</ArchitectureConfiguration>\n")
-    return config
 
 
 # --- the network, seen from inside a host -------------------------------------------------------
