@@ -53,7 +53,7 @@ from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError, OutcomeUnknown
 from cmion_mesh.identity import MAX_DOCUMENT, Identity, unpack
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
-from cmion_mesh.messages import Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
+from cmion_mesh.messages import Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +214,7 @@ class MigrationManager(Component):
     """The ``migration`` component: owns the records, runs both sides of the handshake."""
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
-                "status": MigrateStatus}
+                "status": MigrateStatus, "policy": Request}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
     sender_requests = frozenset({"prepare", "commit", "abort", "status"})
 
@@ -576,8 +576,30 @@ class MigrationManager(Component):
                     self._on_abort(request, payload)
                 elif isinstance(payload, MigrateStatus):
                     self._on_status(request, payload)
+                elif isinstance(payload, Request):
+                    self._on_policy(request, payload.args.get("accepts"))
             except ConfigError as exc:
                 request.reject(str(exc))
+
+    def _on_policy(self, request: IncomingRequest, accepts: Any) -> None:
+        """Set the companion's own policy (``accepts``: embodiment names, or None for any); it is
+        part of its identity, so it travels with it and every later host enforces it too."""
+        identity = self.identity
+        if identity is None:
+            request.reject(f"embodiment {self.sim.embodiment!r} hosts no companion")
+            return
+        if accepts is None:
+            identity.sections.pop(POLICY_SECTION, None)
+        elif isinstance(accepts, list) and all(isinstance(a, str) for a in accepts):
+            for name in accepts:
+                keys.check_name(name, "accepted embodiment")
+            identity.sections[POLICY_SECTION] = {"accepts": sorted(set(accepts))}
+        else:
+            request.reject("policy: 'accepts' must be a list of embodiment names, or null")
+            return
+        self._refresh_sections(identity)
+        self.records.put_document(identity.companion, identity.pack())
+        request.accept(identity.sections.get(POLICY_SECTION))
 
     def attempt_state(self, companion: str, attempt: str) -> str:
         """What this embodiment, as a source, made of ``attempt``: committed, aborted or pending."""

@@ -15,7 +15,7 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request
 from cmion_mesh.migration import Records
 from cmion_mesh.procs import wait_for
 
@@ -195,21 +195,21 @@ def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str
         with pytest.raises(RequestRejected, match="admission: companion 'spirit' may not enter 'kiosk'"):
             client.migrate("spirit", "kiosk", timeout=20)
         assert robot.inhabitant == "spirit" and robot.minds[0].awake
-        # the companion's own policy: it accepts only the robot and the phone
-        client.request("robot", "mind", "message", _note("policy"))
-        assert robot.migration is not None
-        robot.sim.call(lambda: robot.migration.identity.sections.update({"policy": {"accepts": ["robot", "phone"]}})  # type: ignore[union-attr]
-                       if robot.migration and robot.migration.identity else None)
+        # the companion's own policy: it accepts only the robot and the phone, and carries that along
+        client.set_policy("spirit", ["robot", "phone"])
         with pytest.raises(RequestRejected, match="does not accept embodiment 'screen'"):
             client.migrate("spirit", "screen", timeout=20)
         assert robot.inhabitant == "spirit"
+        bad = client.request("robot", "migration", "policy", Request({"accepts": "screen"}))
+        assert bad.status == "rejected" and "must be a list" in bad.reason
+        client.set_policy("spirit", None)
+        client.migrate("spirit", "screen", timeout=20)
+        assert screen.inhabitant == "spirit"
     finally:
         close(robot, kiosk, screen)
 
 
 def _note(text: str) -> Any:
-    from cmion_mesh.messages import Request
-
     return Request({"note": text})
 
 
