@@ -43,7 +43,7 @@ from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Event, Migrate, Request
+from cmion_mesh.messages import Event, Migrate, MindMessage
 from cmion_mesh.procs import unique_mesh, wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -86,7 +86,7 @@ class Migrations:
         return B if self.home == A else A
 
     def tell_mind(self, args: dict[str, int]) -> None:
-        outcome = self.client.request(self.home, "mind", "message", Request(dict(args)), timeout=30.0)
+        outcome = self.client.request(self.home, "mind", "message", MindMessage(dict(args)), timeout=30.0)
         if outcome.status != "accepted":
             raise MeshError(f"the companion's mind on {self.home} refused {args}: {outcome.reason}")
 

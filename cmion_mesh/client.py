@@ -20,19 +20,20 @@ from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_reque
 from cmion_mesh.messages import (
     Act,
     ActionReport,
-    AddContainer,
+    ActionStatus,
     CancelAction,
     Container,
+    Describe,
     Event,
     Message,
     Migrate,
     Outcome,
     Property,
-    RemoveContainer,
-    RemoveProperty,
     Request,
     SetProperty,
+    StorageWrite,
     decode,
+    tag,
 )
 from cmion_mesh.transport import Closeable, Sample, Transport
 
@@ -72,15 +73,10 @@ class MeshClient:
                     return entry
         raise StorageError(f"no property at {key} (or no store answered)")
 
-    def write(self, embodiment: str, store: str, write: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
+    def write(self, embodiment: str, store: str, write: StorageWrite, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
         """Send one storage write; returns its outcome (accepted, rejected, conflict)."""
-        op = {
-            SetProperty: "set_property",
-            RemoveProperty: "remove_property",
-            AddContainer: "add_container",
-            RemoveContainer: "remove_container",
-        }[type(write)]
-        return send_request(self.transport, keys.request_key(self.mesh, embodiment, store, op), write, timeout=timeout)
+        key = keys.request_key(self.mesh, embodiment, store, tag(type(write)))
+        return send_request(self.transport, key, write, timeout=timeout)
 
     def set_property(
         self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False
@@ -92,11 +88,11 @@ class MeshClient:
     # --- requests and events ------------------------------------------------------------------
 
     def request(
-        self, embodiment: str, component: str, name: str, payload: Message | None = None,
+        self, embodiment: str, component: str, name: str, payload: Message,
         *, timeout: float = DEFAULT_REQUEST_TIMEOUT, sender: str | None = None,
     ) -> Outcome:
         key = keys.request_key(self.mesh, embodiment, component, name, sender)
-        return send_request(self.transport, key, payload if payload is not None else Request(), timeout=timeout)
+        return send_request(self.transport, key, payload, timeout=timeout)
 
     def act(
         self, embodiment: str, name: str, parameters: Sequence[str] = (), *, subject: str = "", action_id: str = "",
@@ -124,7 +120,7 @@ class MeshClient:
             except queue.Empty:
                 pass
         # The end event may have been missed (a link hiccup): the manager remembers recent ends.
-        status = self.request(embodiment, "manager", "status", Request({"action_id": action_id}))
+        status = self.request(embodiment, "manager", "status", ActionStatus(action_id))
         if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
             report: ActionReport = msgspec.convert(status.value, ActionReport)
             return report
@@ -206,7 +202,7 @@ class MeshClient:
 
     def describe(self, embodiment: str, *, timeout: float = 2.0) -> dict[str, Any]:
         """An embodiment's description (name, competency types, actions, inhabitant, version, started at)."""
-        outcome = self.request(embodiment, "embodiment", "describe", timeout=timeout)
+        outcome = self.request(embodiment, "embodiment", "describe", Describe(), timeout=timeout)
         value = require_accepted(outcome, keys.request_key(self.mesh, embodiment, "embodiment", "describe"))
         return value if isinstance(value, dict) else {"name": embodiment}
 

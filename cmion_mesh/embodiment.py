@@ -17,7 +17,7 @@ from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
-from cmion_mesh.messages import Request
+from cmion_mesh.messages import Describe
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.rules import Plan, Rule, RuleSet, Step, load_rules
@@ -162,7 +162,7 @@ class Embodiment:
 class Describer(Component):
     """Answers ``.../rq/embodiment/describe`` for discovery."""
 
-    requests = {"describe": Request}
+    requests = {"describe": Describe}
 
     def __init__(self, embodiment: Embodiment) -> None:
         super().__init__("embodiment")

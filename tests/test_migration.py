@@ -15,7 +15,7 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, Request
 from cmion_mesh.migration import Records
 from cmion_mesh.procs import wait_for
 
@@ -210,7 +210,7 @@ def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str
 
 
 def _note(text: str) -> Any:
-    return Request({"note": text})
+    return MindMessage({"note": text})
 
 
 def test_several_companions_and_an_emptied_body_taken_by_another(network: MemoryNetwork, mesh: str, tmp_path: Path,

@@ -18,7 +18,7 @@ from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import AddContainer, Event, Request, SetProperty
+from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
 from cmion_mesh.planner import (
     Goal,
     Limits,
@@ -225,7 +225,7 @@ def body(tmp_path: Path, transport: MemoryTransport, mesh: str, mind: PlannerMin
 
 
 def mind_state(client: MeshClient) -> dict[str, Any]:
-    outcome = client.request("robot", "mind", "state")
+    outcome = client.request("robot", "mind", "state", MindState())
     assert outcome.status == "accepted", outcome
     value: dict[str, Any] = outcome.value
     return value
@@ -326,7 +326,7 @@ def test_message_adds_a_goal(tmp_path: Path, transport: MemoryTransport, client:
     mind = PlannerMind(operators=[WALK, GREET])
     with body(tmp_path, transport, mesh, mind, Script()):
         goal = {"name": "visit", "facts": [["Robot", "at", "kitchen"]]}
-        assert client.request("robot", "mind", "message", Request({"goal": goal})).status == "accepted"
+        assert client.request("robot", "mind", "message", MindMessage({"goal": goal})).status == "accepted"
         state = wait_state(client, achieved("visit"), "goal from a message achieved")
     assert kinds(state) == ["message", "goal_added", "action_succeeded", "goal_achieved"]
 
@@ -344,7 +344,7 @@ def test_sleep_stops_acting_and_wake_resumes(tmp_path: Path, transport: MemoryTr
         state = wait_state(client, lambda s: "action_succeeded" in kinds(s), "first step done")
         assert state["in_flight"] is None and [s["action"] for s in state["plan"]["steps"]] == ["Greet"]
         assert script.calls == ["GoTo kitchen"]
-        assert client.request("robot", "mind", "wake").value == {"awake": True}
+        assert client.request("robot", "mind", "wake", Wake()).value == {"awake": True}
         state = wait_state(client, achieved("greet guest"), "goal achieved after waking")
     assert script.calls == ["GoTo kitchen", "Greet Guest"]
 
