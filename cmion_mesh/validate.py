@@ -13,34 +13,28 @@ import os
 from collections.abc import Callable
 
 from cmion_mesh import xmlsafe
+from cmion_mesh.architecture import load_architecture
+from cmion_mesh.classes import import_class
+from cmion_mesh.competency import load_library
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.ion import Component
+from cmion_mesh.rules import load_rules
+from cmion_mesh.storage import load_world_model_init
 
 
 def _world_model(path: str) -> None:
-    from cmion_mesh.storage import load_world_model_init
-
     load_world_model_init(path)
 
 
 def _rules(path: str) -> None:
-    from cmion_mesh.rules import load_rules
-
     load_rules(path)
 
 
 def _library(path: str) -> None:
-    from cmion_mesh.competency import load_library
-
     load_library(path)
 
 
 def _architecture(path: str) -> None:
-    from cmion_mesh.architecture import load_architecture
-    from cmion_mesh.classes import import_class
-    from cmion_mesh.competency import load_library
-    from cmion_mesh.ion import Component
-    from cmion_mesh.rules import load_rules
-
     arch = load_architecture(path)
     rules = load_rules(arch.rules)
     library = load_library(arch.library)
