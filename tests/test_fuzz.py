@@ -77,7 +77,7 @@ from cmion_mesh.messages import (
     decode,
     encode,
 )
-from cmion_mesh.planner import load_spec, spec_from_data
+from cmion_mesh.planner_spec import load_spec, spec_from_data
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import load_world_model_init

@@ -55,7 +55,7 @@ from cmion_mesh.messages import (
     encode,
 )
 from cmion_mesh.migration import MigrationManager
-from cmion_mesh.planner import load_spec
+from cmion_mesh.planner_spec import load_spec
 from cmion_mesh.procs import wait_for
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules

@@ -19,17 +19,9 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
-from cmion_mesh.planner import (
-    Goal,
-    Limits,
-    PlannerMind,
-    find_plan,
-    goals_from_data,
-    load_operators,
-    load_spec,
-    operators_from_data,
-    spec_from_data,
-)
+from cmion_mesh.planner import PlannerMind
+from cmion_mesh.planner_search import find_plan
+from cmion_mesh.planner_spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
 from cmion_mesh.procs import wait_for
 
 pytestmark = pytest.mark.timeout(60)
@@ -142,9 +134,9 @@ def test_spec_file_loads(tmp_path: Path) -> None:
 
 
 def test_the_documented_spec_example_loads() -> None:
-    import cmion_mesh.planner
+    import cmion_mesh.planner_spec
 
-    doc = cmion_mesh.planner.__doc__ or ""
+    doc = cmion_mesh.planner_spec.__doc__ or ""
     start = doc.index("    {\n")
     spec = spec_from_data(msgspec.json.decode(doc[start:doc.index("\n    }\n", start) + 6]))
     assert [o.name for o in spec.operators] == ["walk", "greet"] and spec.limits == Limits()
@@ -459,7 +451,7 @@ def test_replace_beliefs_keeps_persistent_knowledge() -> None:
 def test_goals_from_data_and_priorities() -> None:
     goals = goals_from_data([{"name": "low", "facts": [["A", "b", 1]]}, {"name": "high", "facts": [["A", "c", 1]], "priority": 3}])
     mind = PlannerMind(goals=goals)
-    top = mind._top_goal()
+    top = mind.top_goal()
     assert top is not None and top.name == "high"
     with pytest.raises(ConfigError, match="has no facts"):
         goals_from_data([{"name": "empty", "facts": []}])
