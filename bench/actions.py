@@ -44,7 +44,8 @@ from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import send_request
 from cmion_mesh.messages import Act, ActionReport, Event, MindMessage
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 EMBODIMENT = "bench-act"

@@ -44,7 +44,8 @@ from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, Migrate, MindMessage
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "bench"

@@ -47,7 +47,8 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, MindMessage, MindState, Property, SetProperty
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "soak"

@@ -33,8 +33,8 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, IncomingRequest
 from cmion_mesh.messages import Message, Property, SetProperty, encode
-from cmion_mesh.procs import wait_for
 from cmion_mesh.storage import Blackboard
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 STORE = "bb-store"

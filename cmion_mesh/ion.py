@@ -532,7 +532,8 @@ class Simulation:
     # --- the loop -----------------------------------------------------------------------------
 
     def run_once(self, timeout: float | None = 0.0) -> int:
-        """Run one update on the calling thread; returns the number of work items it took.
+        """Run one update on the calling thread; returns the number of work items it ran (calls,
+        due timers, requests, remote events).
 
         For a simulation that is stepped rather than started (deterministic tests): it takes
         everything queued, waiting up to ``timeout`` seconds for a first item (None: until one

@@ -419,7 +419,8 @@ def load(
 # --- schemas -------------------------------------------------------------------------------------
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
-_SCHEMA_DIRS = (_PACKAGE_DIR / "schemas", _PACKAGE_DIR.parent / "schemas")
+#: Where ``schema_path`` looks, in order: the copy packaged in a wheel, then the repository's.
+SCHEMA_DIRS = (_PACKAGE_DIR / "schemas", _PACKAGE_DIR.parent / "schemas")
 
 
 def schema_path(name: str) -> Path:
@@ -429,11 +430,11 @@ def schema_path(name: str) -> Path:
     """
     if not name or Path(name).name != name or name in (".", ".."):
         raise ValueError(f"schema must be a bare file name such as 'WorldModel.xsd', got {name!r}")
-    for directory in _SCHEMA_DIRS:
+    for directory in SCHEMA_DIRS:
         candidate = directory / name
         if candidate.is_file():
             return candidate
-    searched = ", ".join(str(d) for d in _SCHEMA_DIRS)
+    searched = ", ".join(str(d) for d in SCHEMA_DIRS)
     raise FileNotFoundError(f"schema {name!r} not found in {searched}")
 
 

@@ -15,8 +15,9 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, Sleep, Wake
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 

@@ -16,7 +16,7 @@ import msgspec
 import pytest
 import zenoh
 
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011, start_daemon
 

@@ -56,10 +56,10 @@ from cmion_mesh.messages import (
 )
 from cmion_mesh.migration import MigrationManager
 from cmion_mesh.planner_spec import load_spec
-from cmion_mesh.procs import wait_for
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import WorldModel
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011
 

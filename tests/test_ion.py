@@ -14,7 +14,7 @@ from cmion_mesh.errors import ClosedError, MeshError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, Event, Message, Outcome, decode
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -164,16 +164,16 @@ class Chain(Component):
         self.log.append((self.sim.updates, "second", event.data))
 
 
-def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(sim: Simulation, network: MemoryNetwork) -> None:
+def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(stepped: Simulation, network: MemoryNetwork) -> None:
     log: list[tuple[int, str, int]] = []
-    chain = sim.add(Chain(log))
+    chain = stepped.add(Chain(log))
+    stepped.run_once()
     seen: list[int] = []
     with MemoryTransport(network, "observer") as observer:
-        from cmion_mesh.messages import decode
-
-        observer.subscribe(f"cmion/{sim.mesh}/robot/ev/chain/step", lambda s: seen.append(decode(s.payload, Event).data))
-        sim.call(lambda: chain.raise_event("step", 1))
-        wait_for(lambda: len(log) >= 10, 5, "chain of events dispatched")
+        observer.subscribe(f"cmion/{stepped.mesh}/robot/ev/chain/step", lambda s: seen.append(decode(s.payload, Event).data))
+        stepped.call(lambda: chain.raise_event("step", 1))
+        assert stepped.run_once() == 1
+        assert len(log) == 10, "the whole chain ran in that one update"
         wait_for(lambda: len(seen) >= 5, 5, "events published")
     updates = {u for u, _, _ in log}
     assert len(updates) == 1, f"all in one update: {log}"
@@ -184,6 +184,16 @@ def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(si
         ("first", 3), ("second", 3), ("first", 12), ("second", 12),
     ]
     assert seen == [1, 2, 11, 3, 12], "publication order is raise order"
+
+
+def test_a_stepped_simulation_runs_timers_when_due_and_never_waits_unasked(stepped: Simulation) -> None:
+    fired: list[str] = []
+    stepped.run_once()  # from now on this thread is the simulation's loop
+    stepped.call_later(0.05, lambda: fired.append("timer"))
+    assert stepped.run_once() == 0 and fired == [], "not due yet, and timeout 0 waits for nothing"
+    assert stepped.run_once(timeout=5) == 1 and fired == ["timer"], "waits for the timer, not for the timeout"
+    with pytest.raises(MeshError, match="stepped with run_once"):
+        stepped.start()
 
 
 def test_events_from_other_threads_and_processes_are_handled_one_at_a_time(sim: Simulation, network: MemoryNetwork, mesh: str) -> None:

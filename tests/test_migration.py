@@ -17,7 +17,7 @@ from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, Request
 from cmion_mesh.migration import Records
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 from .remote_helpers import Diary
 

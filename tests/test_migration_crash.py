@@ -19,7 +19,8 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Migrate, MindMessage, MindState
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 

@@ -22,7 +22,7 @@ from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, Set
 from cmion_mesh.planner import PlannerMind
 from cmion_mesh.planner_search import find_plan
 from cmion_mesh.planner_spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -12,7 +12,8 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import Event
-from cmion_mesh.procs import Daemon, cli_argv, wait_for
+from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 

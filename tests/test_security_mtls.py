@@ -25,7 +25,8 @@ from cmion_mesh import certs, keys, security
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, RequestRejected, StorageError
 from cmion_mesh.messages import SetProperty
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -525,8 +526,8 @@ print(json.dumps({"seen": seen, "peers": peers}))
 def test_secure_daemons_find_each_other_by_multicast(pki: Pki, mesh: str, tmp_path: Path) -> None:
     """No address given anywhere: scouting finds the daemons' TLS locators (LAN addresses, which no
     certificate names), they link over mTLS; a plain peer on the same LAN finds nothing to join."""
-    from cmion_mesh import netns
-    from cmion_mesh.netns import Lan
+    from cmion_mesh.testing import netns
+    from cmion_mesh.testing.netns import Lan
 
     from .test_router import assert_gone
 

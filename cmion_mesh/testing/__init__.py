@@ -1,0 +1,7 @@
+"""Harness for the tests and benchmarks: nothing a daemon or a client needs imports it.
+
+* ``wait``: ``wait_for``, a bounded wait on a condition that cannot be waited on directly
+  (another process's state).
+* ``netns``: throw-away multi-host networks of Linux network namespaces, for tests that need
+  real LANs (root only).
+"""
