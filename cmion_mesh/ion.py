@@ -86,7 +86,7 @@ class IncomingRequest:
         self.outcome = outcome
         try:
             self._answer(outcome)
-        except Exception:  # the requester vanished: its outcome is its own to recover
+        except MeshError:  # the requester vanished, or we are closing: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
 
     def accept(self, value: Any = None) -> None:
@@ -440,7 +440,7 @@ class Simulation:
         self._events.append((event, key, None))
         try:
             self.transport.publish(key, encode(event), block=True)
-        except Exception as exc:
+        except MeshError as exc:
             log.warning("could not publish %s: %s", key, exc)
 
     def on_event(
