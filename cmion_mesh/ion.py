@@ -13,7 +13,9 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
   to another request in the same update). A request a handler leaves unanswered is rejected, with
   the handler's error as the reason if it raised. Each request name takes one ``Message`` Struct
   (``Component.requests``); a payload that does not decode to it, ``{}`` or a map without its
-  ``type`` included, is rejected (``Code.MALFORMED``) before the component sees it.
+  ``type`` included, is rejected (``Code.MALFORMED``) before the component sees it. A request the
+  component does not have is rejected (``Code.UNKNOWN_REQUEST``) with the component's
+  ``request_catalogue()`` as value: a query on ``.../rq/**`` is answered by every component.
 * ``start()`` runs updates on a thread of the simulation's own; a simulation that is not started
   is stepped by its owner with ``run_once()`` (deterministic tests).
 * Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control);
@@ -139,6 +141,13 @@ class Component:
 
     def raise_event(self, name: str, data: Any = None) -> None:
         self.sim.raise_event(self.name, name, data)
+
+    def request_catalogue(self) -> dict[str, Any]:
+        """What this component answers, as plain data: ``{"component", "requests": {name: message
+        type}, "per_sender": [names sent on .../<name>/<sender>]}``. It is the value of the
+        ``unknown_request`` refusal, so a query on ``.../rq/**`` lists every component's requests."""
+        return {"component": self.name, "requests": {name: tag(kind) for name, kind in sorted(self.requests.items())},
+                "per_sender": sorted(self.sender_requests)}
 
 
 class Timer:
@@ -380,7 +389,7 @@ class Simulation:
         if kind is None:
             known = ", ".join(sorted(component.requests)) or "none"
             reason = f"component {component.name!r} has no request {name!r} (known: {known})"
-            answer(Outcome("rejected", reason, code=Code.UNKNOWN_REQUEST))
+            answer(Outcome("rejected", reason, component.request_catalogue(), Code.UNKNOWN_REQUEST))
             return
         if (name in component.sender_requests) != bool(sender) or "/" in sender:
             form = f"{name}/<sender>" if name in component.sender_requests else name
