@@ -20,7 +20,7 @@ from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Describe
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
-from cmion_mesh.rules import Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
 
@@ -48,6 +48,8 @@ class Embodiment:
         self.started_at = time.time()
         self._owns_transport = transport is None
         if transport is None:
+            # Imported here for start time: an embodiment on a given transport (the tests' memory
+            # transport) never loads zenoh.
             from cmion_mesh.zenoh_transport import ZenohTransport
 
             transport = ZenohTransport(transport_config)
@@ -176,8 +178,6 @@ class Describer(Component):
 
 def with_migrate_rule(rules: RuleSet) -> RuleSet:
     """Add the built-in rule ``Migrate <target>`` -> one ``Migration`` step, unless the rules have one."""
-    from cmion_mesh.rules import MindAction
-
     if rules.candidates(MindAction("Migrate", ("somewhere",))):
         return rules
     step = Step("1", "Migration", (), (("target", "$parameter1"),), 0)
