@@ -596,12 +596,13 @@ class Simulation:
                 items.insert(0, fn)
         batches: dict[str, list[IncomingRequest]] = {}
         for item in items:
-            if isinstance(item, _RemoteEvent):
-                self._events.append((item.event, item.key, item.sub))
-            elif isinstance(item, _RequestItem):
-                batches.setdefault(item.component.name, []).append(item.request)
-            else:
-                self._guard("call", item)
+            match item:
+                case _RemoteEvent(event=event, key=key, sub=sub):
+                    self._events.append((event, key, sub))
+                case _RequestItem(component=owner, request=request):
+                    batches.setdefault(owner.name, []).append(request)
+                case _:
+                    self._guard("call", item)
         for name, batch in batches.items():
             component = self._components.get(name)
             if component is None:
