@@ -48,7 +48,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, MindMessage, MindState, Property, SetProperty
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "soak"
@@ -153,6 +153,8 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         for name in NAMES:
             client.wait_for_embodiment(name, timeout=20.0)
         wait_for(lambda: client.describe(NAMES[0], timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born")
+        for target in NAMES[1:] + NAMES[:1]:  # one round before the traffic: each host has seen its next target alive
+            migrate_once_seen(client, COMPANION, target)
         outcome = client.request(NAMES[0], "mind", "message", MindMessage({"size": BLOB}), timeout=10.0)
         if outcome.status != "accepted":
             raise MeshError(f"the companion's mind refused its blob: {outcome.reason}")

@@ -23,10 +23,10 @@ import pytest
 
 from cmion_mesh import certs, keys, security
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import ConfigError, OutcomeUnknown, RequestRejected, StorageError
+from cmion_mesh.errors import ConfigError, OutcomeUnknown, StorageError
 from cmion_mesh.messages import SetProperty
 from cmion_mesh.procs import Daemon, cli_argv, free_port
-from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -589,17 +589,6 @@ def test_migration_over_mutual_tls(pki: Pki, tmp_path: Path, mesh: str) -> None:
                 return {d["name"]: d.get("inhabitant") for d in client.describe_all(timeout=1.0)}
 
             wait_for(lambda: homes() == {"robot": "spirit", "screen": None}, 30, "both secure daemons, spirit on the robot")
-
-            def migrated() -> dict[str, Any] | None:
-                # The admin sees both daemons through its own links; the robot learns that the
-                # screen is alive through its link with the screen, which may come up later.
-                try:
-                    return client.migrate("spirit", "screen", timeout=30)
-                except RequestRejected as exc:
-                    if "is not alive" in exc.reason:
-                        return None
-                    raise
-
-            result = wait_for(migrated, 30, "the robot sees the screen and migrates spirit to it")
+            result = migrate_once_seen(client, "spirit", "screen")  # the admin's links say nothing of the robot's
             assert result["target"] == "screen" and result["epoch"] == 2
             wait_for(lambda: homes() == {"robot": None, "screen": "spirit"}, 20, "spirit moved over mutual TLS")
