@@ -84,6 +84,10 @@ class IncomingRequest:
         except Exception:  # the requester vanished: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
 
+    def answer(self, outcome: Outcome) -> None:
+        """Send a ready-made outcome (a decision taken elsewhere)."""
+        self._send(outcome)
+
     def accept(self, value: Any = None) -> None:
         self._send(Outcome("accepted", "", check_value(value)))
 
