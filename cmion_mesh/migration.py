@@ -131,7 +131,8 @@ class MigrationManager(Component):
         super().__init__("migration")
         self.admit = admit
         self.records = Records(state_dir)
-        self.records.check_documents()
+        #: Companions whose stored identity is unusable: reported (description, log, event), never run.
+        self.damaged = self.records.damaged()
         self.seed = keys.check_name(companion, "companion") if companion else None
         self.section_deadline = section_deadline
         self.request_timeout = request_timeout
@@ -185,7 +186,12 @@ class MigrationManager(Component):
                          sim.transport.watch_liveliness(keys.custody_pattern(sim.mesh), self._on_custody)]
         if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
             self._give_birth(self.seed)
+        for companion, error in self.damaged.items():
+            log.error("companion %s is damaged and will not run here: %s", companion, error)
+            self.raise_event("CompanionDamaged", {"companion": companion, "error": error})
         for record in self.records.all():
+            if record.companion in self.damaged:
+                continue
             if record.state in HOSTING and not record.chain:
                 record = self._adopt_legacy(record)
             if record.state == "prepared":

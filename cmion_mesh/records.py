@@ -209,13 +209,19 @@ class Records:
                               "(altered at rest)", path=str(path))
         return data
 
-    def check_documents(self) -> None:
-        """``ConfigError`` naming the file if the document of a companion held here is unusable."""
+    def damaged(self) -> dict[str, str]:
+        """The companions held here whose stored document is unusable (altered at rest, missing,
+        invalid), each with the error naming the file: they are reported, never run."""
+        found: dict[str, str] = {}
         for record in self.all():
             if record.state in HOSTING:
-                data = self.document(record.companion)
-                if data is not None:
-                    unpack(data, name=str(self.dir / f"{record.companion}.{record.document}.identity.xml"))
+                try:
+                    data = self.document(record.companion)
+                    if data is not None:
+                        unpack(data, name=str(self.dir / f"{record.companion}.{record.document}.identity.xml"))
+                except ConfigError as exc:
+                    found[record.companion] = str(exc)
+        return found
 
     def put_key(self, companion: str, private: bytes) -> None:
         with self._lock:

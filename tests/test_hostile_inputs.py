@@ -671,6 +671,27 @@ RECORD_ROWS = [
               "(and shadows or is shadowed by t.record.json)"),
     RecordRow("negative epoch", {"s.record.json": _record(epoch=-3)}, "s.record.json", "epoch",
               "Records accepts a negative epoch (epochs start at 1)"),
+]
+
+
+@pytest.mark.parametrize("row", _params(RECORD_ROWS))
+def test_corrupt_state_folder_refuses_to_start(row: RecordRow, network: MemoryNetwork, mesh: str, tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    for name, content in row.files.items():
+        if content is None:
+            (state / name).mkdir()
+        else:
+            (state / name).write_bytes(content)
+    with (MemoryTransport(network, "robot") as transport, pytest.raises(ConfigError) as refused,
+          Embodiment("robot", mesh=mesh, transport=transport, state_dir=state) as e):
+        time.sleep(0.1)
+        pytest.fail(f"started, inhabited by {e.inhabitant!r}")
+    assert str(state / row.culprit) in str(refused.value), refused.value
+    assert row.fragment in str(refused.value), refused.value
+
+
+DAMAGED_ROWS = [
     RecordRow("identity document of the active companion is corrupt",
               {"s.record.json": _record(document=_sha(b"<Identity")), f"s.{_sha(b'<Identity')}.identity.xml": b"<Identity"},
               f"s.{_sha(b'<Identity')}.identity.xml", "malformed XML",
@@ -690,21 +711,20 @@ RECORD_ROWS = [
 ]
 
 
-@pytest.mark.parametrize("row", _params(RECORD_ROWS))
-def test_corrupt_state_folder_refuses_to_start(row: RecordRow, network: MemoryNetwork, mesh: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize("row", _params(DAMAGED_ROWS))
+def test_damaged_identity_at_rest_is_reported_not_run(row: RecordRow, network: MemoryNetwork, mesh: str, tmp_path: Path) -> None:
     state = tmp_path / "state"
     state.mkdir()
     for name, content in row.files.items():
-        if content is None:
-            (state / name).mkdir()
-        else:
-            (state / name).write_bytes(content)
-    with (MemoryTransport(network, "robot") as transport, pytest.raises(ConfigError) as refused,
-          Embodiment("robot", mesh=mesh, transport=transport, state_dir=state) as e):
-        time.sleep(0.1)
-        pytest.fail(f"started, inhabited by {e.inhabitant!r}")
-    assert str(state / row.culprit) in str(refused.value), refused.value
-    assert row.fragment in str(refused.value), refused.value
+        assert content is not None
+        (state / name).write_bytes(content)
+    with MemoryTransport(network, "robot") as transport, Embodiment("robot", mesh=mesh, transport=transport, state_dir=state) as e:
+        settled(e.sim)
+        assert e.inhabitant is None, "an altered or unusable identity is never run"
+        assert e.migration is not None
+        error = e.migration.damaged.get("s", "")
+        assert str(state / row.culprit) in error and row.fragment in error, error
+        assert e.describe()["damaged"] == {"s": error}
 
 
 # --- configuration files ----------------------------------------------------------------------------
