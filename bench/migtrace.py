@@ -112,14 +112,14 @@ def install() -> None:
     from cmion_mesh.records import Records
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
-        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") else "file"
+        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
+            else "key" if name.endswith(".key") else "file"
         return f"write+fsync:{kind}"
 
     def request_label(_transport: Any, key: str, *_a: Any, **_k: Any) -> str:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(signing, "save_private", "write+fsync:key")
     wrap(handshake, "unpack", "unpack(parse+XSD)")
     wrap(identity.Identity, "pack", "pack(JSON+XML)")
     wrap(signing, "sign", "sign(ed25519)")

@@ -225,8 +225,7 @@ class Records:
 
     def put_key(self, companion: str, private: bytes) -> None:
         with self._lock:
-            signing.save_private(self.dir / f"{keys.check_name(companion, 'companion')}.key", private)
-            self._sync_dir()
+            self._write(f"{keys.check_name(companion, 'companion')}.key", private)
 
     def key(self, companion: str) -> bytes | None:
         path = self.dir / f"{companion}.key"

@@ -1,16 +1,14 @@
 """Ed25519 keys and signatures over canonical bytes: the primitives custody is built on.
 
 Signed things are array-like msgspec Structs encoded as MessagePack (field order fixed, no names),
-so the signed bytes are canonical. Private keys are raw 32 bytes and are written readable by this
-user only; they never leave the embodiment that made them (see ``custody``).
+so the signed bytes are canonical. Private keys are raw 32 bytes; ``records`` writes them readable by
+this user only, and they never leave the embodiment that made them (see ``custody``).
 """
 
 from __future__ import annotations
 
 import base64
 import functools
-import os
-from pathlib import Path
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
@@ -67,14 +65,3 @@ def decode_public(text: str) -> bytes:
     if len(raw) != KEY_BYTES:
         raise MeshError(f"public key {text[:16]!r}... is not a 32-byte Ed25519 key")
     return raw
-
-
-def save_private(path: Path, private: bytes) -> None:
-    """Write a private key, readable by this user only, atomically."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "wb") as f:
-        f.write(private)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
