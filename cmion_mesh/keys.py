@@ -8,6 +8,7 @@
     cmion/<mesh>/<embodiment>/rq/<component>/<request>        request queryables
     cmion/<mesh>/<embodiment>/rq/<component>/<request>/<sender>   per-sender requests (migration handshake)
     cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
+    cmion/<mesh>/@claim/<embodiment>/<rank>                   a daemon's claim on its name (liveliness)
     cmion/<mesh>/@competency/<embodiment>/<type>/<name>       remote competencies (liveliness)
 
 ``<mesh>`` names one deployment (default ``default``): two meshes never hear each other.
@@ -31,6 +32,7 @@ EVENTS = "ev"
 REQUESTS = "rq"
 ALIVE = "@alive"
 COMPETENCY = "@competency"
+CLAIM = "@claim"
 
 _FORBIDDEN = set("/*$#?")
 MAX_NAME = 200
@@ -105,6 +107,15 @@ def request_key(mesh: str, embodiment: str, component: str, request: str, sender
 
 def alive_key(mesh: str, embodiment: str) -> str:
     return f"{mesh_prefix(mesh)}/{ALIVE}/{check_name(embodiment, 'embodiment')}"
+
+
+def claim_key(mesh: str, embodiment: str, rank: str) -> str:
+    """Liveliness token of a daemon's claim on the name ``embodiment``; ``rank`` orders claims (earliest first)."""
+    return f"{mesh_prefix(mesh)}/{CLAIM}/{check_name(embodiment, 'embodiment')}/{check_name(rank, 'claim rank')}"
+
+
+def claim_pattern(mesh: str, embodiment: str) -> str:
+    return f"{mesh_prefix(mesh)}/{CLAIM}/{check_name(embodiment, 'embodiment')}/*"
 
 
 def competency_alive_key(mesh: str, embodiment: str, competency_type: str, name: str) -> str:
