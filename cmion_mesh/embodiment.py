@@ -27,7 +27,7 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
-from cmion_mesh.messages import Request
+from cmion_mesh.messages import Event, Request
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import NameClaim, Presence
@@ -37,6 +37,8 @@ from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
 
 log = logging.getLogger(__name__)
+#: The file in the state folder keeping a store's persistent properties.
+PERSISTENT_FILE = "persistent-{store}.json"
 #: How long a joining daemon asks the mesh who hosts the companion it would give birth to.
 BIRTH_CHECK_TIMEOUT = 2.0
 
@@ -119,8 +121,11 @@ class Embodiment:
             for component in extra:
                 self.sim.add(component)
             if state_dir is not None:
+                self.blackboard.keep_persistent(os.path.join(state_dir, PERSISTENT_FILE.format(store="blackboard")))
+                self.world_model.keep_persistent(os.path.join(state_dir, PERSISTENT_FILE.format(store="world_model")))
                 self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
+                self.sim.on_event(self._carry_persistent, component=self.migration.name)
         except BaseException:
             self.close()
             raise
@@ -167,6 +172,24 @@ class Embodiment:
                     log.warning("companion %r already lives on %r: it is not born on %r", companion, self.companion_elsewhere, self.name)
                     return None
         return companion
+
+    def _carry_persistent(self, event: Event) -> None:
+        """The world model's persistent properties belong to the companion: packed into its identity
+        when it leaves (a section of the world model's name), set here when it arrives."""
+        migration, world = self.migration, self.world_model
+        if migration is None:
+            return
+        if event.name == "MigrationStarting":
+            try:
+                token = migration.wait(world.name)  # on the loop, before the packing starts
+            except MeshError:
+                return  # the migration ended already
+            migration.resolve(token, {"properties": world.persistent_items()})
+        elif event.name == "MigrationOccurred":
+            section = migration.section(world.name)
+            if isinstance(section, dict):
+                data = event.data if isinstance(event.data, dict) else {}
+                world.restore(section.get("properties"), source=f"the identity of companion {data.get('companion')!r}")
 
     def _on_duplicate(self, zenoh_ids: list[str]) -> None:
         """Another daemon answers as this embodiment (two parts of a mesh joined): say so loudly."""
