@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import itertools
 import json
 import os
@@ -38,6 +39,7 @@ JOIN_WINDOW = 1.0
 #: After the first Ctrl-C, how long ``act`` waits for the cancelled outcome.
 CANCEL_WAIT = 10.0
 STORE_LABELS = {keys.BLACKBOARD: "blackboard", keys.WORLD_MODEL: "world model"}
+NO_WAIT_ON_OPEN = ("open/return_conditions/connect_scouted", "false")
 
 
 # --- the session every mesh command opens ---------------------------------------------------------
@@ -68,7 +70,11 @@ def session(args: argparse.Namespace, name: str | None = None) -> Iterator[Any]:
     from cmion_mesh.client import MeshClient
     from cmion_mesh.zenoh_transport import ZenohTransport
 
-    with ZenohTransport(transport_config(args, name)) as transport, MeshClient(transport, args.mesh) as client:
+    config = transport_config(args, name)
+    # zenoh's open would wait up to its scouting delay (0.5 s) for the peers it scouts; the client's
+    # join waits for exactly what the command needs instead.
+    config = dataclasses.replace(config, overrides=(*config.overrides, NO_WAIT_ON_OPEN))
+    with ZenohTransport(config) as transport, MeshClient(transport, args.mesh) as client:
         yield client
 
 
