@@ -66,7 +66,10 @@ MAX_PARALLEL_DESCRIBE = 16
 
 def did_you_mean(name: str, known: Iterable[str]) -> str:
     """`` (did you mean 'robot'?)`` when a known name is close to ``name``, else ``""``."""
-    close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+    names = sorted(set(known))
+    if name in names:
+        return ""
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
@@ -129,6 +132,14 @@ class MeshClient:
         raise NotAlive(f"embodiment {embodiment!r} is not alive in mesh {self.mesh!r} (alive: {alive_list(known)})"
                        + did_you_mean(embodiment, known))
 
+    def wait_for_embodiment(self, embodiment: str, *, timeout: float = 5.0) -> None:
+        """Return once ``embodiment`` is alive as seen from here, however long it takes to start
+        (``join`` instead says at once that it is not alive); ``NotAlive`` after ``timeout``."""
+        if not self.presence.wait(lambda alive: embodiment in alive, timeout):
+            alive = self.presence.alive()
+            raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
+                           f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
+
     def _reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
         """The embodiments that the daemons ``asked`` see alive (those that answer before ``deadline``)."""
         names = sorted(asked)
@@ -175,13 +186,22 @@ class MeshClient:
         root = keys.storage_key(self.mesh, embodiment, store, ())
         deadline = time.monotonic() + timeout
         delay = 0.01
-        while True:
+        def find() -> dict[str, Entry]:
             for candidate in candidates:
                 base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(candidate))
                 entries = self.read(f"{base}/**" if below or not candidate else base, timeout=max(0.01, deadline - time.monotonic()))
                 if entries:
                     return entries
+            return {}
+
+        while True:
+            entries = find()
+            if entries:
+                return entries
             if self.read(root, timeout=max(0.01, deadline - time.monotonic())):
+                entries = find()  # the store is reachable now: ask again before saying it is not there
+                if entries:
+                    return entries
                 container, _, name = path.rpartition("/")
                 siblings = self.read(f"{keys.storage_key(self.mesh, embodiment, store, keys.split_path(container))}/*", timeout=2.0)
                 raise StorageError(f"no property or container {path!r} in {embodiment}'s {label}"

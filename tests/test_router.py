@@ -156,12 +156,12 @@ def test_router_joins_two_subnets(net: RoutedSubnets, mesh: str) -> None:
 
 
 def test_router_cli_errors_are_one_line(tmp_path: Any) -> None:
-    """A bad config file: one clear line on stderr and exit 1 (no namespaces needed)."""
+    """A bad config file: one clear line on stderr and exit 2, a configuration error (no namespaces needed)."""
     missing = tmp_path / "nope.json5"
     daemon = Daemon([sys.executable, "-m", "cmion_mesh.cli", "router", "--config", str(missing), "--listen", "tcp/127.0.0.1:0",
                      "--no-multicast"], name="router")
     with daemon:
-        assert daemon.proc.wait(30) == 1
+        assert daemon.proc.wait(30) == 2
     daemon.stop()
     assert any("error:" in line and "nope.json5" in line for line in daemon.lines), daemon.lines
     assert not any("Traceback" in line for line in daemon.lines), daemon.lines

@@ -420,14 +420,14 @@ def test_certs_commands(tmp_path: Path) -> None:
         return subprocess.run(cli_argv("certs", *args), capture_output=True, text=True, timeout=60)
 
     missing = run("issue", str(tmp_path / "none"), "robot")
-    assert missing.returncode == 1 and "certificate not found" in missing.stderr and "ca.pem" in missing.stderr
+    assert missing.returncode == 2 and "certificate not found" in missing.stderr and "ca.pem" in missing.stderr  # configuration
     assert run("init", str(d)).returncode == 0
-    assert run("init", str(d)).returncode == 1  # never overwrites an authority silently
+    assert run("init", str(d)).returncode == 2  # never overwrites an authority silently
     out = run("issue", str(d), "robot", "--san", "robot.lan", "--san", "192.168.1.20")
     assert out.returncode == 0, out.stderr
     assert run("issue", str(d), "tablet", "--no-trust").returncode == 0
     refused = run("issue", str(d), "robot.lan")
-    assert refused.returncode == 1 and "contains '.'" in refused.stderr
+    assert refused.returncode == 2 and "contains '.'" in refused.stderr
     assert stat.S_IMODE(d.stat().st_mode) == 0o700
     for private in ("ca.key", "robot.key", "tablet.key"):
         assert stat.S_IMODE((d / private).stat().st_mode) == 0o600
