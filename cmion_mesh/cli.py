@@ -87,11 +87,10 @@ def join_window(args: argparse.Namespace) -> float:
 def _common(parser: argparse.ArgumentParser, *, json_output: bool = True) -> None:
     group = parser.add_argument_group("mesh")
     group.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: %(default)s)")
-    group.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")
-    group.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")
-    group.add_argument("--config", metavar="FILE", help="zenoh JSON5 configuration file")
-    group.add_argument("--no-multicast", action="store_true", help="do not scout for peers by multicast")
-    group.add_argument("--multicast-interface", metavar="IFACE", help="interface to scout on (default: zenoh's choice)")
+    _zenoh_options(group, connect="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447",
+                   listen="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447", config="zenoh JSON5 configuration file",
+                   no_multicast="do not scout for peers by multicast",
+                   multicast_interface="interface to scout on (default: zenoh's choice)")
     group.add_argument("--certs", metavar="DIR",
                        help="certificates folder (cmion-mesh certs): speak zenoh over mutual TLS only, with access control")
     group.add_argument("--identity", metavar="NAME",
@@ -100,6 +99,20 @@ def _common(parser: argparse.ArgumentParser, *, json_output: bool = True) -> Non
                        help="with --certs: also check that a peer's certificate names the address dialled (SANs)")
     if json_output:
         _json(parser)
+
+
+def _zenoh_options(group: Any, **helps: str) -> None:
+    """``--connect``, ``--listen``, ``--config``, ``--no-multicast``, ``--multicast-interface``, each
+    with the help text given by its name (``no_multicast=...``)."""
+    specs: dict[str, dict[str, Any]] = {
+        "connect": {"action": "append", "metavar": "ENDPOINT"},
+        "listen": {"action": "append", "metavar": "ENDPOINT"},
+        "config": {"metavar": "FILE"},
+        "no_multicast": {"action": "store_true"},
+        "multicast_interface": {"metavar": "IFACE"},
+    }
+    for name, spec in specs.items():
+        group.add_argument("--" + name.replace("_", "-"), help=helps[name], **spec)
 
 
 def _json(parser: argparse.ArgumentParser) -> None:
@@ -662,16 +675,11 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
 def _router_parser(parser: argparse.ArgumentParser) -> None:
     from cmion_mesh.router import DEFAULT_LISTEN
 
-    parser.add_argument("--listen", action="append", metavar="ENDPOINT",
-                        help=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})")
-    parser.add_argument("--connect", action="append", metavar="ENDPOINT",
-                        help="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable")
-    parser.add_argument("--config", metavar="FILE",
-                        help="zenoh JSON5 configuration file (the options here override it, its gateway too unless --no-lans)")
-    parser.add_argument("--no-multicast", action="store_true",
-                        help="do not answer or send multicast scouting (peers must --connect to the router)")
-    parser.add_argument("--multicast-interface", metavar="IFACE",
-                        help="interface for multicast scouting (default: zenoh's choice, 'auto')")
+    _zenoh_options(parser, listen=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})",
+                   connect="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable",
+                   config="zenoh JSON5 configuration file (the options here override it, its gateway too unless --no-lans)",
+                   no_multicast="do not answer or send multicast scouting (peers must --connect to the router)",
+                   multicast_interface="interface for multicast scouting (default: zenoh's choice, 'auto')")
     lans = parser.add_mutually_exclusive_group()
     lans.add_argument("--lan", action="append", metavar="IFACE",
                       help="peers reaching the router through IFACE form one LAN, and the router forwards between LANs; "

@@ -7,6 +7,7 @@ zenoh session every run, joined, then asked); a few runs of each go through the 
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import json
@@ -340,3 +341,18 @@ def test_persistent_survives_a_restart_and_travels_with_the_companion(bodies: Sc
         code, out, _ = run_cli("bb", "tree", "keeper", "--json", *net(bodies))
         entries = {k.rsplit("/", 1)[-1]: v for k, v in json.loads(out).items()}
         assert entries["battery"] == {"type": "property", "value": 0.8, "persistent": True} and "scratch" not in entries
+
+
+def test_every_argument_has_help_text() -> None:
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, path: str) -> None:
+        for action in parser._actions:  # argparse has no public walk of its actions
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, f"{path} {name}")
+            elif not action.help and action.dest != "help":
+                missing.append(f"{path} {'/'.join(action.option_strings) or action.dest}")
+
+    walk(cli.build_parser(), "cmion-mesh")
+    assert missing == []
