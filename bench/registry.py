@@ -142,6 +142,12 @@ BENCHMARKS: list[Benchmark] = [
         "spawning `cmion-mesh up` -> its liveliness token seen by a watcher, vs a raw zenoh process",
     ),
     Benchmark(
+        "oneshot",
+        "bench.oneshot:run",
+        ("oneshot",),
+        "one-shot `cmion-mesh peers` / `bb get` wall time, process start to exit, vs `python -c \"import zenoh\"`",
+    ),
+    Benchmark(
         "idle",
         "bench.idle:run",
         ("idle",),

@@ -34,7 +34,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from cmion_mesh import keys
-from cmion_mesh.errors import ClosedError, InvalidName, MeshError, OutcomeUnknown, ProtocolError, RequestRejected
+from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Event, Message, Outcome, Request, check_value, decode, encode
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
@@ -602,13 +602,18 @@ class Simulation:
 def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
     """Send one request as a zenoh query and return its ``Outcome``.
 
-    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable.
+    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable;
+    ``NotReached`` when no component was reached at all (not delivered: safe to send again).
     """
+    started = time.monotonic()
     try:
         replies = transport.get(key, encode(payload), timeout=timeout)
     except MeshError as exc:
         raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
     if not replies:
+        waited = time.monotonic() - started
+        if waited < timeout * 0.9:  # zero replies before the deadline: no queryable was reached at all
+            raise NotReached(f"no component answered {key}: nobody reached (after {waited:.2f} s)", key=key)
         raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
     reply = replies[0]
     if not reply.ok:

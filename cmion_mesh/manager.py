@@ -111,7 +111,7 @@ class CompetencyManager(Component):
         act = msgspec.structs.replace(act, action_id=action_id)
         rules = self.rules.candidates(action)
         if not rules:
-            reason = f"no rule matches action {_show(action)!r}"
+            reason = f"no rule matches action {_show(action)!r}: {self.rules.why_no_match(action)}"
             request.reject(reason)
             self._report("ActionFailed", act, "failed", reason)
             return

@@ -12,7 +12,7 @@ import pytest
 from cmion_mesh import custody, signing
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
-from cmion_mesh.errors import RequestRejected
+from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request, SetPolicy
@@ -77,7 +77,7 @@ def test_refusals_leave_the_companion_running_at_the_source(network: MemoryNetwo
         wait_for(lambda: robot.inhabitant == "spirit" and phone.inhabitant == "other", 5, "both born")
         with pytest.raises(RequestRejected, match="occupied by companion 'other'"):
             client.migrate("spirit", "phone", timeout=20)
-        with pytest.raises(RequestRejected, match="unknown target: embodiment 'nowhere'"):
+        with pytest.raises(NotAlive, match=r"'nowhere' is not alive in mesh .* \(alive: phone, robot\)"):
             client.migrate("spirit", "nowhere", timeout=20)
         assert robot.inhabitant == "spirit" and robot.minds[0].awake
         assert Records(tmp_path / "robot").get("spirit").state == "active"
