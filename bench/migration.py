@@ -45,6 +45,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, Migrate, MindMessage
 from cmion_mesh.procs import unique_mesh
+from cmion_mesh.records import Records
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -137,8 +138,7 @@ class Migrations:
         return "; ".join(parts)
 
     def document_size(self) -> int:
-        path = self.nodes[self.home].workdir / "state" / f"{COMPANION}.identity.xml"
-        return path.stat().st_size
+        return len(Records(self.nodes[self.home].workdir / "state").document(COMPANION) or b"")
 
 
 class RawTransfer:

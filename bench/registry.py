@@ -142,6 +142,12 @@ BENCHMARKS: list[Benchmark] = [
         "spawning `cmion-mesh up` -> its liveliness token seen by a watcher, vs a raw zenoh process",
     ),
     Benchmark(
+        "oneshot",
+        "bench.oneshot:run",
+        ("oneshot",),
+        "one-shot `cmion-mesh peers` / `bb get` wall time, process start to exit, vs `python -c \"import zenoh\"`",
+    ),
+    Benchmark(
         "idle",
         "bench.idle:run",
         ("idle",),
@@ -152,6 +158,12 @@ BENCHMARKS: list[Benchmark] = [
         "bench.migration:run",
         ("migration",),
         "migration command -> companion awake at the target, 10 KiB / 1 MiB / 10 MiB, vs raw transfer + fsync",
+    ),
+    Benchmark(
+        "flood",
+        "bench.flood:run",
+        ("flood",),
+        "a legitimate action's latency during a flood of 20,000 action requests, vs a raw zenoh get in the same moment",
     ),
     Benchmark(
         "growth",

@@ -20,17 +20,15 @@ Names follow the key-space rules (``keys.check_name``) and may not contain a dot
 connector trusts the public Web PKI roots as well as ``ca.pem`` (see docs/security.md), so a
 name must be one that no public authority can put in a certificate.
 
-Run as ``cmion-mesh certs ...`` or ``python -m cmion_mesh.certs ...``.
+Run as ``cmion-mesh certs ...``.
 """
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import ipaddress
 import json
 import os
-import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +42,6 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, MeshError
 
-EXIT_OK, EXIT_FAILED = 0, 1
 CA_CERT, CA_KEY, TRUST_FILE = "ca.pem", "ca.key", "trust.json"
 ROLES = ("embodiment", "operator")
 #: Subject alternative names every certificate gets, so that loopback connections verify by name.
@@ -380,135 +377,21 @@ def inventory(directory: str | os.PathLike[str]) -> list[CertInfo]:
     return out
 
 
-# --- command line ----------------------------------------------------------------------------------
+def trust_name(directory: str | os.PathLike[str], name: str, role: str = "embodiment") -> None:
+    """Add ``name`` to the trust list; its certificate, signed by this authority, must already be in the folder."""
+    path = Path(directory)
+    check_cert_name(name)
+    certificate = load_cert(path / f"{name}.pem")
+    if not issued_by(certificate, load_cert(path / CA_CERT)) or common_name(certificate) != name:
+        raise ConfigError(f"{name}.pem is not a certificate of {name!r} signed by this authority")
+    trusted = Trust.load(path)
+    trusted.add(name, role)
+    trusted.save(path)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The ``certs`` subcommands, on ``parser`` (the ``certs`` sub-parser, or a parser of its own)."""
-    sub = parser.add_subparsers(dest="certs_command", required=True)
-    p = sub.add_parser("init", help="create the certificate authority and an empty trust list in DIR")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("--label", help="what the authority's name says (default: the folder's name)")
-    p.add_argument("--days", type=int, default=CA_DAYS, help="validity (default: %(default)s days)")
-    p.add_argument("--force", action="store_true", help="replace an existing authority (every certificate must then be reissued)")
-
-    p = sub.add_parser("issue", help="issue the certificate of an embodiment (or operator) NAME and trust it")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("name", metavar="NAME", help="embodiment name (the certificate's common name)")
-    p.add_argument("--san", action="append", default=[], metavar="HOST_OR_IP",
-                   help="a DNS name or IP address the embodiment is reached at; repeatable "
-                        f"(always added: the name itself, {', '.join(DEFAULT_SANS)})")
-    p.add_argument("--role", choices=ROLES, default="embodiment",
-                   help="embodiment: its own keys only; operator: the whole mesh (tools of an administrator)")
-    p.add_argument("--no-trust", action="store_true", help="do not add NAME to the trust list")
-    p.add_argument("--days", type=int, default=CERT_DAYS, help="validity (default: %(default)s days)")
-    p.add_argument("--force", action="store_true", help="replace an existing certificate of NAME")
-
-    p = sub.add_parser("list", help="list the certificates in DIR, whether the authority signed them and who is trusted")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
-
-    p = sub.add_parser("trust", help="add NAME to the trust list (its certificate must already exist)")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("name", metavar="NAME")
-    p.add_argument("--role", choices=ROLES, default="embodiment")
-
-    p = sub.add_parser("untrust", help="remove NAME from the trust list (revocation: restart the members afterwards)")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("name", metavar="NAME")
-
-    p = sub.add_parser("config", help="print the zenoh JSON5 configuration of NAME (mTLS + access control), e.g. "
-                                      "for a client written in another language")
-    p.add_argument("dir", metavar="DIR")
-    p.add_argument("name", metavar="NAME")
-    p.add_argument("--mesh", default=keys.DEFAULT_MESH)
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
-    p.add_argument("--no-multicast", action="store_true")
-    p.add_argument("--verify-names", action="store_true", help="check the peer's address against its certificate's SANs")
-    p.add_argument("-o", "--output", metavar="FILE", help="write to FILE instead of standard output")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run a parsed ``certs`` command; errors are one line on stderr and exit code 1."""
-    try:
-        return _run(args)
-    except MeshError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
-    except OSError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
-
-
-def _run(args: argparse.Namespace) -> int:
-    command = args.certs_command
-    directory = Path(args.dir)
-    if command == "init":
-        ca = init(directory, label=args.label, days=args.days, force=args.force)
-        print(f"authority created: {ca} (keep {directory / CA_KEY} with the administrator only)")
-        print(f"next: cmion-mesh certs issue {directory} <embodiment>")
-        return EXIT_OK
-    if command == "issue":
-        cert, key = issue(directory, args.name, sans=args.san, role=args.role, trust=not args.no_trust,
-                          days=args.days, force=args.force)
-        trusted = "not in the trust list" if args.no_trust else f"trusted as {args.role}"
-        print(f"issued {cert} and {key} for {args.name!r} ({trusted})")
-        print(f"give the member {directory / CA_CERT}, {directory / TRUST_FILE}, {cert.name} and {key.name}; "
-              f"start it with --certs DIR")
-        return EXIT_OK
-    if command == "list":
-        infos = inventory(directory)
-        if args.json:
-            print(json.dumps([info.__dict__ for info in infos]))
-            return EXIT_OK
-        rows = [("NAME", "ROLE", "SIGNED BY CA", "EXPIRES", "KEY", "SANS")]
-        for i in infos:
-            rows.append((i.name, i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
-                         i.not_after + (" (EXPIRED)" if i.expired else ""), "yes" if i.key_present else "-", ",".join(i.sans)))
-        widths = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
-        for r in rows:
-            print("  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)).rstrip())
-        trust = Trust.load(directory)
-        missing = sorted(set(trust.names) - {i.name for i in infos})
-        if missing:
-            print(f"trusted but without a certificate here: {', '.join(missing)}")
-        return EXIT_OK
-    if command == "trust":
-        check_cert_name(args.name)
-        certificate = load_cert(directory / f"{args.name}.pem")
-        if not issued_by(certificate, load_cert(directory / CA_CERT)) or common_name(certificate) != args.name:
-            raise ConfigError(f"{args.name}.pem is not a certificate of {args.name!r} signed by this authority")
-        trust = Trust.load(directory)
-        trust.add(args.name, args.role)
-        trust.save(directory)
-        print(f"{args.name!r} trusted as {args.role}")
-        return EXIT_OK
-    if command == "untrust":
-        trust = Trust.load(directory)
-        if trust.names.pop(args.name, None) is None:
-            raise ConfigError(f"{args.name!r} is not in the trust list")
-        trust.save(directory)
-        print(f"{args.name!r} removed from the trust list: restart the mesh's members for it to take effect")
-        return EXIT_OK
-    if command == "config":
-        from cmion_mesh import security
-
-        text = security.config_json5(directory, args.name, args.mesh, listen=args.listen, connect=args.connect,
-                                     multicast=not args.no_multicast, verify_names=args.verify_names)
-        if args.output:
-            write_file(Path(args.output), text.encode(), private=False, overwrite=True)
-        else:
-            print(text)
-        return EXIT_OK
-    raise ConfigError(f"unknown certs command {command!r}")
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="cmion-mesh certs", description="Certificates for an authenticated mesh.")
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def untrust_name(directory: str | os.PathLike[str], name: str) -> None:
+    """Remove ``name`` from the trust list (revocation takes effect when the members restart)."""
+    trusted = Trust.load(directory)
+    if trusted.names.pop(name, None) is None:
+        raise ConfigError(f"{name!r} is not in the trust list")
+    trusted.save(directory)

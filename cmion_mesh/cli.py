@@ -1,61 +1,131 @@
-"""The ``cmion-mesh`` command line.
+"""The ``cmion-mesh`` command line: the only module that reads ``argparse``.
 
-Every command takes ``--mesh``, ``--connect``, ``--listen``, ``--config`` (a zenoh JSON5 file)
-and ``--no-multicast``; errors are one clear line on stderr and a non-zero exit, never a traceback.
+Commands that join a mesh take ``--mesh``, ``--connect``, ``--listen``, ``--config`` (a zenoh
+JSON5 file), ``--no-multicast``, ``--multicast-interface`` and ``--certs``; commands whose output
+is data take ``--json``. One-shot commands join the mesh before they ask (``client``). Errors are
+one clear line on stderr, never a traceback, and the exit code says what happened
+(``errors.ExitCode``): 0 succeeded, 1 failed or refused, 2 usage or configuration error,
+3 cancelled, 4 outcome unknown, 130 left on a second Ctrl-C.
+
+Library modules are imported inside the commands that use them: ``--help`` and the parser must
+not pay for zenoh, lxml and cryptography (start time).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import itertools
 import json
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import msgspec
 
-from cmion_mesh import keys
-from cmion_mesh.competency import Competency
-from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Container, Property, RemoveContainer, RemoveProperty
+from cmion_mesh import __version__, keys
+from cmion_mesh.errors import ConfigError, ExitCode, MeshError, exit_code
+from cmion_mesh.messages import Container, Property
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
+#: How long a daemon that can find others looks for the rest of the mesh before it claims its name.
+JOIN_WINDOW = 1.0
+#: After the first Ctrl-C, how long ``act`` waits for the cancelled outcome.
+CANCEL_WAIT = 10.0
+STORE_LABELS = {keys.BLACKBOARD: "blackboard", keys.WORLD_MODEL: "world model"}
+NO_WAIT_ON_OPEN = ("open/return_conditions/connect_scouted", "false")
+
+
+# --- the session every mesh command opens ---------------------------------------------------------
 
 
 def transport_config(args: argparse.Namespace, name: str | None = None) -> TransportConfig:
     """The session settings from the common options; ``--certs`` turns them into mutual TLS with
-    access control for identity ``name`` (see docs/security.md)."""
-    from cmion_mesh import security
-
+    access control for identity ``--identity`` or ``name`` (see docs/security.md)."""
     config = TransportConfig(
         connect=tuple(args.connect or ()),
         listen=tuple(args.listen or ()),
         config_file=args.config,
         multicast=not args.no_multicast,
-        multicast_interface=getattr(args, "multicast_interface", None),
+        multicast_interface=args.multicast_interface,
         lease_ms=getattr(args, "lease_ms", None),
     )
-    return security.apply(args, config, name=name)
+    if not args.certs:
+        return config
+    from cmion_mesh import security  # only with --certs: cryptography costs start time
+
+    return security.apply(config, certs_dir=args.certs, mesh=args.mesh, identity=args.identity, name=name,
+                          verify_names=args.verify_names)
 
 
-def _common(parser: argparse.ArgumentParser) -> None:
+@contextlib.contextmanager
+def session(args: argparse.Namespace, name: str | None = None) -> Iterator[Any]:
+    """A zenoh session and a ``MeshClient`` on it, both closed on the way out."""
+    from cmion_mesh.client import MeshClient
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    config = transport_config(args, name)
+    # zenoh's open would wait up to its scouting delay (0.5 s) for the peers it scouts; the client's
+    # join waits for exactly what the command needs instead.
+    config = dataclasses.replace(config, overrides=(*config.overrides, NO_WAIT_ON_OPEN))
+    with ZenohTransport(config) as transport, MeshClient(transport, args.mesh) as client:
+        yield client
+
+
+def join_window(args: argparse.Namespace) -> float:
+    """How long ``up`` looks for the rest of the mesh: none when it cannot find anyone by itself
+    (no scouting, no endpoint to connect to, no zenoh file that could name one)."""
+    return JOIN_WINDOW if (not args.no_multicast or args.connect or args.config) else 0.0
+
+
+def _common(parser: argparse.ArgumentParser, *, json_output: bool = True) -> None:
     group = parser.add_argument_group("mesh")
     group.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: %(default)s)")
-    group.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")
-    group.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")
-    group.add_argument("--config", metavar="FILE", help="zenoh JSON5 configuration file")
-    group.add_argument("--no-multicast", action="store_true", help="do not scout for peers by multicast")
-    group.add_argument("--multicast-interface", metavar="IFACE", help="interface to scout on (default: zenoh's choice)")
-    group.add_argument("--json", action="store_true", help="machine-readable output")
-    from cmion_mesh import security
+    _zenoh_options(group, connect="zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447",
+                   listen="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447", config="zenoh JSON5 configuration file",
+                   no_multicast="do not scout for peers by multicast",
+                   multicast_interface="interface to scout on (default: zenoh's choice)")
+    group.add_argument("--certs", metavar="DIR",
+                       help="certificates folder (cmion-mesh certs): speak zenoh over mutual TLS only, with access control")
+    group.add_argument("--identity", metavar="NAME",
+                       help="which certificate of DIR to use (default: the embodiment's name where the command has one)")
+    group.add_argument("--verify-names", action="store_true",
+                       help="with --certs: also check that a peer's certificate names the address dialled (SANs)")
+    if json_output:
+        _json(parser)
 
-    security.add_arguments(group)
+
+def _zenoh_options(group: Any, **helps: str) -> None:
+    """``--connect``, ``--listen``, ``--config``, ``--no-multicast``, ``--multicast-interface``, each
+    with the help text given by its name (``no_multicast=...``)."""
+    specs: dict[str, dict[str, Any]] = {
+        "connect": {"action": "append", "metavar": "ENDPOINT"},
+        "listen": {"action": "append", "metavar": "ENDPOINT"},
+        "config": {"metavar": "FILE"},
+        "no_multicast": {"action": "store_true"},
+        "multicast_interface": {"metavar": "IFACE"},
+    }
+    for name, spec in specs.items():
+        group.add_argument("--" + name.replace("_", "-"), help=helps[name], **spec)
+
+
+def _json(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="machine-readable output (JSON)")
+
+
+def _timeout(parser: argparse.ArgumentParser, default: float, what: str) -> None:
+    parser.add_argument("--timeout", type=float, default=default, metavar="SECONDS", help=f"{what} (default: %(default)s s)")
+
+
+def _join_timeout(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--join-timeout", "--discover-timeout", dest="join_timeout", type=float, default=5.0, metavar="SECONDS",
+                        help="how long to wait for the embodiment to be found in the mesh (default: %(default)s s)")
 
 
 def parse_value(text: str, as_string: bool) -> Any:
@@ -68,20 +138,9 @@ def parse_value(text: str, as_string: bool) -> Any:
         return text
 
 
-def _client(args: argparse.Namespace) -> Any:
-    from cmion_mesh.client import MeshClient
-    from cmion_mesh.zenoh_transport import ZenohTransport
-
-    transport = ZenohTransport(transport_config(args))
-    return transport, MeshClient(transport, args.mesh)
-
-
 def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
     if as_json:
-        print(json.dumps({k: msgspec.to_builtins(v) for k, v in entries.items()}, indent=None))
-        return
-    if not entries:
-        print("(nothing found: is the embodiment running and reachable? try `cmion-mesh peers`)")
+        print(json.dumps({k: msgspec.to_builtins(v) for k, v in entries.items()}))
         return
     width = max(len(k[len(prefix):]) for k in entries) if entries else 0
     for key, entry in entries.items():
@@ -93,61 +152,59 @@ def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
             print(f"{short:<{width}}  [{entry.kind}]")
 
 
+# --- blackboard and world model -------------------------------------------------------------------
+
+
 def cmd_store(args: argparse.Namespace) -> int:
+    from cmion_mesh.ion import require_accepted
+    from cmion_mesh.messages import RemoveContainer, RemoveProperty
+
     store = args.store
-    stop = _stop_on_signals() if args.action == "watch" else None  # before any thread starts
-    transport, client = _client(args)
-    with transport:
+    stop = Stopper() if args.action == "watch" else None  # before any thread starts
+    with session(args) as client:
+        client.join(args.embodiment, timeout=args.timeout)
         container, _, name = args.path.rpartition("/") if args.path else ("", "", "")
         prefix = keys.storage_key(args.mesh, args.embodiment, store, ()) + "/"
+        where = f"{args.embodiment}'s {STORE_LABELS[store]}"
         if args.action in ("get", "tree"):
-            base = keys.storage_key(args.mesh, args.embodiment, store, keys.split_path(args.path or ""))
-            entries = client.read(base if args.action == "get" and args.path else f"{base}/**")
-            if args.action == "get" and args.path and not entries:
-                entries = client.read(f"{base}/**")
+            entries = client.lookup(args.embodiment, store, args.path or "", below=args.action == "tree", timeout=args.timeout)
             _print_entries(entries, prefix, args.json)
-            return EXIT_OK if entries else EXIT_FAILED
+            return ExitCode.OK
         if args.action == "set":
             value = parse_value(args.value, args.string)
             client.set_property(args.embodiment, store, container, name, value, persistent=args.persistent)
-            print(f"{store}/{args.path} = {json.dumps(value)}")
-            return EXIT_OK
+            print(json.dumps({"key": prefix + args.path, "value": value, "persistent": args.persistent}) if args.json
+                  else f"{where}: {args.path} = {json.dumps(value)}" + (" (persistent)" if args.persistent else ""))
+            return ExitCode.OK
         if args.action == "remove":
-            from cmion_mesh.ion import require_accepted
-
             write = RemoveContainer(container, name) if args.container else RemoveProperty(container, name)
             require_accepted(client.write(args.embodiment, store, write), f"{store}/{args.path}")
-            print(f"removed {store}/{args.path}")
-            return EXIT_OK
-        if args.action == "watch":
-            assert stop is not None
-            base = keys.storage_key(args.mesh, args.embodiment, store, keys.split_path(args.path or ""))
+            print(json.dumps({"removed": prefix + args.path}) if args.json else f"{where}: removed {args.path}")
+            return ExitCode.OK
+        assert stop is not None
+        base = keys.storage_key(args.mesh, args.embodiment, store, keys.split_path(args.path or ""))
 
-            def show(key: str, entry: Any) -> None:
-                short = key[len(prefix):]
-                if args.json:
-                    print(json.dumps({"key": key, "entry": msgspec.to_builtins(entry)}), flush=True)
-                elif entry is None:
-                    print(f"- {short}", flush=True)
-                else:
-                    _print_entries({key: entry}, prefix, False)
-                    sys.stdout.flush()
+        def show(key: str, entry: Any) -> None:
+            short = key[len(prefix):]
+            if args.json:
+                print(json.dumps({"key": key, "entry": msgspec.to_builtins(entry)}), flush=True)
+            elif entry is None:
+                print(f"- {short}", flush=True)
+            else:
+                _print_entries({key: entry}, prefix, False)
+                sys.stdout.flush()
 
-            with client.watch(f"{base}/**", show):
-                stop.wait()
-            return EXIT_OK
-    return EXIT_USAGE
+        with client.watch(f"{base}/**", show):
+            stop.wait()
+        return ExitCode.OK
 
 
-def _stop_on_signals() -> Stopper:
-    return Stopper()
+# --- the daemon -----------------------------------------------------------------------------------
 
 
 def resolve_config(path: str) -> str:
     """``up`` takes a configuration file, a folder holding ``ArchitectureConfiguration.xml``, or the
     name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``)."""
-    from pathlib import Path
-
     from cmion_mesh.resources import data_dir
 
     candidate = Path(path)
@@ -158,16 +215,10 @@ def resolve_config(path: str) -> str:
         if shipped.exists():
             candidate = shipped
     if not candidate.is_file():
-        raise MeshError(f"no architecture configuration at {path!r}")
+        shipped_names = sorted(p.name for p in data_dir("embodiments").iterdir() if p.is_dir())
+        raise ConfigError(f"no architecture configuration at {path!r} (a file, a folder holding ArchitectureConfiguration.xml, "
+                          f"or a shipped embodiment: {', '.join(shipped_names)})")
     return str(candidate)
-
-
-def state_dir(args: argparse.Namespace, name: str) -> str:
-    """Where an embodiment keeps its durable migration records: ``--state-dir`` or a per-user folder."""
-    if args.state_dir:
-        return str(args.state_dir)
-    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
-    return os.path.join(base, "cmion-mesh", args.mesh, name)
 
 
 def admit(args: argparse.Namespace) -> dict[str, bytes | None] | None:
@@ -183,59 +234,100 @@ def admit(args: argparse.Namespace) -> dict[str, bytes | None] | None:
     return out
 
 
-def cmd_up(args: argparse.Namespace) -> int:
-    from cmion_mesh.embodiment import Embodiment
+def _existing(path: str | None, option: str) -> str | None:
+    if path is not None and not Path(path).is_file():
+        raise ConfigError(f"{option}: no such file", path=path)
+    return path
 
-    stop = _stop_on_signals()
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from cmion_mesh import security
+    from cmion_mesh.embodiment import Embodiment
+    from cmion_mesh.ion import Component
+    from cmion_mesh.statedir import default_state_dir
+    from cmion_mesh.validate import check_embodiment
+
+    stop = Stopper()
+    rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
+                                   _existing(args.world_model, "--world-model"))
+    components: list[Component] = []
+    companion, admitted = args.companion, admit(args)
     if args.path:
-        config = resolve_config(args.path)
         from cmion_mesh.architecture import load_architecture
 
-        name = args.name or load_architecture(config).embodiment
-        embodiment = Embodiment.from_architecture(config, mesh=args.mesh, name=name, transport_config=transport_config(args, name),
-                                                  state_dir=state_dir(args, name), companion=args.companion, admit=admit(args))
+        arch = load_architecture(resolve_config(args.path))
+        name = args.name or arch.embodiment
+        # Files given on the command line replace the configuration's own.
+        rules = rules or str(arch.rules)
+        library = library or str(arch.library)
+        world_model = world_model or (str(arch.world_model) if arch.world_model else None)
+        components = arch.build_components()
+        companion = companion or arch.companion
+        admitted = arch.admit if admitted is None else {**(arch.admit or {}), **admitted}
+    elif not args.name:
+        raise ConfigError("give an architecture configuration (PATH) or at least --name")
     else:
-        if not args.name:
-            raise MeshError("give an architecture configuration (PATH) or at least --name")
-        embodiment = Embodiment(args.name, mesh=args.mesh, transport_config=transport_config(args, args.name),
-                                world_model_init=args.world_model, rules=args.rules, library=args.library,
-                                state_dir=state_dir(args, args.name), companion=args.companion, admit=admit(args))
+        name = args.name
+    ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or ())
+    state = args.state_dir or str(default_state_dir(args.mesh, name))
+    embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
+                            rules=ruleset, competencies=competencies, components=components, state_dir=state,
+                            companion=companion, admit=admitted, join=join_window(args))
     with embodiment:
-        from cmion_mesh import security
-
-        mode = security.describe(args, name=embodiment.name)
+        mode = security.describe(certs_dir=args.certs, identity=args.identity, name=embodiment.name)
         print(mode, file=sys.stderr if mode.startswith("plain") else sys.stdout, flush=True)
         if args.no_multicast and not args.connect and not args.listen:
             print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
+        if embodiment.companion_elsewhere:
+            print(f"companion {companion!r} already lives on {embodiment.companion_elsewhere!r}: it is not born here",
+                  file=sys.stderr, flush=True)
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
-              f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules)", flush=True)
+              f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
+              flush=True)
         stop.wait()
     left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
     if left:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
-        return EXIT_FAILED
+        return ExitCode.FAILED
     print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:
-    """Host a component built from ``CLASS --parameters`` for ``--embodiment`` until stopped."""
+    """Host a component built from ``CLASS --parameters`` for ``--embodiment`` until stopped, and say
+    while that embodiment is not alive (the component then serves nobody)."""
     from cmion_mesh.classes import construct, split_parameters
+    from cmion_mesh.client import alive_list, did_you_mean
+    from cmion_mesh.competency import Competency
     from cmion_mesh.ion import serve
     from cmion_mesh.remote import CompetencyHost
-    from cmion_mesh.zenoh_transport import ZenohTransport
 
     built = construct(args.cls, base, split_parameters(args.parameters))
     component = CompetencyHost(built) if isinstance(built, Competency) else built
-    stop = _stop_on_signals()
-    config = transport_config(args, args.embodiment)
-    with ZenohTransport(config) as transport, serve(component, embodiment=args.embodiment, transport=transport, mesh=args.mesh):
-        print(f"{what} {built.name!r} serving embodiment {args.embodiment!r}", flush=True)
-        stop.wait()
-    return EXIT_OK
+    stop = Stopper()
+    target = keys.check_name(args.embodiment, "embodiment")
+    with session(args, target) as client, serve(component, embodiment=target, transport=client.transport, mesh=args.mesh):
+        print(f"{what} {built.name!r} serving embodiment {target!r}", flush=True)
+
+        def on_change(name: str, alive: bool) -> None:
+            if name == target:
+                print(f"embodiment {target!r} is alive: serving it" if alive else
+                      f"warning: embodiment {target!r} left the mesh: this {what} serves nobody until it is back",
+                      file=sys.stderr, flush=True)
+
+        presence = client.presence
+        with presence.listen(on_change):
+            if not presence.wait(lambda alive: target in alive, JOIN_WINDOW):
+                alive = presence.alive()
+                print(f"warning: embodiment {target!r} is not alive in mesh {args.mesh!r} (alive: {alive_list(alive)})"
+                      f"{did_you_mean(target, alive)}: this {what} serves nobody until it starts", file=sys.stderr, flush=True)
+            stop.wait()
+    return ExitCode.OK
 
 
 def cmd_serve_competency(args: argparse.Namespace) -> int:
+    from cmion_mesh.competency import Competency
+
     return _serve(args, Competency, "competency")
 
 
@@ -245,26 +337,35 @@ def cmd_serve_mind(args: argparse.Namespace) -> int:
     return _serve(args, Mind, "mind")
 
 
+# --- one-shot commands ----------------------------------------------------------------------------
+
+
 def cmd_peers(args: argparse.Namespace) -> int:
-    transport, client = _client(args)
-    with transport, Spinner("looking for embodiments", enabled=not args.json):
+    from cmion_mesh.client import mesh_problems
+
+    with session(args) as client, Spinner("looking for embodiments", enabled=not args.json):
         peers = client.describe_all(timeout=args.timeout)
+    for problem in mesh_problems(peers):
+        print(f"warning: {problem}", file=sys.stderr)
     if args.json:
         print(json.dumps(peers))
-        return EXIT_OK
+        return ExitCode.OK
     if not peers:
-        print("(no embodiments found: try `cmion-mesh doctor`)")
-        return EXIT_OK
+        print(f"(no embodiments found in mesh {args.mesh!r} within {args.timeout:g} s: try `cmion-mesh doctor`)")
+        return ExitCode.OK
     rows: list[tuple[str, ...]] = [("EMBODIMENT", "INHABITANT", "COMPETENCY TYPES", "ACTIONS", "VERSION", "UP SINCE")]
     for p in peers:
         since = time.strftime("%H:%M:%S", time.localtime(p.get("started_at", 0))) if p.get("started_at") else "?"
+        if p.get("error"):
+            rows.append((p["name"], "?", f"({p['error']})", "", "", ""))
+            continue
         rows.append((p["name"], p.get("inhabitant") or "-", ",".join(p.get("competency_types", [])) or "-",
                      "; ".join(p.get("actions", [])) or "-", p.get("version", "?"), since))
     _table(rows)
-    return EXIT_OK
+    return ExitCode.OK
 
 
-def _table(rows: list[tuple[str, ...]]) -> None:
+def _table(rows: Sequence[tuple[str, ...]]) -> None:
     widths = [min(40, max(len(r[i]) for r in rows)) for i in range(len(rows[0]))]
     for row in rows:
         print("  ".join(cell[:40].ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
@@ -303,255 +404,422 @@ class Spinner:
 
 
 def cmd_act(args: argparse.Namespace) -> int:
-    transport, client = _client(args)
-    with transport:
-        client.wait_for_embodiment(args.embodiment, timeout=args.discover_timeout)
-        with Spinner(f"{args.embodiment}: {' '.join([args.action, *args.parameters])}", enabled=not args.json):
-            report = client.act(args.embodiment, args.action, args.parameters, subject=args.subject, action_id=args.id or "",
-                                timeout=args.timeout, deadline=args.deadline)
+    from cmion_mesh.ion import require_accepted
+
+    stop = Stopper()  # Ctrl-C is collected by the main thread, whichever thread the signal reaches
+    with session(args) as client:
+        run = client.start_action(args.embodiment, args.action, args.parameters, subject=args.subject, action_id=args.id or "",
+                                  deadline=args.deadline, join_timeout=args.join_timeout, on_end=stop.stop)
+        with run:
+            if args.detach:
+                print(json.dumps({"action_id": run.action_id, "status": "running"}) if args.json else
+                      f"{run.action_id} running on {args.embodiment} (cmion-mesh cancel {args.embodiment} {run.action_id})")
+                return ExitCode.OK
+            deadline = time.monotonic() + args.timeout
+            interrupts = 0
+            with Spinner(f"{args.embodiment}: {' '.join([args.action, *args.parameters])}", enabled=not args.json):
+                for _ in range(1000):  # bounded: each round ends on the outcome, a signal or the deadline
+                    left = deadline - time.monotonic()
+                    if run.ended.is_set() or left <= 0:
+                        break
+                    if stop.wait(left) is None:
+                        continue
+                    interrupts += 1
+                    if interrupts > 1:
+                        print(f"left without waiting: action {run.action_id} may still be running on {args.embodiment} "
+                              f"(cmion-mesh cancel {args.embodiment} {run.action_id})", file=sys.stderr)
+                        return ExitCode.INTERRUPTED
+                    print(f"cancelling {run.action_id} (Ctrl-C again to leave without waiting)", file=sys.stderr, flush=True)
+                    key = keys.request_key(args.mesh, args.embodiment, "manager", "cancel")
+                    require_accepted(client.cancel(args.embodiment, run.action_id), key)
+                    deadline = min(deadline, time.monotonic() + CANCEL_WAIT)
+            report = run.result(args.timeout)
     if args.json:
         print(json.dumps(msgspec.to_builtins(report)))
     else:
         extra = f": {report.reason}" if report.reason else ""
         print(f"{report.action_id} {report.status}{extra}" + (f" (rule {report.rule})" if report.rule else ""))
-    return {"succeeded": EXIT_OK, "cancelled": EXIT_CANCELLED}.get(report.status, EXIT_FAILED)
+    return {"succeeded": ExitCode.OK, "cancelled": ExitCode.CANCELLED}.get(report.status, ExitCode.FAILED)
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
     from cmion_mesh.ion import require_accepted
 
-    transport, client = _client(args)
-    with transport:
-        client.wait_for_embodiment(args.embodiment, timeout=args.discover_timeout)
-        require_accepted(client.cancel(args.embodiment, args.action_id), f"{args.embodiment}/manager/cancel")
-    print(f"cancel of {args.action_id} accepted")
-    return EXIT_OK
+    with session(args) as client:
+        client.join(args.embodiment, timeout=args.join_timeout)
+        key = keys.request_key(args.mesh, args.embodiment, "manager", "cancel")
+        require_accepted(client.cancel(args.embodiment, args.action_id), key)
+    print(json.dumps({"action_id": args.action_id, "cancel": "accepted"}) if args.json else f"cancel of {args.action_id} accepted")
+    return ExitCode.OK
 
 
 def cmd_events(args: argparse.Namespace) -> int:
     from cmion_mesh.messages import Event
 
-    stop = _stop_on_signals()
+    stop = Stopper()
+    lock = threading.Lock()
     seen = [0]
 
     def show(event: Event) -> None:
-        if args.json:
-            print(json.dumps(msgspec.to_builtins(event)), flush=True)
-        else:
-            stamp = time.strftime("%H:%M:%S", time.localtime(event.time)) + f".{int(event.time * 1000) % 1000:03d}"
-            data = json.dumps(event.data) if event.data is not None else ""
-            print(f"{stamp} {event.embodiment}/{event.component} {event.name} {data}", flush=True)
-        seen[0] += 1
-        if args.count and seen[0] == args.count:
-            stop.stop()
+        with lock:  # exactly --count events, however many arrive before the main thread stops
+            if args.count and seen[0] >= args.count:
+                return
+            seen[0] += 1
+            if args.json:
+                print(json.dumps(msgspec.to_builtins(event)), flush=True)
+            else:
+                stamp = time.strftime("%H:%M:%S", time.localtime(event.time)) + f".{int(event.time * 1000) % 1000:03d}"
+                data = json.dumps(event.data) if event.data is not None else ""
+                print(f"{stamp} {event.embodiment}/{event.component} {event.name} {data}", flush=True)
+            if args.count and seen[0] == args.count:
+                stop.stop()
 
-    transport, client = _client(args)
-    with transport, client.events(show, embodiment=args.embodiment, component=args.component, event=args.event):
+    with session(args) as client, client.events(show, embodiment=args.embodiment, component=args.component, event=args.event):
+        if args.embodiment != "*":
+            client.join(args.embodiment, timeout=args.join_timeout)
+        else:
+            client.presence.wait(bool, args.join_timeout)
         if not args.json:
             print(f"following events of {args.embodiment}/{args.component}/{args.event} in mesh {args.mesh!r} (Ctrl-C to stop)",
                   file=sys.stderr, flush=True)
-        stop.wait(args.duration or None)
-    return EXIT_OK
+        deadline = time.monotonic() + args.duration if args.duration else None
+        for _ in range(1_000_000):  # bounded; each round ends on a signal, the count or the duration
+            left = None if deadline is None else deadline - time.monotonic()
+            if (left is not None and left <= 0) or stop.wait(left) is not None:
+                break
+            with lock:
+                if args.count and seen[0] >= args.count:
+                    break
+    return ExitCode.OK
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:
-    transport, client = _client(args)
-    with transport, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
+    with session(args) as client, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
         result = client.migrate(args.companion, args.to, timeout=args.timeout)
     if args.json:
         print(json.dumps(result))
     else:
         print(f"{args.companion} migrated from {result['source']} to {result['target']} (epoch {result['epoch']})")
-    return EXIT_OK
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    """``cmion-mesh bench ...`` is ``python -m bench ...`` from a source checkout (bench/ is not installed)."""
-    try:
-        from bench.__main__ import main as bench_main
-    except ImportError:
-        raise MeshError("the benchmarks live in the source checkout's bench/ folder: run this command from there") from None
-    code: int = bench_main(args.bench_args)
-    return code
-
-
-def cmd_router(args: argparse.Namespace) -> int:
-    from cmion_mesh import router
-
-    return router.run(args)
+    return ExitCode.OK
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
     from cmion_mesh.doctor import run_doctor
 
-    return run_doctor(args, transport_config(args))
+    return run_doctor(transport_config(args), mesh=args.mesh, timeout=args.timeout, as_json=args.json)
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from cmion_mesh.validate import validate_file
+    from cmion_mesh.validate import expand, validate_file
 
-    failed = 0
-    for path in args.files:
+    results: list[dict[str, Any]] = []
+    for given in args.files:
         try:
-            kind = validate_file(path)
+            paths = expand(given)
         except MeshError as exc:
-            failed += 1
-            print(f"error: {exc}", file=sys.stderr)
-        else:
-            print(f"ok: {path} ({kind})")
-    return EXIT_FAILED if failed else EXIT_OK
+            results.append({"path": given, "ok": False, "error": str(exc)})
+            continue
+        for path in paths:
+            try:
+                results.append({"path": path, "ok": True, "kind": validate_file(path, remote_types=args.remote_type or ())})
+            except MeshError as exc:
+                results.append({"path": path, "ok": False, "error": str(exc)})
+    if args.json:
+        print(json.dumps(results))
+    else:
+        for r in results:
+            if r["ok"]:
+                print(f"ok: {r['path']} ({r['kind']})")
+            else:
+                print(f"error: {r['error']}", file=sys.stderr)
+    return ExitCode.OK if all(r["ok"] for r in results) else ExitCode.FAILED
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.demo import run_demo
 
-    return run_demo(args)
+    return run_demo(mesh=args.mesh)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from cmion_mesh.router import DEFAULT_LISTEN, RouterOptions, run
+
+    options = RouterOptions(listen=tuple(args.listen or (DEFAULT_LISTEN,)), connect=tuple(args.connect or ()),
+                            config_file=args.config, multicast=not args.no_multicast, multicast_interface=args.multicast_interface,
+                            lans=None if args.no_lans else tuple(args.lan or ()))
+    return run(options)
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    from cmion_mesh import certs, security
+
+    directory = Path(args.dir)
+    command = args.certs_command
+    if command == "init":
+        ca = certs.init(directory, label=args.label, days=args.days, force=args.force)
+        print(f"authority created: {ca} (keep {directory / certs.CA_KEY} with the administrator only)")
+        print(f"next: cmion-mesh certs issue {directory} <embodiment>")
+    elif command == "issue":
+        cert, key = certs.issue(directory, args.name, sans=args.san, role=args.role, trust=not args.no_trust,
+                                days=args.days, force=args.force)
+        trusted = "not in the trust list" if args.no_trust else f"trusted as {args.role}"
+        print(f"issued {cert} and {key} for {args.name!r} ({trusted})")
+        print(f"give the member {directory / certs.CA_CERT}, {directory / certs.TRUST_FILE}, {cert.name} and {key.name}; "
+              f"start it with --certs DIR")
+    elif command == "list":
+        infos = certs.inventory(directory)
+        if args.json:
+            print(json.dumps([info.__dict__ for info in infos]))
+            return ExitCode.OK
+        rows = [("NAME", "ROLE", "SIGNED BY CA", "EXPIRES", "KEY", "SANS")]
+        for i in infos:
+            rows.append((i.name, i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
+                         i.not_after + (" (EXPIRED)" if i.expired else ""), "yes" if i.key_present else "-", ",".join(i.sans)))
+        _table(rows)
+        missing = sorted(set(certs.Trust.load(directory).names) - {i.name for i in infos})
+        if missing:
+            print(f"trusted but without a certificate here: {', '.join(missing)}")
+    elif command == "trust":
+        certs.trust_name(directory, args.name, args.role)
+        print(f"{args.name!r} trusted as {args.role}")
+    elif command == "untrust":
+        certs.untrust_name(directory, args.name)
+        print(f"{args.name!r} removed from the trust list: restart the mesh's members for it to take effect")
+    else:
+        text = security.config_json5(directory, args.name, args.mesh, listen=args.listen, connect=args.connect,
+                                     multicast=not args.no_multicast, verify_names=args.verify_names)
+        if args.output:
+            certs.write_file(Path(args.output), text.encode(), private=False, overwrite=True)
+        else:
+            print(text)
+    return ExitCode.OK
+
+
+# --- the parser -----------------------------------------------------------------------------------
+
+
+def _store_parsers(sub: Any) -> None:
+    for store, label in STORE_LABELS.items():
+        sp = sub.add_parser(store, help=f"read, write and watch an embodiment's {label}",
+                            description=f"Read, write and watch an embodiment's {label}. Paths are container/.../property"
+                                        + ("; entity.property (as $WM(...) writes it) works too." if store == keys.WORLD_MODEL else "."))
+        actions = sp.add_subparsers(dest="action", required=True, metavar="ACTION")
+        for action, text in (("get", "read a property or a container (everything, without PATH)"),
+                             ("tree", "list a container and all below it"), ("set", "set a property"),
+                             ("remove", "remove a property or container"), ("watch", "follow changes until Ctrl-C")):
+            ap = actions.add_parser(action, help=text, description=text)
+            ap.add_argument("embodiment", help="the embodiment whose store this is")
+            ap.add_argument("path", nargs="?" if action in ("get", "tree", "watch") else None, default="",
+                            help="container/.../property" + (" or entity.property" if store == keys.WORLD_MODEL else ""))
+            if action == "set":
+                ap.add_argument("value", help="JSON value (3, true, [1,2], {\"a\":1}) or plain text")
+                ap.add_argument("--persistent", action="store_true",
+                                help="survives a restart of the daemon" + ("; travels with the companion when it migrates"
+                                                                           if store == keys.WORLD_MODEL else ""))
+                ap.add_argument("--string", action="store_true", help="take the value as text, never JSON")
+            if action == "remove":
+                ap.add_argument("--container", action="store_true", help="the path names a container")
+            _timeout(ap, 5.0, "seconds to wait for the embodiment and its answer")
+            _common(ap)
+            ap.set_defaults(func=cmd_store, store=store)
+
+
+def _certs_parsers(parser: argparse.ArgumentParser) -> None:
+    from cmion_mesh.certs import CA_DAYS, CERT_DAYS, DEFAULT_SANS, ROLES
+
+    sub = parser.add_subparsers(dest="certs_command", required=True, metavar="COMMAND")
+    folder = "the certificates folder"
+    p = sub.add_parser("init", help="create the certificate authority and an empty trust list in DIR")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("--label", help="what the authority's name says (default: the folder's name)")
+    p.add_argument("--days", type=int, default=CA_DAYS, help="validity (default: %(default)s days)")
+    p.add_argument("--force", action="store_true", help="replace an existing authority (every certificate must then be reissued)")
+
+    p = sub.add_parser("issue", help="issue the certificate of an embodiment (or operator) NAME and trust it")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="embodiment name (the certificate's common name)")
+    p.add_argument("--san", action="append", default=[], metavar="HOST_OR_IP",
+                   help="a DNS name or IP address the embodiment is reached at; repeatable "
+                        f"(always added: the name itself, {', '.join(DEFAULT_SANS)})")
+    p.add_argument("--role", choices=ROLES, default="embodiment",
+                   help="embodiment: its own keys only; operator: the whole mesh (tools of an administrator)")
+    p.add_argument("--no-trust", action="store_true", help="do not add NAME to the trust list")
+    p.add_argument("--days", type=int, default=CERT_DAYS, help="validity (default: %(default)s days)")
+    p.add_argument("--force", action="store_true", help="replace an existing certificate of NAME")
+
+    p = sub.add_parser("list", help="list the certificates in DIR, whether the authority signed them and who is trusted")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    _json(p)
+
+    p = sub.add_parser("trust", help="add NAME to the trust list (its certificate must already exist)")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="the certificate's name")
+    p.add_argument("--role", choices=ROLES, default="embodiment", help="what NAME may do (default: %(default)s)")
+
+    p = sub.add_parser("untrust", help="remove NAME from the trust list (revocation: restart the members afterwards)")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="the certificate's name")
+
+    p = sub.add_parser("config", help="print the zenoh JSON5 configuration of NAME (mTLS + access control), e.g. "
+                                      "for a client written in another language")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="whose configuration")
+    p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: %(default)s)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on; repeatable")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to; repeatable")
+    p.add_argument("--no-multicast", action="store_true", help="turn multicast scouting off in the file")
+    p.add_argument("--verify-names", action="store_true", help="check the peer's address against its certificate's SANs")
+    p.add_argument("-o", "--output", metavar="FILE", help="write to FILE instead of standard output")
+
+
+def _router_parser(parser: argparse.ArgumentParser) -> None:
+    from cmion_mesh.router import DEFAULT_LISTEN
+
+    _zenoh_options(parser, listen=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})",
+                   connect="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable",
+                   config="zenoh JSON5 configuration file (the options here override it, its gateway too unless --no-lans)",
+                   no_multicast="do not answer or send multicast scouting (peers must --connect to the router)",
+                   multicast_interface="interface for multicast scouting (default: zenoh's choice, 'auto')")
+    lans = parser.add_mutually_exclusive_group()
+    lans.add_argument("--lan", action="append", metavar="IFACE",
+                      help="peers reaching the router through IFACE form one LAN, and the router forwards between LANs; "
+                           "repeatable (default: each network interface of this host is a LAN)")
+    lans.add_argument("--no-lans", action="store_true",
+                      help="leave zenoh's regions as they are (all peers of this router in one region assumed fully connected: "
+                           "the router then forwards only between its clients, its peers and other routers)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cmion-mesh", description="Zenoh peer-to-peer embodiment mesh (CMION rebuilt).")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="cmion-mesh", description="Zenoh peer-to-peer embodiment mesh (CMION rebuilt).",
+        epilog="exit codes: 0 succeeded, 1 failed or refused, 2 usage or configuration error, 3 cancelled, "
+               "4 outcome unknown (no answer, the target vanished), 130 left on a second Ctrl-C")
+    parser.add_argument("--version", action="version", version=f"cmion-mesh {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")
     p.add_argument("--name", help="embodiment name (default: from the configuration)")
-    p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file to load at start")
-    p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file")
-    p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file")
-    p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed")
-    p.add_argument("--state-dir", help="durable migration records (default: ~/.local/state/cmion-mesh/<mesh>/<name>)")
-    p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none")
+    p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file (replaces the configuration's)")
+    p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file (replaces the configuration's)")
+    p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file (replaces the configuration's)")
+    p.add_argument("--remote-type", action="append", metavar="TYPE",
+                   help="a competency type served by another process (serve-competency): rules may use it; repeatable")
+    p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed (ms)")
+    p.add_argument("--state-dir", help="durable state: migration records, persistent properties "
+                                       "(default: ~/.local/state/cmion-mesh/<mesh>/<name>); one daemon per folder")
+    p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none "
+                                       "and no live embodiment of the mesh hosts it")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
-    _common(p)
+    _common(p, json_output=False)
     p.set_defaults(func=cmd_up)
 
-    for store, label in ((keys.BLACKBOARD, "blackboard"), (keys.WORLD_MODEL, "world model")):
-        sp = sub.add_parser(store, help=f"read, write and watch an embodiment's {label}")
-        actions = sp.add_subparsers(dest="action", required=True)
-        for action, text in (("get", "read a property, a container or everything"), ("tree", "list a container and all below it"),
-                             ("set", "set a property"), ("remove", "remove a property or container"), ("watch", "follow changes")):
-            ap = actions.add_parser(action, help=text)
-            ap.add_argument("embodiment")
-            ap.add_argument("path", nargs="?" if action in ("get", "tree", "watch") else None, default="",
-                            help="container/.../property")
-            if action == "set":
-                ap.add_argument("value", help="JSON value (3, true, [1,2], {\"a\":1}) or plain text")
-                ap.add_argument("--persistent", action="store_true")
-                ap.add_argument("--string", action="store_true", help="take the value as text, never JSON")
-            if action == "remove":
-                ap.add_argument("--container", action="store_true", help="the path names a container")
-            _common(ap)
-            ap.set_defaults(func=cmd_store, store=store)
+    _store_parsers(sub)
 
     p = sub.add_parser("serve-competency", help="host a competency for an embodiment from this process (remote competency)")
     p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Competency subclass")
-    p.add_argument("--embodiment", required=True)
+    p.add_argument("--embodiment", required=True, help="the embodiment this competency works for")
     p.add_argument("--parameters", default="", help="comma-separated constructor parameters")
-    _common(p)
+    _common(p, json_output=False)
     p.set_defaults(func=cmd_serve_competency)
 
+    p = sub.add_parser("serve-mind", help="run a mind in this process, driving an embodiment over the mesh")
+    p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Mind subclass")
+    p.add_argument("--embodiment", required=True, help="the embodiment this mind drives")
+    p.add_argument("--parameters", default="", help="comma-separated constructor parameters")
+    _common(p, json_output=False)
+    p.set_defaults(func=cmd_serve_mind)
+
     p = sub.add_parser("peers", help="list the embodiments alive in the mesh, with what they can do")
-    p.add_argument("--timeout", type=float, default=1.5, help="seconds to wait for answers")
+    _timeout(p, 3.0, "longest wait for the whole mesh to answer (it returns as soon as every live embodiment has)")
     _common(p)
     p.set_defaults(func=cmd_peers)
 
-    p = sub.add_parser("act", help="send a mind action to an embodiment and wait for its outcome (exit code says it)")
-    p.add_argument("embodiment")
-    p.add_argument("action")
-    p.add_argument("parameters", nargs="*")
-    p.add_argument("--subject", default="")
+    p = sub.add_parser("act", help="send a mind action to an embodiment and wait for its outcome (exit code says it)",
+                       description="Send a mind action and wait for its outcome. Ctrl-C cancels it and waits for the "
+                                   "cancelled outcome; a second Ctrl-C leaves without waiting.")
+    p.add_argument("embodiment", help="the embodiment to act")
+    p.add_argument("action", help="the action's name, e.g. GoTo (see `peers` for the actions each embodiment knows)")
+    p.add_argument("parameters", nargs="*", help="the action's parameters, e.g. Kitchen")
+    p.add_argument("--subject", default="", help="who the action is about (rules may match on it)")
     p.add_argument("--id", help="action id (default: generated)")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the outcome")
-    p.add_argument("--deadline", type=float, default=0.0, help="deadline of each plan tried, seconds")
-    p.add_argument("--discover-timeout", type=float, default=5.0, help="seconds to wait for the embodiment to be found")
+    _timeout(p, 120.0, "seconds to wait for the outcome")
+    p.add_argument("--deadline", type=float, default=0.0, help="deadline of each plan tried, seconds (default: the manager's)")
+    p.add_argument("--detach", action="store_true", help="print the action's id and leave it running")
+    _join_timeout(p)
     _common(p)
     p.set_defaults(func=cmd_act)
 
     p = sub.add_parser("cancel", help="cancel a running action")
-    p.add_argument("embodiment")
-    p.add_argument("action_id")
-    p.add_argument("--discover-timeout", type=float, default=5.0)
+    p.add_argument("embodiment", help="the embodiment running it")
+    p.add_argument("action_id", help="the action's id (act prints it)")
+    _join_timeout(p)
     _common(p)
     p.set_defaults(func=cmd_cancel)
 
     p = sub.add_parser("events", help="follow the event stream (filterable)")
     p.add_argument("--follow", "-f", action="store_true", help="keep following (the default; for familiarity)")
-    p.add_argument("--embodiment", default="*")
-    p.add_argument("--component", default="*")
-    p.add_argument("--event", default="*")
-    p.add_argument("--count", type=int, default=0, help="stop after this many events")
+    p.add_argument("--embodiment", default="*", help="only this embodiment's events (default: all)")
+    p.add_argument("--component", default="*", help="only this component's events (default: all)")
+    p.add_argument("--event", default="*", help="only events of this name (default: all)")
+    p.add_argument("--count", type=int, default=0, help="stop after exactly this many events")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    _join_timeout(p)
     _common(p)
     p.set_defaults(func=cmd_events)
 
     p = sub.add_parser("migrate", help="move a companion to another embodiment (waits for the handshake's end)")
-    p.add_argument("companion")
-    p.add_argument("--to", required=True, metavar="EMBODIMENT")
-    p.add_argument("--timeout", type=float, default=60.0)
+    p.add_argument("companion", help="the companion to move (see `peers`: INHABITANT)")
+    p.add_argument("--to", required=True, metavar="EMBODIMENT", help="where to")
+    _timeout(p, 60.0, "seconds to wait for the handshake's end")
     _common(p)
     p.set_defaults(func=cmd_migrate)
 
-    p = sub.add_parser("serve-mind", help="run a mind in this process, driving an embodiment over the mesh")
-    p.add_argument("cls", metavar="CLASS", help="package.module:Class, a Mind subclass")
-    p.add_argument("--embodiment", required=True)
-    p.add_argument("--parameters", default="", help="comma-separated constructor parameters")
-    _common(p)
-    p.set_defaults(func=cmd_serve_mind)
-
-    p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh")
-    from cmion_mesh import router as router_module
-
-    router_module.add_arguments(p)
+    p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh (no --mesh: it routes every mesh)")
+    _router_parser(p)
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("certs", help="a certificate authority and certificates for an authenticated mesh (mutual TLS)")
-    from cmion_mesh import certs as certs_module
+    _certs_parsers(p)
+    p.set_defaults(func=cmd_certs)
 
-    certs_module.add_arguments(p)
-    p.set_defaults(func=certs_module.run)
-
-    p = sub.add_parser("bench", help="run the benchmarks (from a source checkout; see bench/README.md)", add_help=False)
-    p.add_argument("bench_args", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_bench)
-
-    p = sub.add_parser("doctor", help="explain why peers are (not) found: interfaces, multicast, zenoh config")
-    p.add_argument("--timeout", type=float, default=2.0)
+    p = sub.add_parser("doctor", help="explain why peers are (not) found, and what is wrong in the mesh")
+    _timeout(p, 3.0, "longest wait for the mesh to answer")
     _common(p)
     p.set_defaults(func=cmd_doctor)
 
-    p = sub.add_parser("validate", help="check CMION XML files against their schemas and semantics")
-    p.add_argument("files", nargs="+")
+    p = sub.add_parser("validate", help="check CMION XML files against their schemas and semantics (what `up` checks too)")
+    p.add_argument("files", nargs="+", metavar="PATH", help="a file, a folder (its *.xml files) or a shipped embodiment's name")
+    p.add_argument("--remote-type", action="append", metavar="TYPE",
+                   help="a competency type served by another process (serve-competency): rules may use it; repeatable")
+    _json(p)
     p.set_defaults(func=cmd_validate)
 
-    p = sub.add_parser("demo", help="run the demonstration scenario")
-    _common(p)
+    p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")
+    p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")
     p.set_defaults(func=cmd_demo)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    # After "bench", every argument is the benchmark's own, options included.
-    bench = argv[:1] == ["bench"]
-    args = argparse.Namespace(func=cmd_bench, bench_args=argv[1:]) if bench else parser.parse_args(argv)
+    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        return func(args)
+        return int(func(args))
     except MeshError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
+        return exit_code(exc)
     except KeyboardInterrupt:
-        return 130
+        return ExitCode.INTERRUPTED
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
+        return ExitCode.FAILED
     except Exception as exc:
         if os.environ.get("CMION_MESH_DEBUG"):
             raise
         print(f"internal error: {type(exc).__name__}: {exc} (set CMION_MESH_DEBUG=1 for the traceback)", file=sys.stderr)
-        return EXIT_FAILED
+        return ExitCode.FAILED
 
 
 if __name__ == "__main__":

@@ -1,21 +1,37 @@
 """A mesh client: what tools (the CLI, tests, other programs) use to read, write and watch.
 
 It needs only a transport, not a simulation: no update loop, no components of its own.
+
+Join, then ask: a session that has just opened knows nobody. Whatever is addressed to a named
+embodiment (``act``, ``migrate``, ``join``) first waits, within its deadline, for that
+embodiment's liveliness token, and ``describe_all`` waits until it has described every embodiment
+that any live daemon sees: a daemon has been in the mesh long enough to know all of it.
 """
 
 from __future__ import annotations
 
+import difflib
 import queue
 import threading
+import time
 import uuid
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError, RequestRejected, StorageError
+from cmion_mesh.errors import (
+    MeshError,
+    NotAlive,
+    NotReached,
+    OutcomeUnknown,
+    ProtocolError,
+    RequestRejected,
+    StorageError,
+    Vanished,
+)
 from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.messages import (
     Act,
@@ -29,22 +45,114 @@ from cmion_mesh.messages import (
     Migrate,
     Outcome,
     Property,
-    Request,
+    SetPolicy,
     SetProperty,
     StorageWrite,
     decode,
+    encode,
     tag,
 )
-from cmion_mesh.transport import Closeable, Sample, Transport
+from cmion_mesh.presence import Presence
+from cmion_mesh.transport import Closeable, Handle, Sample, Transport
 
 Entry = Property | Container
 ACTION_END_EVENTS = frozenset({"ActionSucceeded", "ActionFailed", "ActionCancelled"})
+#: How long a request whose embodiment is alive is sent again while it reaches nobody (its
+#: queryable not yet known to a session that has just joined).
+REACH_RETRY = 0.5
+STORE_LABELS = {keys.BLACKBOARD: "blackboard", keys.WORLD_MODEL: "world model"}
+#: Most embodiments described at once.
+MAX_PARALLEL_DESCRIBE = 16
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'robot'?)`` when a known name is close to ``name``, else ``""``."""
+    names = sorted(set(known))
+    if name in names:
+        return ""
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def alive_list(names: Iterable[str]) -> str:
+    return ", ".join(sorted(names)) or "none"
 
 
 class MeshClient:
+    """Reads, writes, requests and follows a mesh through ``transport``. A context manager:
+    ``close`` (idempotent) stops the liveliness watch it starts on first use; not the transport."""
+
     def __init__(self, transport: Transport, mesh: str = keys.DEFAULT_MESH) -> None:
         self.transport = transport
         self.mesh = keys.check_name(mesh, "mesh")
+        self._presence: Presence | None = None
+        self._lock = threading.Lock()
+
+    def __enter__(self) -> MeshClient:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        with self._lock:
+            presence, self._presence = self._presence, None
+        if presence is not None:
+            presence.close()
+
+    @property
+    def presence(self) -> Presence:
+        """The embodiments alive, as this session sees them (watched from the first use on)."""
+        with self._lock:
+            if self._presence is None:
+                self._presence = Presence(self.transport, self.mesh)
+            return self._presence
+
+    # --- joining ------------------------------------------------------------------------------
+
+    def join(self, embodiment: str, *, timeout: float = 5.0) -> None:
+        """Return once ``embodiment`` is alive as seen from here; ``NotAlive`` naming the ones that are
+        alive otherwise, at once when the daemons that are alive say they do not see it either."""
+        keys.check_name(embodiment, "embodiment")
+        deadline = time.monotonic() + timeout
+        presence = self.presence
+        if not presence.wait(lambda alive: bool(alive), timeout):
+            raise NotAlive(f"embodiment {embodiment!r} is not alive in mesh {self.mesh!r}: no embodiment at all found "
+                           f"within {timeout:g} s (try `cmion-mesh doctor`)")
+        if embodiment in presence.alive():
+            return
+        # Others are alive, not this one (yet?). The daemons have seen the mesh longer: ask them.
+        reported = self._reported_alive(presence.alive(), deadline)
+        if embodiment in reported | presence.alive() and \
+                presence.wait(lambda alive: embodiment in alive, deadline - time.monotonic()):
+            return
+        known = presence.alive() | reported
+        if embodiment in known:
+            raise NotAlive(f"embodiment {embodiment!r} is alive in mesh {self.mesh!r} (so say the others) but not "
+                           f"reachable from this session within {timeout:g} s (try `cmion-mesh doctor`)")
+        raise NotAlive(f"embodiment {embodiment!r} is not alive in mesh {self.mesh!r} (alive: {alive_list(known)})"
+                       + did_you_mean(embodiment, known))
+
+    def wait_for_embodiment(self, embodiment: str, *, timeout: float = 5.0) -> None:
+        """Return once ``embodiment`` is alive as seen from here, however long it takes to start
+        (``join`` instead says at once that it is not alive); ``NotAlive`` after ``timeout``."""
+        if not self.presence.wait(lambda alive: embodiment in alive, timeout):
+            alive = self.presence.alive()
+            raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
+                           f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
+
+    def _reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
+        """The embodiments that the daemons ``asked`` see alive (those that answer before ``deadline``)."""
+        names = sorted(asked)
+        out: set[str] = set()
+        with ThreadPoolExecutor(max_workers=max(1, min(MAX_PARALLEL_DESCRIBE, len(names)))) as pool:
+            for future in [pool.submit(self._describe_replies, name, deadline) for name in names]:
+                try:
+                    for description in future.result():
+                        out.update(str(n) for n in description.get("alive") or ())
+                except MeshError:
+                    continue
+        return out
 
     # --- storage ------------------------------------------------------------------------------
 
@@ -64,6 +172,46 @@ class MeshClient:
         base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(path))
         return self.read(f"{base}/**", timeout=timeout)
 
+    def lookup(self, embodiment: str, store: str, path: str = "", *, below: bool = False, timeout: float = 5.0) -> dict[str, Entry]:
+        """The property or container at ``path`` in ``embodiment``'s ``store``, by key; with ``below``
+        (or no ``path``), everything under it too. In the world model ``entity.property`` (the form
+        ``$WM(...)`` uses) names ``entity/property``.
+
+        Raises ``StorageError`` naming the path when the store answers but holds no such thing, and
+        ``OutcomeUnknown`` when the store does not answer within ``timeout``.
+        """
+        label = STORE_LABELS.get(store, f"{store!r} store")
+        candidates = [path]
+        if store == keys.WORLD_MODEL and "." in path and "/" not in path:
+            candidates.append(path.replace(".", "/", 1))
+        root = keys.storage_key(self.mesh, embodiment, store, ())
+        deadline = time.monotonic() + timeout
+        delay = 0.01
+        def find() -> dict[str, Entry]:
+            for candidate in candidates:
+                base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(candidate))
+                entries = self.read(f"{base}/**" if below or not candidate else base, timeout=max(0.01, deadline - time.monotonic()))
+                if entries:
+                    return entries
+            return {}
+
+        while True:
+            entries = find()
+            if entries:
+                return entries
+            if self.read(root, timeout=max(0.01, deadline - time.monotonic())):
+                entries = find()  # the store is reachable now: ask again before saying it is not there
+                if entries:
+                    return entries
+                container, _, name = path.rpartition("/")
+                siblings = self.read(f"{keys.storage_key(self.mesh, embodiment, store, keys.split_path(container))}/*", timeout=2.0)
+                raise StorageError(f"no property or container {path!r} in {embodiment}'s {label}"
+                                   + did_you_mean(name, (k.rsplit("/", 1)[-1] for k in siblings)))
+            if time.monotonic() + delay >= deadline:
+                raise OutcomeUnknown(f"{embodiment}'s {label} did not answer within {timeout:g} s", key=root)
+            self.presence.wait(lambda alive: embodiment not in alive, delay)  # not routed here yet: again, soon
+            delay = min(delay * 2, 0.2)
+
     def get_property(self, embodiment: str, store: str, container: str, name: str, *, timeout: float = 5.0) -> Property:
         key = keys.storage_key(self.mesh, embodiment, store, keys.split_path(container), name)
         for reply in self.transport.get(key, timeout=timeout):
@@ -76,7 +224,7 @@ class MeshClient:
     def write(self, embodiment: str, store: str, write: StorageWrite, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
         """Send one storage write; returns its outcome (accepted, rejected, conflict)."""
         key = keys.request_key(self.mesh, embodiment, store, tag(type(write)))
-        return send_request(self.transport, key, write, timeout=timeout)
+        return self._send(embodiment, key, write, timeout=timeout)
 
     def set_property(
         self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False
@@ -92,7 +240,47 @@ class MeshClient:
         *, timeout: float = DEFAULT_REQUEST_TIMEOUT, sender: str | None = None,
     ) -> Outcome:
         key = keys.request_key(self.mesh, embodiment, component, name, sender)
-        return send_request(self.transport, key, payload, timeout=timeout)
+        return self._send(embodiment, key, payload, timeout=timeout)
+
+    def _send(self, embodiment: str, key: str, payload: Message, *, timeout: float) -> Outcome:
+        """``send_request``, sent again for a moment while it reaches nobody although ``embodiment`` is
+        alive (a session that has just joined may know the token before the queryable): safe, since
+        a request that reached nobody was not delivered."""
+        deadline = time.monotonic() + timeout
+        retry_until = time.monotonic() + min(REACH_RETRY, timeout)
+        delay = 0.01
+        while True:
+            try:
+                return send_request(self.transport, key, payload, timeout=max(0.01, deadline - time.monotonic()))
+            except NotReached:
+                presence = self._presence
+                if presence is None or embodiment not in presence.alive() or time.monotonic() + delay > retry_until:
+                    raise
+                presence.wait(lambda alive: embodiment not in alive, delay)
+                delay *= 2
+
+    def start_action(
+        self, embodiment: str, name: str, parameters: Sequence[str] = (), *, subject: str = "", action_id: str = "",
+        deadline: float = 0.0, join_timeout: float = 5.0, on_end: Callable[[], None] | None = None,
+    ) -> ActionRun:
+        """Join, send a mind action and follow it: an ``ActionRun`` (close it when done with it).
+
+        Raises ``NotAlive`` if the embodiment is not alive, ``RequestRejected`` if the manager refuses
+        the action (no rule, duplicate id). ``on_end`` runs (on a transport worker) when the action
+        ends or the embodiment vanishes.
+        """
+        self.join(embodiment, timeout=join_timeout)
+        action_id = action_id or f"{self.transport.id[:8]}-{uuid.uuid4().hex[:12]}"
+        run = ActionRun(self, embodiment, action_id, on_end)
+        try:
+            key = keys.request_key(self.mesh, embodiment, "manager", "act")
+            outcome = self._send(embodiment, key, Act(name, list(parameters), subject, action_id, deadline),
+                                 timeout=DEFAULT_REQUEST_TIMEOUT)
+            require_accepted(outcome, key)
+        except BaseException:
+            run.close()
+            raise
+        return run
 
     def act(
         self, embodiment: str, name: str, parameters: Sequence[str] = (), *, subject: str = "", action_id: str = "",
@@ -100,67 +288,70 @@ class MeshClient:
     ) -> ActionReport:
         """Send a mind action and wait for its end; returns the final report (succeeded/failed/cancelled).
 
-        Raises ``RequestRejected`` if the manager refuses it (no rule, duplicate id) and
-        ``OutcomeUnknown`` if nobody answers or the end is not heard within ``timeout``.
+        Raises ``NotAlive`` if the embodiment is not alive, ``RequestRejected`` if the manager refuses
+        it (no rule, duplicate id), ``Vanished`` if the embodiment leaves the mesh before the end and
+        ``OutcomeUnknown`` if the end is not heard within ``timeout``.
         """
-        action_id = action_id or f"{self.transport.id[:8]}-{uuid.uuid4().hex[:12]}"
-        ended: queue.SimpleQueue[ActionReport] = queue.SimpleQueue()
-
-        def on_event(event: Event) -> None:
-            if event.name in ACTION_END_EVENTS and isinstance(event.data, dict) and event.data.get("action_id") == action_id:
-                ended.put(msgspec.convert(event.data, ActionReport))
-
-        with self.events(on_event, embodiment=embodiment, component="manager"):
-            act = Act(name, list(parameters), subject, action_id, deadline)
-            key = keys.request_key(self.mesh, embodiment, "manager", "act")
-            outcome = send_request(self.transport, key, act)
-            require_accepted(outcome, key)
-            try:
-                return ended.get(timeout=timeout)
-            except queue.Empty:
-                pass
-        # The end event may have been missed (a link hiccup): the manager remembers recent ends.
-        status = self.request(embodiment, "manager", "status", ActionStatus(action_id))
-        if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
-            report: ActionReport = msgspec.convert(status.value, ActionReport)
-            return report
-        raise OutcomeUnknown(f"action {action_id} on {embodiment}: no end heard within {timeout:g} s", key=key)
+        with self.start_action(embodiment, name, parameters, subject=subject, action_id=action_id, deadline=deadline) as run:
+            return run.wait(timeout)
 
     def cancel(self, embodiment: str, action_id: str) -> Outcome:
         return self.request(embodiment, "manager", "cancel", CancelAction(action_id))
 
     def find_companion(self, companion: str, *, timeout: float = 2.0) -> str:
-        """The embodiment inhabited by ``companion``; ``OutcomeUnknown`` if none says so."""
-        for description in self.describe_all(timeout=timeout):
-            if description.get("inhabitant") == companion:
-                return str(description["name"])
-        raise OutcomeUnknown(f"no embodiment in mesh {self.mesh!r} says it hosts companion {companion!r}")
+        """The embodiment inhabited by ``companion``: ``NotAlive`` if none says so, ``MeshError`` if two do."""
+        described = self.describe_all(timeout=timeout)
+        hosts = sorted(str(d["name"]) for d in described if d.get("inhabitant") == companion)
+        if len(hosts) > 1:
+            raise MeshError(f"companion {companion!r} is claimed by {' and '.join(hosts)}: a duplicate! "
+                            "(see `cmion-mesh doctor`)")
+        if hosts:
+            return hosts[0]
+        inhabitants = {str(d["inhabitant"]): str(d["name"]) for d in described if d.get("inhabitant")}
+        living = ", ".join(f"{c} on {e}" for c, e in sorted(inhabitants.items())) or "none"
+        raise NotAlive(f"no embodiment alive in mesh {self.mesh!r} hosts companion {companion!r} "
+                       f"(alive: {alive_list(str(d['name']) for d in described)}; companions: {living})"
+                       + did_you_mean(companion, inhabitants))
 
     def migrate(self, companion: str, target: str, *, timeout: float = 60.0) -> dict[str, Any]:
         """Move ``companion`` to ``target``; returns ``{source, target, epoch, attempt}`` once the target committed.
 
         Raises ``RequestRejected`` with the reason if the migration is refused or fails (the
-        companion then keeps running at its source) and ``OutcomeUnknown`` if its end is not heard.
+        companion then keeps running at its source), ``NotAlive`` if the companion or the target
+        is nowhere to be found, and ``OutcomeUnknown`` (``Vanished`` when the source or the target
+        left the mesh) if its end is not heard.
         """
+        started_at = time.monotonic()
         source = self.find_companion(companion)
-        ended: queue.SimpleQueue[Event] = queue.SimpleQueue()
+        self.join(target)
+        ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
 
         def on_event(event: Event) -> None:
             if event.name in ("MigrationSucceeded", "MigrationFailed") and isinstance(event.data, dict) \
                     and event.data.get("companion") == companion:
                 ended.put(event)
 
+        def on_presence(name: str, alive: bool) -> None:
+            if not alive and name in (source, target):
+                ended.put(name)
+
         key = keys.request_key(self.mesh, source, "migration", "migrate")
-        with self.events(on_event, embodiment=source, component="migration"):
-            started = send_request(self.transport, key, Migrate(companion, target), timeout=timeout)
+        with self.events(on_event, embodiment=source, component="migration"), self.presence.listen(on_presence):
+            if source not in self.presence.alive() or target not in self.presence.alive():
+                ended.put(source if source not in self.presence.alive() else target)
+            started = self._send(source, key, Migrate(companion, target), timeout=timeout)
             require_accepted(started, key)
+            left = timeout - (time.monotonic() - started_at)
             try:
-                event = ended.get(timeout=timeout)
+                end = ended.get(timeout=max(0.0, left))
             except queue.Empty:
                 raise OutcomeUnknown(f"migration of {companion} from {source} to {target}: no end heard in {timeout:g} s",
                                      key=key) from None
-        data = dict(event.data)
-        if event.name == "MigrationFailed":
+        if isinstance(end, str):
+            raise Vanished(f"migration of {companion} from {source} to {target}: {end} left the mesh after "
+                           f"{time.monotonic() - started_at:.1f} s; outcome unknown (see `cmion-mesh peers`)", key=key)
+        data = dict(end.data)
+        if end.name == "MigrationFailed":
             raise RequestRejected(f"migration of {companion} to {target} failed: {data.get('reason')}", key=key,
                                   reason=str(data.get("reason")))
         data["source"] = source
@@ -169,7 +360,7 @@ class MeshClient:
     def set_policy(self, companion: str, accepts: Sequence[str] | None) -> None:
         """Say which embodiments ``companion`` accepts (None: any); it travels with the companion."""
         host = self.find_companion(companion)
-        payload = Request({"accepts": None if accepts is None else list(accepts)})
+        payload = SetPolicy(None if accepts is None else list(accepts))
         require_accepted(self.request(host, "migration", "policy", payload), keys.request_key(self.mesh, host, "migration", "policy"))
 
     def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:
@@ -200,45 +391,186 @@ class MeshClient:
 
         return self.transport.subscribe(pattern, on_sample)
 
+    # --- discovery ----------------------------------------------------------------------------
+
     def describe(self, embodiment: str, *, timeout: float = 2.0) -> dict[str, Any]:
-        """An embodiment's description (name, competency types, actions, inhabitant, version, started at)."""
+        """An embodiment's description (name, competency types, actions, inhabitant, version, started at...)."""
         outcome = self.request(embodiment, "embodiment", "describe", Describe(), timeout=timeout)
         value = require_accepted(outcome, keys.request_key(self.mesh, embodiment, "embodiment", "describe"))
         return value if isinstance(value, dict) else {"name": embodiment}
 
-    def describe_all(self, *, timeout: float = 2.0) -> list[dict[str, Any]]:
-        """Every live embodiment, described; one that does not answer is listed by name only."""
-        names = self.embodiments(timeout=timeout)
-        out = []
-        with ThreadPoolExecutor(max_workers=max(1, min(16, len(names)))) as pool:
-            futures = {name: pool.submit(self.describe, name, timeout=timeout) for name in names}
-            for name, future in futures.items():
+    def _describe_replies(self, embodiment: str, deadline: float) -> list[dict[str, Any]]:
+        """Every description answering for ``embodiment`` (two when two daemons share its name)."""
+        key = keys.request_key(self.mesh, embodiment, "embodiment", "describe")
+        payload = encode(Describe())
+        delay = 0.01
+        while True:
+            left = deadline - time.monotonic()
+            replies = self.transport.get(key, payload, timeout=max(0.01, left))
+            found = []
+            for reply in replies:
                 try:
-                    out.append(future.result())
-                except MeshError as exc:
-                    out.append({"name": name, "error": str(exc)})
+                    outcome = decode(reply.payload, Outcome, where=key) if reply.ok else None
+                except ProtocolError:
+                    continue
+                if outcome is not None and outcome.status == "accepted" and isinstance(outcome.value, dict):
+                    found.append(outcome.value)
+            if found:
+                return found
+            if replies or deadline - time.monotonic() < delay:
+                raise OutcomeUnknown(f"{embodiment} did not describe itself within {max(0.0, left):.1f} s", key=key)
+            self.presence.wait(lambda alive: embodiment not in alive, delay)  # not routed yet: again, soon
+            if embodiment not in self.presence.alive():
+                raise Vanished(f"{embodiment} left the mesh", key=key)
+            delay = min(delay * 2, 0.2)
+
+    def describe_all(self, *, timeout: float = 2.0) -> list[dict[str, Any]]:
+        """Every live embodiment, described, once this session has joined the mesh: it waits (within
+        ``timeout``) until it has described every embodiment that any live daemon sees. One that
+        does not answer is listed with an ``error``; two daemons answering for one name both appear."""
+        deadline = time.monotonic() + timeout
+        presence = self.presence
+        if not presence.wait(lambda alive: bool(alive), timeout):
+            return []
+        changed = threading.Condition()
+        described: dict[str, list[dict[str, Any]]] = {}
+        failed: dict[str, str] = {}
+        pending: dict[str, Future[list[dict[str, Any]]]] = {}
+
+        def wake(*_: object) -> None:
+            with changed:
+                changed.notify_all()
+
+        with presence.listen(wake), ThreadPoolExecutor(max_workers=MAX_PARALLEL_DESCRIBE) as pool:
+            for _ in range(10_000):  # bounded; each round waits for a change or the deadline
+                alive = presence.alive()
+                for name, future in list(pending.items()):
+                    if future.done():
+                        del pending[name]
+                        try:
+                            described[name] = future.result()
+                        except MeshError as exc:
+                            failed[name] = str(exc)
+                for name in sorted(alive - described.keys() - failed.keys() - pending.keys()):
+                    pending[name] = pool.submit(self._describe_replies, name, deadline)
+                    pending[name].add_done_callback(wake)
+                reported = {str(n) for found in described.values() for d in found for n in d.get("alive") or ()}
+                missing = (alive | reported) - described.keys() - failed.keys()
+                left = deadline - time.monotonic()
+                if (not missing and not pending) or left <= 0:
+                    break
+                with changed:
+                    if not any(f.done() for f in pending.values()) and presence.alive() == alive:
+                        changed.wait(min(left, 0.5))
+            for future in pending.values():
+                future.cancel()
+        alive = presence.alive()
+        out: list[dict[str, Any]] = []
+        for name in sorted(described.keys() | failed.keys() | missing):
+            if name in described:
+                out.extend(described[name])
+            elif name in failed:
+                if name in alive:
+                    out.append({"name": name, "error": failed[name]})
+            else:
+                out.append({"name": name, "error": "alive (so say the other daemons) but not reachable from this session"})
         return out
 
-    def wait_for_embodiment(self, embodiment: str, *, timeout: float = 5.0) -> None:
-        """Return once ``embodiment``'s liveliness token is seen, else ``OutcomeUnknown`` naming it."""
-        seen = threading.Event()
-        key = keys.alive_key(self.mesh, embodiment)
-
-        def on_token(token: str, alive: bool) -> None:
-            if alive and token == key:
-                seen.set()
-
-        with self.transport.watch_liveliness(key, on_token):
-            if not seen.wait(timeout):
-                raise OutcomeUnknown(f"embodiment {embodiment!r} not found in mesh {self.mesh!r} within {timeout:g} s"
-                                     " (try `cmion-mesh peers` or `cmion-mesh doctor`)")
-
     def embodiments(self, *, timeout: float = 2.0) -> list[str]:
-        """Names of the embodiments whose liveliness token is present."""
+        """Names of the embodiments whose liveliness token is present (one liveliness query)."""
         names = []
         for key in self.transport.alive(f"{keys.mesh_prefix(self.mesh)}/{keys.ALIVE}/*", timeout=timeout):
             names.append(key.rsplit("/", 1)[-1])
         return sorted(set(names))
 
 
-__all__ = ["Entry", "MeshClient", "OutcomeUnknown"]
+def mesh_problems(described: Sequence[dict[str, Any]]) -> list[str]:
+    """What is wrong in a mesh, from its embodiments' descriptions: two daemons with one name, a
+    companion two embodiments claim, duplicates a daemon reports itself."""
+    problems = []
+    names: dict[str, int] = {}
+    hosts: dict[str, list[str]] = {}
+    for d in described:
+        names[str(d.get("name"))] = names.get(str(d.get("name")), 0) + 1
+        if d.get("inhabitant"):
+            hosts.setdefault(str(d["inhabitant"]), []).append(str(d.get("name")))
+        for twin in d.get("duplicates") or ():
+            problems.append(f"{d.get('name')} (zenoh id {d.get('zenoh_id')}) sees another daemon named {d.get('name')!r} "
+                            f"(zenoh id {twin}) in the mesh")
+    for name, count in sorted(names.items()):
+        if count > 1:
+            where = ", ".join(f"{d.get('host', '?')} pid {d.get('pid', '?')}" for d in described if d.get("name") == name)
+            problems.append(f"DUPLICATE EMBODIMENT: {count} daemons answer as {name!r} ({where})")
+    for companion, embodiments in sorted(hosts.items()):
+        if len(embodiments) > 1:
+            problems.append(f"DUPLICATE COMPANION: {companion!r} is hosted by {' and '.join(sorted(embodiments))}")
+    return list(dict.fromkeys(problems))
+
+
+class ActionRun(Handle):
+    """A mind action on its way: ``wait`` for its report. Follows the manager's end events and the
+    embodiment's liveliness; close it (idempotent) to stop following."""
+
+    def __init__(self, client: MeshClient, embodiment: str, action_id: str, on_end: Callable[[], None] | None) -> None:
+        self.client = client
+        self.embodiment = embodiment
+        self.action_id = action_id
+        self.report: ActionReport | None = None
+        self.vanished = False
+        self.ended = threading.Event()
+        self._on_end = on_end
+        self._started = time.monotonic()
+        self._events = client.events(self._on_event, embodiment=embodiment, component="manager")
+        self._presence = client.presence.listen(self._on_presence)
+        if embodiment not in client.presence.alive():
+            self._end(None)
+
+    def __enter__(self) -> ActionRun:
+        return self
+
+    def _on_event(self, event: Event) -> None:
+        if event.name in ACTION_END_EVENTS and isinstance(event.data, dict) and event.data.get("action_id") == self.action_id:
+            self._end(msgspec.convert(event.data, ActionReport))
+
+    def _on_presence(self, name: str, alive: bool) -> None:
+        if name == self.embodiment and not alive:
+            self._end(None)
+
+    def _end(self, report: ActionReport | None) -> None:
+        if self.ended.is_set():
+            return
+        if report is None:
+            self.vanished = True
+        else:
+            self.report = report
+        self.ended.set()
+        if self._on_end is not None:
+            self._on_end()
+
+    def wait(self, timeout: float) -> ActionReport:
+        """The final report, once the action ends (see ``result``)."""
+        self.ended.wait(timeout)
+        return self.result(timeout)
+
+    def result(self, waited: float) -> ActionReport:
+        """The final report: ``Vanished`` if the embodiment left first; when no end was heard (after
+        ``waited`` seconds) the manager is asked, since an end event may be missed, and
+        ``OutcomeUnknown`` if the action is still running."""
+        key = keys.request_key(self.client.mesh, self.embodiment, "manager", "act")
+        if self.report is not None:
+            return self.report
+        if self.vanished:
+            raise Vanished(f"{self.embodiment} left the mesh {time.monotonic() - self._started:.1f} s into action "
+                           f"{self.action_id}: its outcome is unknown", key=key)
+        status = self.client.request(self.embodiment, "manager", "status", ActionStatus(self.action_id))
+        if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
+            report: ActionReport = msgspec.convert(status.value, ActionReport)
+            return report
+        raise OutcomeUnknown(f"action {self.action_id} on {self.embodiment}: no end heard within {waited:g} s", key=key)
+
+    def close(self) -> None:
+        self._presence.close()
+        self._events.close()
+
+
+__all__ = ["ActionRun", "Entry", "MeshClient", "OutcomeUnknown", "mesh_problems"]

@@ -13,7 +13,6 @@ answers the question with a "yes" gesture. It prints a timeline and ends by itse
 
 from __future__ import annotations
 
-import argparse
 import queue
 import tempfile
 import time
@@ -156,9 +155,10 @@ def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event) -
     return False
 
 
-def run_demo(args: argparse.Namespace) -> int:
+def run_demo(*, mesh: str | None = None) -> int:
+    """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons)."""
     tl = Timeline()
-    mesh = args.mesh if args.mesh != keys.DEFAULT_MESH else unique_mesh("demo")
+    mesh = mesh if mesh and mesh != keys.DEFAULT_MESH else unique_mesh("demo")
     with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
         scenario = start_bodies(mesh, Path(state))

@@ -2,13 +2,13 @@
 
 Looks at the network interfaces (up, multicast-capable, addresses), the effective zenoh settings
 (mode, multicast scouting, endpoints, config file), then joins the mesh briefly and reports the
-zenoh peers it connected to, the embodiments alive in this mesh, and embodiments alive in *other*
+zenoh peers it connected to, the embodiments alive in this mesh (and what is wrong there: two
+daemons with one name, a companion two embodiments claim), and embodiments alive in *other*
 meshes (the most common mistake: a different ``--mesh``).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import socket
 import subprocess
@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from cmion_mesh import keys
+from cmion_mesh.client import MeshClient, mesh_problems
+from cmion_mesh.errors import ExitCode
 from cmion_mesh.transport import TransportConfig
 
 IFF_UP, IFF_LOOPBACK, IFF_MULTICAST = 0x1, 0x8, 0x1000
@@ -70,23 +72,22 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     if not config.multicast and not config.connect:
         report["problems"].append("multicast scouting is off and no --connect endpoint is given: this session can only be found by others")
     started = time.monotonic()
-    with ZenohTransport(config) as transport:
+    with ZenohTransport(config) as transport, MeshClient(transport, mesh) as client:
         opened = time.monotonic() - started
-        seen: set[str] = set()
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and len(seen) < 1000:  # bounded: tokens arrive as links come up
-            seen.update(transport.alive(f"{keys.ROOT}/*/{keys.ALIVE}/*", timeout=max(0.1, min(0.5, deadline - time.monotonic()))))
-            if seen and time.monotonic() - started > 1.0:
-                break
+        # Join this mesh the way every command does (complete: every embodiment any daemon sees),
+        # then look at the other meshes this session reached.
+        described = client.describe_all(timeout=timeout)
+        seen = set(transport.alive(f"{keys.ROOT}/*/{keys.ALIVE}/*", timeout=max(0.1, min(1.0, timeout))))
         report["session"] = {"open_seconds": round(opened, 3), "zenoh_id": transport.id, "connected_to": transport.peers()}
-    here: list[str] = []
+    here = sorted({str(d["name"]) for d in described})
     elsewhere: dict[str, list[str]] = {}
     for key in sorted(seen):
         parts = key.split("/")
-        if parts[1] == mesh:
-            here.append(parts[3])
-        else:
+        if parts[1] != mesh:
             elsewhere.setdefault(parts[1], []).append(parts[3])
+    report["descriptions"] = described
+    report["problems"].extend(mesh_problems(described))
+    report["problems"].extend(f"{d['name']} does not answer: {d['error']}" for d in described if d.get("error"))
     report["embodiments"] = here
     report["other_meshes"] = elsewhere
     if not report["session"]["connected_to"]:
@@ -99,11 +100,15 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     return report
 
 
-def run_doctor(args: argparse.Namespace, config: TransportConfig) -> int:
-    report = diagnose(config, args.mesh, args.timeout)
-    if args.json:
+def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: bool = False) -> int:
+    """Print the diagnosis (``as_json``: one JSON document); 0 when embodiments were found and no
+    duplicate (of a name or of a companion), else 1."""
+    report = diagnose(config, mesh, timeout)
+    healthy = bool(report["embodiments"]) and not any("DUPLICATE" in p for p in report["problems"])
+    code = ExitCode.OK if healthy else ExitCode.FAILED
+    if as_json:
         print(json.dumps(report))
-        return 0 if report["embodiments"] else 1
+        return code
     print("interfaces:")
     for i in report["interfaces"]:
         flags = ", ".join(f for f, on in (("up", i["up"]), ("loopback", i["loopback"]), ("multicast", i["multicast"])) if on)
@@ -114,11 +119,11 @@ def run_doctor(args: argparse.Namespace, config: TransportConfig) -> int:
           + (f", config {z['config_file']}" if z["config_file"] else ""))
     s = report["session"]
     print(f"session {s['zenoh_id']} opened in {s['open_seconds']} s; connected to {len(s['connected_to'])} zenoh node(s)")
-    print(f"embodiments in mesh {args.mesh!r}: {', '.join(report['embodiments']) or 'none'}")
+    print(f"embodiments in mesh {mesh!r}: {', '.join(report['embodiments']) or 'none'}")
     for other, names in report["other_meshes"].items():
         print(f"  (mesh {other!r}: {', '.join(names)})")
     for problem in report["problems"]:
         print(f"problem: {problem}")
     for hint in report["hints"]:
         print(f"hint: {hint}")
-    return 0 if report["embodiments"] else 1
+    return code

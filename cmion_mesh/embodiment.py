@@ -2,27 +2,45 @@
 
 The daemon (``cmion-mesh up``) runs one of these per device; tests and tools can run one in a
 process of their own. A context manager; ``close`` is idempotent and stops everything it started.
+
+With ``join`` (what the daemon passes) it first claims its name in the mesh and refuses to start
+when a live embodiment holds it (``presence.NameClaim``), and a companion it would give birth to
+is not born when a live embodiment already hosts it. With a ``state_dir`` it holds that folder
+(``statedir.StateLock``): two daemons never share one.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import socket
+import threading
 import time
 from collections.abc import Iterable
 from typing import Any
 
 from cmion_mesh import __version__, keys
 from cmion_mesh.architecture import load_architecture
+from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, load_library
+from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
-from cmion_mesh.messages import Describe
+from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
+from cmion_mesh.presence import NameClaim, Presence
 from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
+
+log = logging.getLogger(__name__)
+#: The file in the state folder keeping a store's persistent properties.
+PERSISTENT_FILE = "persistent-{store}.json"
+#: How long a joining daemon asks the mesh who hosts the companion it would give birth to.
+BIRTH_CHECK_TIMEOUT = 2.0
 
 
 class Embodiment:
@@ -41,12 +59,23 @@ class Embodiment:
         state_dir: str | os.PathLike[str] | None = None,
         companion: str | None = None,
         admit: dict[str, bytes | None] | None = None,
+        join: float | None = None,
     ) -> None:
+        """``join``: claim the name in the mesh first, looking that many seconds for the rest of the
+        mesh when nobody answers at once (0 when this session cannot find anyone by itself);
+        ``Refused`` if the name is taken or ``state_dir`` is held by another daemon."""
         self.name = keys.check_name(name, "embodiment")
         self.version = __version__
         self.mesh = keys.check_name(mesh, "mesh")
         self.started_at = time.time()
+        self.state_dir = None if state_dir is None else os.fspath(state_dir)
+        #: Where the companion this embodiment would have given birth to lives instead (not born here).
+        self.companion_elsewhere: str | None = None
         self._owns_transport = transport is None
+        self._token: Closeable | None = None
+        self._claim: NameClaim | None = None
+        self._state_lock: StateLock | None = None
+        self.presence: Presence | None = None
         if transport is None:
             # Imported here for start time: an embodiment on a given transport (the tests' memory
             # transport) never loads zenoh.
@@ -54,9 +83,15 @@ class Embodiment:
 
             transport = ZenohTransport(transport_config)
         self.transport: Transport = transport
-        self._token: Closeable | None = None
         self.sim = Simulation(self.transport, mesh=self.mesh, embodiment=self.name)
         try:
+            if state_dir is not None:
+                self._state_lock = StateLock(state_dir)
+            self.presence = Presence(self.transport, self.mesh)
+            if join is not None:
+                self._claim = NameClaim(self.transport, self.mesh, self.name, window=join, describe=self._where)
+                if companion is not None:
+                    companion = self._unborn_elsewhere(companion)
             self.blackboard = Blackboard()
             self.world_model = WorldModel()
             if world_model_init is not None:
@@ -88,8 +123,11 @@ class Embodiment:
             for component in extra:
                 self.sim.add(component)
             if state_dir is not None:
+                self.blackboard.keep_persistent(os.path.join(state_dir, PERSISTENT_FILE.format(store="blackboard")))
+                self.world_model.keep_persistent(os.path.join(state_dir, PERSISTENT_FILE.format(store="world_model")))
                 self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
+                self.sim.on_event(self._carry_persistent, component=self.migration.name)
         except BaseException:
             self.close()
             raise
@@ -117,10 +155,63 @@ class Embodiment:
     def minds(self) -> list[Mind]:
         return [c for c in self.sim.components if isinstance(c, Mind)]
 
+    def _where(self, name: str) -> str:
+        """Where the live embodiment ``name`` runs, for a refusal (host, pid, zenoh id, up since)."""
+        with MeshClient(self.transport, self.mesh) as client:
+            try:
+                found = client.describe(name, timeout=2.0)
+            except MeshError:
+                return ""
+        since = time.strftime("%H:%M:%S", time.localtime(found.get("started_at", 0))) if found.get("started_at") else "?"
+        return f"on host {found.get('host', '?')}, pid {found.get('pid', '?')}, zenoh id {found.get('zenoh_id', '?')}, up since {since}"
+
+    def _unborn_elsewhere(self, companion: str) -> str | None:
+        """``companion``, or None when a live embodiment of the mesh already hosts it (never born twice)."""
+        with MeshClient(self.transport, self.mesh) as client:
+            for found in client.describe_all(timeout=BIRTH_CHECK_TIMEOUT):
+                if found.get("inhabitant") == companion and found.get("name") != self.name:
+                    self.companion_elsewhere = str(found.get("name"))
+                    log.warning("companion %r already lives on %r: it is not born on %r", companion, self.companion_elsewhere, self.name)
+                    return None
+        return companion
+
+    def _carry_persistent(self, event: Event) -> None:
+        """The world model's persistent properties belong to the companion: packed into its identity
+        when it leaves (a section of the world model's name), set here when it arrives."""
+        migration, world = self.migration, self.world_model
+        if migration is None:
+            return
+        if event.name == "MigrationStarting":
+            try:
+                token = migration.wait(world.name)  # on the loop, before the packing starts
+            except MeshError:
+                return  # the migration ended already
+            migration.resolve(token, {"properties": world.persistent_items()})
+        elif event.name == "MigrationOccurred":
+            section = migration.section(world.name)
+            if isinstance(section, dict):
+                data = event.data if isinstance(event.data, dict) else {}
+                world.restore(section.get("properties"), source=f"the identity of companion {data.get('companion')!r}")
+
+    def _on_duplicate(self, zenoh_ids: list[str]) -> None:
+        """Another daemon answers as this embodiment (two parts of a mesh joined): say so loudly."""
+        assert self._claim is not None
+        keeps = self._claim.keeps_name()
+        rule = ("this one is the older and keeps the name" if keeps else
+                "the other one is older and keeps the name: stop this one")
+        log.error("DUPLICATE EMBODIMENT: another daemon named %r is in mesh %r (zenoh id %s); %s",
+                  self.name, self.mesh, ", ".join(zenoh_ids), rule)
+        self.sim.raise_event("embodiment", "DuplicateEmbodiment",
+                             {"name": self.name, "others": zenoh_ids, "keeps_name": keeps, "rule": rule})
+
     def describe(self) -> dict[str, Any]:
         """What discovery tells other peers about this embodiment (plain data)."""
         return {
             "name": self.name,
+            "alive": sorted(self.presence.alive()) if self.presence is not None else [],
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "duplicates": self._claim.duplicates() if self._claim is not None else [],
             "mesh": self.mesh,
             "competency_types": sorted(self.execution.types()),
             "competencies": [c.name for c in self.execution.competencies],
@@ -129,6 +220,7 @@ class Embodiment:
             "inhabitant": self.inhabitant,
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
+            "damaged": dict(self.migration.damaged) if self.migration is not None else {},
             "version": self.version,
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,
@@ -142,7 +234,15 @@ class Embodiment:
     def start(self) -> Embodiment:
         self.sim.start()
         if self._token is None:
+            # Alive only once every component is attached (stores answer reads from then on): a
+            # client that sees the token may ask at once.
+            attached = threading.Event()
+            self.sim.call(attached.set)
+            if not attached.wait(30.0):
+                raise MeshError(f"embodiment {self.name!r}: the update loop did not start within 30 s")
             self._token = self.transport.declare_token(keys.alive_key(self.mesh, self.name))
+            if self._claim is not None:
+                self._claim.watch_duplicates(self._on_duplicate)
         self.sim.raise_event("embodiment", "EmbodimentReady", {"name": self.name})
         return self
 
@@ -157,6 +257,9 @@ class Embodiment:
         if token is not None:
             token.close()
         self.sim.close()
+        for handle in (self._claim, self.presence, self._state_lock):
+            if handle is not None:
+                handle.close()
         if self._owns_transport:
             self.transport.close()
 

@@ -6,6 +6,8 @@ Callers catch a family (``ConfigError``, ``RequestError``...) or the root ``Mesh
 
 from __future__ import annotations
 
+from enum import IntEnum
+
 
 class MeshError(Exception):
     """Root of every error cmion-mesh raises on purpose."""
@@ -72,6 +74,24 @@ class OutcomeUnknown(RequestError):
     """
 
 
+class NotReached(OutcomeUnknown):
+    """No component was reached at all (zero replies before the deadline): the request was not
+    delivered, so sending it again is safe. A session that has just opened sees this until it has
+    joined the mesh."""
+
+
+class Vanished(OutcomeUnknown):
+    """The embodiment asked left the mesh (its liveliness token went) before answering."""
+
+
+class NotAlive(MeshError):
+    """A named embodiment is not alive in the mesh: nothing was sent to it."""
+
+
+class Refused(MeshError):
+    """A daemon refused to start: it would break "one name, one body" or share a state folder."""
+
+
 class StorageError(MeshError):
     """A blackboard or world-model operation cannot be applied: it refers to a container or
     property that is not there, or clashes with what is.
@@ -91,3 +111,23 @@ class ClosedError(MeshError):
 
 class PlanError(MeshError):
     """A plan step cannot run: a substitution has no value, no competency of its type exists..."""
+
+
+class ExitCode(IntEnum):
+    """The command line's exit codes, the same for every command."""
+
+    OK = 0
+    FAILED = 1  # failed, or refused (a definite "no")
+    USAGE = 2  # usage or configuration error: nothing was tried
+    CANCELLED = 3
+    UNKNOWN = 4  # outcome unknown: no answer, the target vanished
+    INTERRUPTED = 130  # left on a second Ctrl-C without waiting for the outcome
+
+
+def exit_code(exc: BaseException) -> ExitCode:
+    """The exit code that tells what an error means."""
+    if isinstance(exc, OutcomeUnknown):
+        return ExitCode.UNKNOWN
+    if isinstance(exc, ConfigError | InvalidName):
+        return ExitCode.USAGE
+    return ExitCode.FAILED

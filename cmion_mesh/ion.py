@@ -41,7 +41,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from cmion_mesh import keys
-from cmion_mesh.errors import ClosedError, InvalidName, MeshError, OutcomeUnknown, ProtocolError, RequestRejected
+from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, encode, tag
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
@@ -58,6 +58,9 @@ MAX_ITEMS_PER_UPDATE = 10_000
 #: Bound of the per-simulation caches of event keys and of subscriptions matching a key
 #: (cleared when full: they only save work, and remote names are not ours to bound).
 MAX_CACHED_KEYS = 4096
+#: Work waiting for the loop beyond which new requests are answered ``busy`` at once, on the
+#: transport's worker: a flood costs the flooder an answer, not this embodiment's memory.
+MAX_QUEUED = 4096
 DEFAULT_REQUEST_TIMEOUT = 10.0
 #: Longest timer delay: queue.get cannot wait past threading.TIMEOUT_MAX, and a later timer is 'never'.
 MAX_TIMER_DELAY = 30 * 24 * 3600.0
@@ -90,6 +93,10 @@ class IncomingRequest:
             self._answer(outcome)
         except MeshError:  # the requester vanished, or we are closing: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
+
+    def answer(self, outcome: Outcome) -> None:
+        """Send a ready-made outcome (a decision taken elsewhere)."""
+        self._send(outcome)
 
     def accept(self, value: Any = None) -> None:
         self._send(Outcome("accepted", "", check_value(value)))
@@ -385,6 +392,10 @@ class Simulation:
             finally:
                 query.finish()
 
+        if self._inbox.qsize() >= MAX_QUEUED:
+            answer(Outcome("rejected", f"busy: embodiment {self.embodiment!r} has {MAX_QUEUED} requests and events waiting; "
+                                       "try again later", code=Code.BUSY))
+            return
         kind = component.requests.get(name)
         if kind is None:
             known = ", ".join(sorted(component.requests)) or "none"
@@ -662,13 +673,18 @@ class Simulation:
 def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
     """Send one request as a zenoh query and return its ``Outcome``.
 
-    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable.
+    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable;
+    ``NotReached`` when no component was reached at all (not delivered: safe to send again).
     """
+    started = time.monotonic()
     try:
         replies = transport.get(key, encode(payload), timeout=timeout)
     except MeshError as exc:
         raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
     if not replies:
+        waited = time.monotonic() - started
+        if waited < timeout * 0.9:  # zero replies before the deadline: no queryable was reached at all
+            raise NotReached(f"no component answered {key}: nobody reached (after {waited:.2f} s)", key=key)
         raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
     reply = replies[0]
     if not reply.ok:

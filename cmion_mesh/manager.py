@@ -51,6 +51,8 @@ class _Active:
 
 #: Longest plan deadline an action may ask for (a day).
 MAX_DEADLINE = 24 * 3600.0
+#: Actions running at once; more are refused ``busy`` (a flood of actions must not queue for minutes).
+MAX_RUNNING = 64
 
 
 class CompetencyManager(Component):
@@ -104,6 +106,9 @@ class CompetencyManager(Component):
         if len(act.action_id) > keys.MAX_NAME:
             request.reject(f"action id {act.action_id[:40]!r}... is longer than {keys.MAX_NAME} characters", Code.INVALID)
             return
+        if len(self._active) >= MAX_RUNNING:
+            request.reject(f"busy: {MAX_RUNNING} actions are running on {self.sim.embodiment!r}; try again later", Code.BUSY)
+            return
         action = MindAction(act.name, tuple(act.parameters), act.subject)
         action_id = act.action_id or f"{self.sim.embodiment}-{next(self._ids)}"
         if action_id in self._active:
@@ -112,7 +117,7 @@ class CompetencyManager(Component):
         act = msgspec.structs.replace(act, action_id=action_id)
         rules = self.rules.candidates(action)
         if not rules:
-            reason = f"no rule matches action {action.describe()!r}"
+            reason = f"no rule matches action {action.describe()!r}: {self.rules.why_no_match(action)}"
             request.reject(reason, Code.NOT_FOUND)
             self._report("ActionFailed", act, "failed", reason)
             return

@@ -109,16 +109,6 @@ class Event(Message, frozen=True, tag="event"):
     time: float = 0.0
 
 
-class Request(Message, frozen=True, tag="request"):
-    """The untyped request of old, still taken by ``.../rq/migration/policy`` only (``args.accepts``).
-
-    Every other request has its own Struct; this one gives way to ``SetPolicy``.
-    """
-
-    args: dict[str, Value] = {}
-    requester: str = ""
-
-
 Status = Literal["accepted", "rejected", "conflict"]
 
 
@@ -272,27 +262,33 @@ class Migrate(Message, frozen=True, tag="migrate"):
 
 
 class MigratePrepare(Message, frozen=True, tag="migrate_prepare"):
-    """Source -> target: store this identity durably and say prepared (``.../rq/migration/prepare``)."""
+    """Source -> target: store this identity durably and say prepared (``.../rq/migration/prepare/<source>``).
+
+    ``chain`` is the companion's chain of custody (``custody.encode_chain``), ``proof`` the source's
+    signature over the ``custody.Offer`` made of these fields, by the custody key at the chain's head.
+    The answer's value is ``{"state": "prepared", "custody_key": <base64>}``: the target's fresh key."""
 
     companion: str
     epoch: int
+    seq: int
     attempt: str
     source: str
     target: str
     document: bytes
-    envelope: bytes = b""  # canonical MessagePack of ``signing.Envelope``
-    signature: bytes = b""  # Ed25519 by the companion's key over ``envelope``
-    companion_key: bytes = b""  # the companion's private key: it lives with the companion
+    chain: bytes
+    proof: bytes
 
 
 class MigrateCommit(Message, frozen=True, tag="migrate_commit"):
-    """Source -> target, after the source recorded ``handed``: become the companion's home."""
+    """Source -> target, after the source recorded ``handed``: become the companion's home. ``link``
+    (a MessagePack ``custody.Link``) hands custody at ``epoch + 1`` to the target's fresh key."""
 
     companion: str
     epoch: int
     attempt: str
     source: str
     target: str
+    link: bytes
 
 
 class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
@@ -301,24 +297,27 @@ class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
     attempt: str
 
 
-class MigrateStatus(Message, frozen=True, tag="migrate_status"):
-    """Target -> source after a restart: what became of this attempt? (committed/aborted/pending)."""
-
-    companion: str
-    attempt: str
-
-
 class SetPolicy(Message, frozen=True, tag="set_policy"):
-    """The embodiments the hosted companion accepts, ``None`` for any (``.../rq/migration/policy``).
-
-    Required, so that clearing the policy is said (``accepts: nil``), never implied by a map
-    that forgot the field."""
+    """Set the companion's own policy (``.../rq/migration/policy``): the embodiments it accepts, or
+    null for any. It is part of its identity, so it travels with it. ``accepts`` is required, so
+    that clearing the policy is said, never implied by a map that forgot the field."""
 
     accepts: list[str] | None
 
 
+class MigrateStatus(Message, frozen=True, tag="migrate_status"):
+    """What became of an attempt? Asked of its source by a target that is ``incoming`` (``of="source"``:
+    pending/committed/aborted, with the custody link when committed), and of its target by a source
+    whose commit was refused (``of="target"``: incoming/committed/dropped)."""
+
+    companion: str
+    attempt: str
+    epoch: int = 0
+    of: Literal["source", "target"] = "source"
+
+
 AnyMessage = (
-    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
+    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Outcome
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy
@@ -356,7 +355,7 @@ def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
         raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
     if isinstance(message, _Untagged):
         raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
-    for field in ("value", "data", "args", "parameters"):
+    for field in ("value", "data", "parameters"):
         if hasattr(message, field):
             try:
                 check_value(getattr(message, field))

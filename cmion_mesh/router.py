@@ -16,50 +16,28 @@ for a host with one interface per LAN; peers arriving by any other interface for
 
 It goes through the transport layer (``ZenohTransport`` in router mode, the regions as config
 overrides) like every other process, so ``zenoh_transport`` stays the only module that imports
-zenoh. Run it as ``cmion-mesh router ...`` or ``python -m cmion_mesh.router ...``.
+zenoh. Run it as ``cmion-mesh router ...``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import socket
 import sys
 import threading
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from cmion_mesh.errors import MeshError
+from cmion_mesh.errors import ExitCode, MeshError, exit_code
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
-EXIT_OK, EXIT_FAILED = 0, 1
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 READY = "router up"
 #: Only peers and clients are sorted into LANs: a router matched by no filter stays "north",
 #: a router-to-router link, which is what chaining with --connect needs.
 _SOUTH_MODES = ["peer", "client"]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the router's options; they replace the common mesh options (a router has no mesh)."""
-    parser.add_argument("--listen", action="append", metavar="ENDPOINT",
-                        help=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})")
-    parser.add_argument("--connect", action="append", metavar="ENDPOINT",
-                        help="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable")
-    parser.add_argument("--config", metavar="FILE",
-                        help="zenoh JSON5 configuration file (the options here override it, its gateway too unless --no-lans)")
-    parser.add_argument("--no-multicast", action="store_true",
-                        help="do not answer or send multicast scouting (peers must --connect to the router)")
-    parser.add_argument("--multicast-interface", metavar="IFACE",
-                        help="interface for multicast scouting (default: zenoh's choice, 'auto')")
-    lans = parser.add_mutually_exclusive_group()
-    lans.add_argument("--lan", action="append", metavar="IFACE",
-                      help="peers reaching the router through IFACE form one LAN, and the router forwards between LANs; "
-                           "repeatable (default: each network interface of this host is a LAN)")
-    lans.add_argument("--no-lans", action="store_true",
-                      help="leave zenoh's regions as they are (all peers of this router in one region assumed fully connected: "
-                           "the router then forwards only between its clients, its peers and other routers)")
 
 
 def host_interfaces() -> list[str]:
@@ -78,38 +56,49 @@ def gateway_south(lans: Sequence[str]) -> list[dict[str, Any]]:
     return regions
 
 
-def lans_of(args: argparse.Namespace) -> list[str] | None:
-    """The LAN interfaces to configure, or None to leave zenoh's regions alone."""
-    if getattr(args, "no_lans", False):
-        return None
-    lans: list[str] = list(dict.fromkeys(getattr(args, "lan", None) or host_interfaces()))
-    return lans
+@dataclass(frozen=True, slots=True)
+class RouterOptions:
+    """How to run the router. ``lans``: the interfaces whose peers form one LAN each; empty means
+    every interface of this host (``host_interfaces``); None leaves zenoh's regions as they are."""
+
+    listen: tuple[str, ...] = (DEFAULT_LISTEN,)
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+    multicast: bool = True
+    multicast_interface: str | None = None
+    lans: tuple[str, ...] | None = ()
+
+    def lan_interfaces(self) -> list[str] | None:
+        """The LAN interfaces to configure, or None to leave zenoh's regions alone."""
+        if self.lans is None:
+            return None
+        return list(dict.fromkeys(self.lans or host_interfaces()))
 
 
-def transport_config(args: argparse.Namespace) -> TransportConfig:
-    lans = lans_of(args)
+def transport_config(options: RouterOptions) -> TransportConfig:
+    lans = options.lan_interfaces()
     # The whole "gateway" object: zenoh refuses to insert below it while "south" is unset (null).
     overrides = () if lans is None else (("gateway", json.dumps({"south": gateway_south(lans)})),)
     return TransportConfig(
         mode="router",
-        listen=tuple(args.listen or (DEFAULT_LISTEN,)),
-        connect=tuple(args.connect or ()),
-        config_file=args.config,
-        multicast=not args.no_multicast,
-        multicast_interface=getattr(args, "multicast_interface", None),
+        listen=options.listen or (DEFAULT_LISTEN,),
+        connect=options.connect,
+        config_file=options.config_file,
+        multicast=options.multicast,
+        multicast_interface=options.multicast_interface,
         overrides=overrides,
     )
 
 
-def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+def run(options: RouterOptions, stop: threading.Event | None = None) -> int:
     """Run until SIGINT/SIGTERM (or ``stop`` is set): 0 after a clean close, 1 if it cannot start."""
     from cmion_mesh.zenoh_transport import ZenohTransport  # lazy: the CLI builds its parser without zenoh
 
     # Signals are blocked before the session's threads start, then collected by the main thread.
     stopper = Stopper() if stop is None else None
     try:
-        config = transport_config(args)
-        lans = lans_of(args)
+        config = transport_config(options)
+        lans = options.lan_interfaces()
         missing = sorted(set(lans or ()) - {name for _, name in socket.if_nameindex()})
         if missing:  # not fatal: an interface may come up later (a VPN)
             print(f"warning: no interface named {', '.join(missing)} on this host (yet)", file=sys.stderr, flush=True)
@@ -125,18 +114,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             else:
                 assert stop is not None
                 stop.wait()
-    except MeshError as exc:  # the CLI would catch it too; handled here so both entry points behave alike
+    except MeshError as exc:
         print(f"error: {exc}", file=sys.stderr, flush=True)
-        return EXIT_FAILED
+        return exit_code(exc)
     print("router stopped", flush=True)
-    return EXIT_OK
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="cmion-mesh router", description="Run a zenoh router for cmion-mesh.")
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return ExitCode.OK

@@ -46,6 +46,7 @@ Differences from CMION 2011:
 
 from __future__ import annotations
 
+import difflib
 import os
 import re
 from collections.abc import Callable, Collection, Iterable
@@ -211,6 +212,17 @@ class RuleSet:
         File order, each pattern once.
         """
         return list(dict.fromkeys(r.describe() for r in self.rules))
+
+    def why_no_match(self, action: MindAction) -> str:
+        """Why no rule matches ``action``: what the rules of that name accept (``*`` = anything), or
+        the action names there are, with a ``did you mean``."""
+        same = list(dict.fromkeys(r.describe() for r in self.rules if r.name in (action.name, WILDCARD)))
+        if same:
+            return f"the rules accept: {'; '.join(same)}"
+        names = sorted({r.name for r in self.rules})
+        close = difflib.get_close_matches(action.name, names, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        return f"no rule is named {action.name!r} (actions: {', '.join(names) or 'none'}){hint}"
 
     def types(self) -> set[str]:
         """Every competency type some step uses."""

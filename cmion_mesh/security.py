@@ -15,11 +15,13 @@ What a trusted **embodiment** ``X`` may do (checked by every member on its links
 
     publish, delete, answer, declare queryables    cmion/<mesh>/X/**
     query and subscribe                             cmion/<mesh>/X/**
-    liveliness tokens                               cmion/<mesh>/@alive/X, cmion/<mesh>/@competency/X/**
+    liveliness tokens                               cmion/<mesh>/@alive/X, cmion/<mesh>/@competency/X/**,
+                                                    cmion/<mesh>/@custody/X/**, cmion/<mesh>/@claim/X/*
     subscribe to others' public keys                cmion/<mesh>/*/{bb,wm,ev}/**
     query others' public keys                       cmion/<mesh>/*/{bb,wm}/**, cmion/<mesh>/*/rq/embodiment/describe
     migration handshake, as sender X only           cmion/<mesh>/*/rq/migration/*/X
-    liveliness queries and subscriptions            cmion/<mesh>/@alive/**, cmion/<mesh>/@competency/**
+    liveliness queries and subscriptions            cmion/<mesh>/@alive/**, cmion/<mesh>/@competency/**,
+                                                    cmion/<mesh>/@custody/**, cmion/<mesh>/@claim/**
 
 and what a member sends to ``X`` (egress) is limited to what ``X`` may read. An **operator**
 (administrator's tools) may do anything under ``cmion/<mesh>/``.
@@ -34,7 +36,6 @@ reach the session through ``TransportConfig.overrides``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from collections.abc import Iterable, Sequence
@@ -103,7 +104,8 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     """
     m = keys.mesh_prefix(mesh)
     alive, competency = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}"
-    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**"]
+    custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
+    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**"]
     if mode == "client":
         names = sorted(trust.names)
         for name in names:
@@ -114,7 +116,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
                 "policies": [{"id": "my-router", "rules": ["from-my-router"], "subjects": [f"member:{n}" for n in names]}] if names else []}
     subscribe_public = [f"{m}/*/{keys.BLACKBOARD}/**", f"{m}/*/{keys.WORLD_MODEL}/**", f"{m}/*/{keys.EVENTS}/**"]
     query_public = [f"{m}/*/{keys.BLACKBOARD}/**", f"{m}/*/{keys.WORLD_MODEL}/**", f"{m}/*/{keys.REQUESTS}/embodiment/describe"]
-    liveliness_public = [f"{alive}/**", f"{competency}/**"]
+    liveliness_public = [f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**"]
     rules = [
         # What any trusted embodiment may do and be sent.
         _rule("public-subscribe", ["ingress"], ["declare_subscriber"], subscribe_public),
@@ -123,7 +125,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
         _rule("send-public-data", ["egress"], ["put", "delete"], subscribe_public),
         _rule("send-public-replies", ["egress"], ["reply"], query_public),
         _rule("send-public-queries", ["egress"], ["query"], query_public),
-        _rule("send-tokens", ["egress"], ["liveliness_token"], [f"{alive}/*", f"{competency}/**"]),
+        _rule("send-tokens", ["egress"], ["liveliness_token"], [f"{alive}/*", f"{competency}/**", f"{custody}/**", f"{claim}/**"]),
         _rule("send-declarations", ["egress"], ["declare_subscriber", "declare_queryable"], [f"{m}/**"]),
     ]
     shared = [r["id"] for r in rules]
@@ -142,7 +144,8 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
         mine = [
             _rule(f"{name}:own", ["ingress"],
                   ["put", "delete", "declare_queryable", "reply", "declare_subscriber", "query"], [own]),
-            _rule(f"{name}:tokens", ["ingress"], ["liveliness_token"], [f"{alive}/{name}", f"{competency}/{name}/**"]),
+            _rule(f"{name}:tokens", ["ingress"], ["liveliness_token"],
+                  [f"{alive}/{name}", f"{competency}/{name}/**", f"{custody}/{name}/**", f"{claim}/{name}/*"]),
             _rule(f"{name}:handshakes", ["ingress"], ["query"], [handshakes]),
             _rule(f"{name}:send-own", ["egress"], ["put", "delete", "query", "reply"], [own]),
             _rule(f"{name}:send-handshake-replies", ["egress"], ["reply"], [handshakes]),
@@ -288,47 +291,36 @@ def config_json5(directory: str | os.PathLike[str], name: str, mesh: str, **opti
     return header + json.dumps(doc, indent=2) + "\n"
 
 
-# --- command line -----------------------------------------------------------------------------------
+# --- what a process runs as ------------------------------------------------------------------------
 
 
-def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--certs DIR``, ``--identity NAME`` and ``--verify-names``, for every command that joins a mesh."""
-    parser.add_argument("--certs", metavar="DIR",
-                        help="certificates folder (cmion-mesh certs): speak zenoh over mutual TLS only, with access control")
-    parser.add_argument("--identity", metavar="NAME",
-                        help="which certificate of DIR to use (default: the embodiment's name where the command has one)")
-    parser.add_argument("--verify-names", action="store_true",
-                        help="with --certs: also check that a peer's certificate names the address dialled (SANs)")
-
-
-def identity(args: argparse.Namespace, name: str | None = None) -> str:
-    """Who this process speaks as: ``--identity``, else ``name`` (the embodiment), else the one
-    private key in the certificates folder (a member's folder holds its own key only)."""
-    chosen = getattr(args, "identity", None) or name
+def choose_identity(directory: str | os.PathLike[str], chosen: str | None = None) -> str:
+    """Who this process speaks as: ``chosen`` (``--identity``, else the embodiment's name), else the
+    one private key in the certificates folder (a member's folder holds its own key only)."""
     if chosen:
-        return str(chosen)
-    owned = sorted(p.stem for p in Path(args.certs).glob("*.key") if p.name != certs.CA_KEY)
+        return chosen
+    owned = sorted(p.stem for p in Path(directory).glob("*.key") if p.name != certs.CA_KEY)
     if len(owned) == 1:
         return owned[0]
-    raise ConfigError(f"--certs needs --identity NAME: which certificate of {args.certs} this process speaks as "
+    raise ConfigError(f"--certs needs --identity NAME: which certificate of {directory} this process speaks as "
                       f"({', '.join(owned) or 'it holds no private key'})")
 
 
-def apply(args: argparse.Namespace, config: TransportConfig, *, name: str | None = None) -> TransportConfig:
-    """``config`` unchanged without ``--certs``; else made secure as ``--identity`` (or ``name``) in ``args.mesh``."""
-    directory = getattr(args, "certs", None)
-    if not directory:
+def apply(config: TransportConfig, *, certs_dir: str | os.PathLike[str] | None, mesh: str, identity: str | None = None,
+          name: str | None = None, verify_names: bool = False) -> TransportConfig:
+    """``config`` unchanged without a certificates folder; else made secure as ``identity`` (or
+    ``name``, the embodiment) in ``mesh``."""
+    if not certs_dir:
         return config
-    return secure(config, directory, identity(args, name), args.mesh, verify_names=bool(getattr(args, "verify_names", False)))
+    return secure(config, certs_dir, choose_identity(certs_dir, identity or name), mesh, verify_names=verify_names)
 
 
-def describe(args: argparse.Namespace, *, name: str | None = None) -> str:
+def describe(*, certs_dir: str | os.PathLike[str] | None, identity: str | None = None, name: str | None = None) -> str:
     """One line for a daemon to print at start: which mode it runs in."""
-    directory = getattr(args, "certs", None)
-    if not directory:
+    if not certs_dir:
         return PLAIN_WARNING
-    who = identity(args, name)
-    cred = load_credentials(directory, who)
-    trust = certs.Trust.load(directory)
+    who = choose_identity(certs_dir, identity or name)
+    cred = load_credentials(certs_dir, who)
+    trust = certs.Trust.load(certs_dir)
     return (f"secure mode: mutual TLS only, as {who!r} ({cred.role}) under authority {cred.authority!r}; "
             f"access control admits {len(trust.names)} name(s): {', '.join(sorted(trust.names))}")

@@ -15,6 +15,12 @@ A plain zenoh ``get`` on a key or wildcard answers the current values; a plain s
 every change (a put of the new ``Property``/``Container``, a delete when removed). Writes are
 requests to ``.../rq/<store>/<set_property|remove_property|add_container|remove_container>``.
 
+*Persistent* properties survive a restart of their daemon: with a state folder (``keep_persistent``)
+a store saves them (with the kinds of the containers holding them) after every write that
+changes one, and restores them over the init file at start. The world model's persistent
+properties also belong to the companion: they travel with it when it migrates (see
+``embodiment``), and overwrite the target's values of the same names; the source keeps its copy.
+
 Mediation policy (CMION's): within one update, the *first* write to a property (or to a
 sub-container name) wins; later writes to the same name in that update get ``conflict``.
 Writes to a missing container, or that clash with an existing name of the other sort, are
@@ -26,10 +32,12 @@ Writes to a missing container, or that clash with an existing name of the other 
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -52,7 +60,10 @@ from cmion_mesh.messages import (
     encode,
     tag,
 )
+from cmion_mesh.statedir import write_atomic
 from cmion_mesh.transport import IncomingQuery
+
+log = logging.getLogger(__name__)
 
 #: Deepest container path (a store's tree is walked recursively).
 MAX_CONTAINER_DEPTH = 32
@@ -107,6 +118,8 @@ class Store(Component):
         self._lock = threading.RLock()
         self._prefix = ""
         self._reads: Any = None
+        self._persist_path: Path | None = None
+        self._persist_dirty = False
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -199,6 +212,77 @@ class Store(Component):
         finally:
             query.finish()
 
+    # --- persistence --------------------------------------------------------------------------
+
+    def persistent_items(self) -> list[dict[str, Any]]:
+        """Every persistent property: ``{"path", "kinds", "name", "value"}`` (``kinds``: of the
+        containers on ``path``), plain data for a file or a companion's identity."""
+        items: list[dict[str, Any]] = []
+
+        def walk(node: Node, path: tuple[str, ...], kinds: tuple[str, ...]) -> None:
+            for name, prop in node.properties.items():
+                if prop.persistent:
+                    items.append({"path": list(path), "kinds": list(kinds), "name": name, "value": prop.value})
+            for name, child in node.children.items():
+                walk(child, (*path, name), (*kinds, child.kind))
+
+        with self._lock:
+            walk(self.root, (), ())
+        return items
+
+    def restore(self, items: Any, *, source: str) -> int:
+        """Set the persistent properties ``items`` (as ``persistent_items`` gives them), adding the
+        containers they need; an item that does not fit is skipped with a warning naming ``source``.
+        Returns how many were set."""
+        restored = 0
+        saving, self._persist_path = self._persist_path, None  # one save at the end, not one per item
+        try:
+            restored = self._restore(items, source)
+        finally:
+            self._persist_path = saving
+        self._save_persistent()
+        return restored
+
+    def _restore(self, items: Any, source: str) -> int:
+        restored = 0
+        for item in items if isinstance(items, list) else []:
+            try:
+                path = keys.split_path([str(p) for p in item["path"]])
+                kinds = [str(k) for k in item["kinds"]]
+                if len(kinds) != len(path):
+                    raise ValueError("path and kinds differ in length")
+                for depth, (chunk, kind) in enumerate(zip(path, kinds, strict=True)):
+                    if not self.has_container(path[: depth + 1]):
+                        self.apply_now(AddContainer(_join(path[:depth]), chunk, kind))
+                self.apply_now(SetProperty(_join(path), str(item["name"]), item["value"], True))
+                restored += 1
+            except (KeyError, TypeError, ValueError, StorageError) as exc:
+                log.warning("%s: persistent property %r not restored: %s", source, item, exc)
+        return restored
+
+    def keep_persistent(self, path: str | os.PathLike[str]) -> int:
+        """Restore the persistent properties saved at ``path`` (if any), and save them there after
+        every write that changes one. Returns how many were restored."""
+        file = Path(path)
+        restored = 0
+        if file.exists():
+            try:
+                items = msgspec.json.decode(file.read_bytes())
+            except (OSError, msgspec.DecodeError) as exc:
+                raise ConfigError(f"unreadable persistent properties: {exc}", path=str(file)) from None
+            restored = self.restore(items, source=str(file))
+        self._persist_path = file
+        return restored
+
+    def _save_persistent(self) -> None:
+        if self._persist_path is None or not self._persist_dirty:
+            return
+        self._persist_dirty = False
+        try:
+            write_atomic(self._persist_path, msgspec.json.encode(self.persistent_items()))
+        except OSError as exc:
+            log.error("%s: persistent properties not saved to %s: %s", self.name, self._persist_path, exc)
+
     # --- writing (on the loop) ----------------------------------------------------------------
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
@@ -217,12 +301,14 @@ class Store(Component):
                 else:
                     request.accept()
                     changes.append(change)
+        self._save_persistent()
         self._publish(changes)
 
     def apply_now(self, write: StorageWrite) -> None:
         """Apply one write outside mediation (loading, restoring); raises ``StorageError``."""
         with self._lock:
             change = self._apply(write, set())
+        self._save_persistent()
         if self._sim is not None and self._prefix:
             self._publish([change])
 
@@ -253,12 +339,15 @@ class Store(Component):
                     raise StorageError(f"{where} is a container, not a property", code=Code.INVALID)
                 value = check_value(value)
                 wire = encode(Property(value, persistent))
+                old = node.properties.get(name)
+                self._persist_dirty |= persistent or (old is not None and old.persistent)
                 node.properties[name] = _Prop(value, persistent, wire)
                 change = StorageChange("set_property", _join(path), name, value, persistent)
             case RemoveProperty():
                 prop = node.properties.pop(name, None)
                 if prop is None:
                     raise StorageError(f"{where}: no such property", code=Code.NOT_FOUND)
+                self._persist_dirty |= prop.persistent
                 change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
             case AddContainer(kind=kind):
                 if len(path) >= MAX_CONTAINER_DEPTH:
@@ -275,6 +364,7 @@ class Store(Component):
                 if name not in node.children:
                     raise StorageError(f"{where}: no such container", code=Code.NOT_FOUND)
                 child = node.children.pop(name)
+                self._persist_dirty = True  # it may have held persistent properties
                 change = StorageChange("remove_container", _join(path), name, kind=child.kind)
         written.add(full)
         return change.op, change, full, wire

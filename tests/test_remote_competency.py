@@ -34,7 +34,7 @@ RULES = """<CompetencyManagerRules>
 def robot(tmp_path: Path, mesh: str) -> Iterator[str]:
     rules = tmp_path / "rules.xml"
     rules.write_text(RULES)
-    daemon, endpoint = start_daemon(mesh, "robot", "--rules", str(rules))
+    daemon, endpoint = start_daemon(mesh, "robot", "--rules", str(rules), "--remote-type", "Arm")
     with daemon:
         yield endpoint
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import certs, keys, security
+from cmion_mesh import certs, cli, keys, security
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, StorageError
 from cmion_mesh.messages import SetProperty
@@ -86,7 +86,7 @@ def start_secure_daemon(pki: Pki, tmp: Path, mesh: str, name: str, *extra: str, 
     argv = ["config", str(pki.dir), name, "--mesh", mesh, "--listen", endpoint, "--no-multicast", "-o", str(config)]
     if connect:
         argv += ["--connect", connect]
-    assert certs.main(argv) == 0
+    assert cli.main(["certs", *argv]) == 0
     daemon = Daemon(cli_argv("up", "--name", name, "--mesh", mesh, "--config", str(config), "--no-multicast", *extra), name=name)
     try:
         daemon.wait_line("up in mesh", 30)
@@ -418,17 +418,17 @@ def test_certs_commands(tmp_path: Path) -> None:
     d = tmp_path / "pki"
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "cmion_mesh.certs", *args], capture_output=True, text=True, timeout=60)
+        return subprocess.run(cli_argv("certs", *args), capture_output=True, text=True, timeout=60)
 
     missing = run("issue", str(tmp_path / "none"), "robot")
-    assert missing.returncode == 1 and "certificate not found" in missing.stderr and "ca.pem" in missing.stderr
+    assert missing.returncode == 2 and "certificate not found" in missing.stderr and "ca.pem" in missing.stderr  # configuration
     assert run("init", str(d)).returncode == 0
-    assert run("init", str(d)).returncode == 1  # never overwrites an authority silently
+    assert run("init", str(d)).returncode == 2  # never overwrites an authority silently
     out = run("issue", str(d), "robot", "--san", "robot.lan", "--san", "192.168.1.20")
     assert out.returncode == 0, out.stderr
     assert run("issue", str(d), "tablet", "--no-trust").returncode == 0
     refused = run("issue", str(d), "robot.lan")
-    assert refused.returncode == 1 and "contains '.'" in refused.stderr
+    assert refused.returncode == 2 and "contains '.'" in refused.stderr
     assert stat.S_IMODE(d.stat().st_mode) == 0o700
     for private in ("ca.key", "robot.key", "tablet.key"):
         assert stat.S_IMODE((d / private).stat().st_mode) == 0o600
@@ -450,32 +450,26 @@ def test_certs_commands(tmp_path: Path) -> None:
 
 
 def test_apply_turns_a_plain_config_secure(pki: Pki) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--mesh", default="m")
-    security.add_arguments(parser)
     plain = TransportConfig(listen=("tcp/0.0.0.0:7447",), connect=("tcp/10.0.0.2:7447",))
-    args = parser.parse_args([])
-    assert security.apply(args, plain) is plain
-    assert security.describe(args).startswith("plain mode")
-    args = parser.parse_args(["--certs", str(pki.dir)])
+    assert security.apply(plain, certs_dir=None, mesh="m") is plain
+    assert security.describe(certs_dir=None).startswith("plain mode")
     with pytest.raises(ConfigError, match="--identity"):
-        security.apply(args, plain)
-    config = security.apply(args, plain, name="robot")
+        security.apply(plain, certs_dir=pki.dir, mesh="m")
+    config = security.apply(plain, certs_dir=pki.dir, mesh="m", name="robot")
     assert config.listen == ("tls/0.0.0.0:7447",) and config.connect == ("tls/10.0.0.2:7447",)
     overrides = dict(config.overrides)
     assert json.loads(overrides["transport/link/protocols"]) == ["tls"]
     assert json.loads(overrides["listen/endpoints"]) == ["tls/0.0.0.0:7447"]
     assert json.loads(overrides["access_control"])["policies"]
-    assert "secure mode" in security.describe(args, name="robot") and "'robot' (embodiment)" in security.describe(args, name="robot")
+    described = security.describe(certs_dir=pki.dir, name="robot")
+    assert "secure mode" in described and "'robot' (embodiment)" in described
     # no endpoint given: a TLS listener, never zenoh's default tcp/[::]:0
-    bare = security.apply(parser.parse_args(["--certs", str(pki.dir), "--identity", "admin"]), TransportConfig())
+    bare = security.apply(TransportConfig(), certs_dir=pki.dir, mesh="m", identity="admin")
     assert json.loads(dict(bare.overrides)["listen/endpoints"]) == [security.DEFAULT_LISTEN]
     with pytest.raises(ConfigError, match="only TLS"):
-        security.apply(args, TransportConfig(listen=("udp/0.0.0.0:7447",)), name="robot")
+        security.apply(TransportConfig(listen=("udp/0.0.0.0:7447",)), certs_dir=pki.dir, mesh="m", name="robot")
     with pytest.raises(ConfigError, match="not in the trust list"):
-        security.apply(parser.parse_args(["--certs", str(pki.dir), "--identity", "intruder"]), plain)
+        security.apply(plain, certs_dir=pki.dir, mesh="m", identity="intruder")
 
 
 def test_cli_flag_when_wired(pki: Pki, mesh: str) -> None:

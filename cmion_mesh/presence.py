@@ -1,0 +1,195 @@
+"""Who is alive in a mesh, as one session sees it, and the claim a daemon makes on its name.
+
+A daemon declares the liveliness token ``cmion/<mesh>/@alive/<name>`` once it serves requests.
+A session that has just opened knows nobody: tokens arrive as its links come up (tens of ms).
+``Presence`` keeps the set of live embodiments current from a liveliness watch, so that a
+one-shot command can *join, then ask*: wait, with a deadline, for the embodiments it needs.
+
+One name, one body: before it declares ``@alive/<name>``, a daemon declares a claim
+``cmion/<mesh>/@claim/<name>/<rank>`` (``rank``: its start time in ns, then its zenoh id, so claims
+sort by age the same way everywhere), joins the mesh and refuses to start when ``@alive/<name>``
+is already there or an older claim is (two started at the same moment: the older wins). The
+winner keeps its claim for its life; a claim that appears later and stays longer than a
+newcomer needs to decide (``DUPLICATE_GRACE``) is a duplicate: two parts of a mesh that could
+not see each other have joined. ``NameClaim.duplicates`` names them; the embodiment says so loudly.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from cmion_mesh import keys
+from cmion_mesh.errors import Refused
+from cmion_mesh.transport import Closeable, Handle, Transport
+
+#: After the first sign of another member, how long a joining daemon waits for the rest of the
+#: mesh's tokens (peers found by scouting connect at about the same time).
+SETTLE = 0.2
+#: A foreign claim on our name older than this is not a newcomer deciding: it is a duplicate.
+DUPLICATE_GRACE = 5.0
+
+Listener = Callable[[str, bool], None]
+
+
+class Presence(Handle):
+    """The embodiments alive in ``mesh`` as this session sees them, kept current by a liveliness watch."""
+
+    def __init__(self, transport: Transport, mesh: str) -> None:
+        self.mesh = keys.check_name(mesh, "mesh")
+        self._alive: set[str] = set()
+        self._cond = threading.Condition()
+        self._listeners: list[Listener] = []
+        self._watch = transport.watch_liveliness(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", self._on_token)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        with self._cond:
+            if alive:
+                self._alive.add(name)
+            else:
+                self._alive.discard(name)
+            listeners = list(self._listeners)
+            self._cond.notify_all()
+        for listener in listeners:
+            listener(name, alive)
+
+    def alive(self) -> set[str]:
+        with self._cond:
+            return set(self._alive)
+
+    def wait(self, predicate: Callable[[set[str]], bool], timeout: float) -> bool:
+        """Wait until ``predicate(alive names)`` holds; False when ``timeout`` passes first."""
+        with self._cond:
+            return self._cond.wait_for(lambda: predicate(self._alive), max(0.0, timeout))
+
+    def listen(self, listener: Listener) -> Closeable:
+        """``listener(name, alive)`` on every change from now on (on the transport's worker)."""
+        with self._cond:
+            self._listeners.append(listener)
+        presence = self
+
+        class _Stop(Handle):
+            def close(self) -> None:
+                with presence._cond:
+                    if listener in presence._listeners:
+                        presence._listeners.remove(listener)
+
+        return _Stop()
+
+    def close(self) -> None:
+        self._watch.close()
+
+
+class NameClaim(Handle):
+    """This daemon's claim on ``name`` in ``mesh``; raises ``Refused`` if the name is taken.
+
+    ``window``: how long to look for the rest of the mesh when nobody has been seen yet (0 when
+    this session has no way to find anyone: it can only be found). ``describe(name)`` words where
+    the other holder runs, for the refusal.
+    """
+
+    def __init__(self, transport: Transport, mesh: str, name: str, *, window: float,
+                 describe: Callable[[str], str] = lambda name: "") -> None:
+        self.name = keys.check_name(name, "embodiment")
+        self.rank = f"{time.time_ns():020d}-{transport.id}"
+        self._cond = threading.Condition()
+        self._claims: dict[str, float] = {}  # foreign rank -> when it was first seen (monotonic)
+        self._alive: set[str] = set()  # embodiments seen alive while joining
+        self._reported: set[str] = set()
+        self._on_duplicate: Callable[[list[str]], None] | None = None
+        self._timers: list[threading.Timer] = []
+        self._closed = False
+        self._token = transport.declare_token(keys.claim_key(mesh, name, self.rank))
+        self._watch: Closeable | None = None
+        joining = transport.watch_liveliness(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", self._on_alive)
+        try:
+            self._watch = transport.watch_liveliness(keys.claim_pattern(mesh, name), self._on_claim)
+            with self._cond:
+                if self._cond.wait_for(lambda: bool(self._claims or self._alive), window):
+                    # Someone answered: the rest of the mesh is connecting at about the same time.
+                    self._cond.wait_for(lambda: name in self._alive, SETTLE)
+                taken = name in self._alive
+                older = sorted(rank for rank in self._claims if rank < self.rank)
+            if taken:
+                where = describe(name)
+                raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
+                              "one name, one body (stop that one first, or choose another --name)")
+            if older:
+                raise Refused(f"another {name!r} is starting in mesh {mesh!r} at the same moment (zenoh id "
+                              f"{older[0].partition('-')[2]}), and it started first: one name, one body")
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            joining.close()
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        with self._cond:
+            (self._alive.add if alive else self._alive.discard)(key.rsplit("/", 1)[-1])
+            self._cond.notify_all()
+
+    def _on_claim(self, key: str, alive: bool) -> None:
+        rank = key.rsplit("/", 1)[-1]
+        if rank == self.rank:
+            return
+        with self._cond:
+            if alive:
+                self._claims.setdefault(rank, time.monotonic())
+                self._schedule_check()
+            else:
+                self._claims.pop(rank, None)
+                self._reported.discard(rank)
+            self._cond.notify_all()
+
+    def _schedule_check(self) -> None:
+        # Under the lock. A newcomer withdraws its claim within its window; one still here after the
+        # grace is a duplicate.
+        if self._on_duplicate is None or self._closed:
+            return
+        timer = threading.Timer(DUPLICATE_GRACE, self._check_duplicates)
+        timer.daemon = True
+        self._timers = [t for t in self._timers if t.is_alive()]
+        self._timers.append(timer)
+        timer.start()
+
+    def watch_duplicates(self, on_duplicate: Callable[[list[str]], None]) -> None:
+        """From now on, call ``on_duplicate(zenoh ids)`` when another daemon holds this name for longer
+        than a newcomer needs to decide (two parts of a mesh joined). Claims already here count too."""
+        with self._cond:
+            self._on_duplicate = on_duplicate
+            if self._claims:
+                self._schedule_check()
+
+    def duplicates(self) -> list[str]:
+        """Zenoh ids of the other daemons holding this name (beyond the grace), oldest first."""
+        now = time.monotonic()
+        with self._cond:
+            return [rank.partition("-")[2] for rank, seen in sorted(self._claims.items()) if now - seen >= DUPLICATE_GRACE]
+
+    def keeps_name(self) -> bool:
+        """The documented rule: of two daemons holding one name, the older claim keeps it."""
+        with self._cond:
+            return all(rank > self.rank for rank in self._claims)
+
+    def _check_duplicates(self) -> None:
+        now = time.monotonic()
+        with self._cond:
+            fresh = sorted(r for r, seen in self._claims.items() if now - seen >= DUPLICATE_GRACE - 0.05 and r not in self._reported)
+            self._reported.update(fresh)
+            notify = self._on_duplicate if not self._closed else None
+        if fresh and notify is not None:
+            notify([rank.partition("-")[2] for rank in fresh])
+
+    def close(self) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            timers, self._timers = self._timers, []
+        for timer in timers:
+            timer.cancel()
+        if self._watch is not None:
+            self._watch.close()
+        self._token.close()

@@ -1,0 +1,64 @@
+"""The package's inner boundaries: argparse only at the edge (cli.py), no import of bench/, no
+import cycle between certs and security, one set of exit codes."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+from cmion_mesh.errors import ConfigError, ExitCode, InvalidName, NotAlive, NotReached, RequestRejected, Vanished, exit_code
+
+PACKAGE = Path(__file__).resolve().parents[1] / "cmion_mesh"
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module ``path`` imports, at any level (inside functions too)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            found.add(node.module)
+            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return found
+
+
+def modules() -> dict[str, set[str]]:
+    return {str(p.relative_to(PACKAGE)): imported_modules(p) for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def test_only_cli_imports_argparse() -> None:
+    offenders = sorted(name for name, imports in modules().items() if "argparse" in imports and name != "cli.py")
+    assert offenders == [], f"argparse is read by the command line only (cli.py), but also imported by: {offenders}"
+
+
+def test_importing_the_library_does_not_load_argparse() -> None:
+    code = ("import importlib, pkgutil, sys, cmion_mesh\n"
+            "for m in pkgutil.walk_packages(cmion_mesh.__path__, 'cmion_mesh.'):\n"
+            "    if m.name != 'cmion_mesh.cli': importlib.import_module(m.name)\n"
+            "print(sorted(k for k in sys.modules if k == 'argparse' or k.split('.')[0] == 'bench'))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert result.stdout.strip() == "[]", result.stdout
+
+
+def test_nothing_in_the_package_imports_bench() -> None:
+    offenders = sorted(name for name, imports in modules().items() if any(m.split(".")[0] == "bench" for m in imports))
+    assert offenders == [], f"bench/ is not installed with the package: {offenders} import it"
+
+
+def test_no_import_cycle_between_certs_and_security() -> None:
+    found = modules()
+    assert "cmion_mesh.certs" in found["security.py"]  # security builds on certs...
+    assert "cmion_mesh.security" not in found["certs.py"], "...never the reverse"
+
+
+def test_one_set_of_exit_codes() -> None:
+    assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4, 130]
+    assert exit_code(ConfigError("x")) == ExitCode.USAGE and exit_code(InvalidName("x")) == ExitCode.USAGE
+    assert exit_code(RequestRejected("x")) == ExitCode.FAILED and exit_code(NotAlive("x")) == ExitCode.FAILED
+    assert exit_code(NotReached("x")) == ExitCode.UNKNOWN and exit_code(Vanished("x")) == ExitCode.UNKNOWN
+    for path in PACKAGE.rglob("*.py"):
+        source = path.read_text()
+        assert "EXIT_OK" not in source and "EXIT_FAILED" not in source, f"{path.name} defines exit codes of its own"
