@@ -155,6 +155,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         wait_for(lambda: client.describe(NAMES[0], timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born")
         for target in NAMES[1:] + NAMES[:1]:  # one round before the traffic: each host has seen its next target alive
             migrate_once_seen(client, COMPANION, target)
+            traffic.arrivals.append(target)  # an arrival the mind remembers like any other
         outcome = client.request(NAMES[0], "mind", "message", MindMessage({"size": BLOB}), timeout=10.0)
         if outcome.status != "accepted":
             raise MeshError(f"the companion's mind refused its blob: {outcome.reason}")
