@@ -27,6 +27,8 @@ from cmion_mesh.transport import Closeable, Handle, Transport
 #: After the first sign of another member, how long a joining daemon waits for the rest of the
 #: mesh's tokens (peers found by scouting connect at about the same time).
 SETTLE = 0.2
+#: Longest wait for the answer to "is the name alive?", asked once someone has been seen.
+ALIVE_QUERY_TIMEOUT = 2.0
 #: A foreign claim on our name older than this is not a newcomer deciding: it is a duplicate.
 DUPLICATE_GRACE = 5.0
 
@@ -107,11 +109,16 @@ class NameClaim(Handle):
         try:
             self._watch = transport.watch_liveliness(keys.claim_pattern(mesh, name), self._on_claim)
             with self._cond:
-                if self._cond.wait_for(lambda: bool(self._claims or self._alive), window):
+                answered = self._cond.wait_for(lambda: bool(self._claims or self._alive), window)
+                if answered:
                     # Someone answered: the rest of the mesh is connecting at about the same time.
                     self._cond.wait_for(lambda: name in self._alive, SETTLE)
                 taken = name in self._alive
                 older = sorted(rank for rank in self._claims if rank < self.rank)
+            if answered and not taken:
+                # The watch delivers tokens one by one, and a loaded machine can spread them over
+                # more than SETTLE; a liveliness query ends when the peers have answered it all.
+                taken = bool(transport.alive(keys.alive_key(mesh, name), timeout=ALIVE_QUERY_TIMEOUT))
             if taken:
                 where = describe(name)
                 raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "

@@ -24,7 +24,18 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.identity import Identity
 from cmion_mesh.ion import send_request
-from cmion_mesh.messages import Act, Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MindMessage, Outcome, decode, encode
+from cmion_mesh.messages import (
+    Act,
+    ActionStatus,
+    Migrate,
+    MigrateAbort,
+    MigrateCommit,
+    MigratePrepare,
+    MindMessage,
+    Outcome,
+    decode,
+    encode,
+)
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.records import Record, Records
 from cmion_mesh.testing.wait import wait_for
@@ -301,6 +312,9 @@ def test_strangers_cannot_poison_the_pin_fill_the_disk_or_stall_actions(trio: tu
             thread.join(120)
         assert len(outcomes) == 2000 and "unknown" not in outcomes
         assert "rejected" in outcomes, "beyond the running-action limit, the flood is refused busy"
+        # The flood's last accepted actions are still running when the senders stop: they end.
+        wait_for(lambda: client.request("b", "manager", "status", ActionStatus()).value == {"running": []}, 60,
+                 "the flood's accepted actions end")
         report = client.act("b", "TestAction", ["test"], timeout=60)
         assert report.status in ("succeeded", "failed"), report
 
