@@ -121,7 +121,7 @@ class MeshClient:
         if embodiment in presence.alive():
             return
         # Others are alive, not this one (yet?). The daemons have seen the mesh longer: ask them.
-        reported = self._reported_alive(presence.alive(), deadline)
+        reported = self.reported_alive(presence.alive(), deadline)
         if embodiment in reported | presence.alive() and \
                 presence.wait(lambda alive: embodiment in alive, deadline - time.monotonic()):
             return
@@ -140,7 +140,7 @@ class MeshClient:
             raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
                            f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
 
-    def _reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
+    def reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
         """The embodiments that the daemons ``asked`` see alive (those that answer before ``deadline``)."""
         names = sorted(asked)
         out: set[str] = set()
