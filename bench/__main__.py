@@ -3,6 +3,7 @@
     python -m bench [--quick] [--full] [--only events,get,set] [--samples N] [--json PATH] [--check] [--png PATH]
     python -m bench --only breakdown             # diagnostic: per-hop timestamps
     python -m bench soak [--seconds N]           # the soak (not part of the default set)
+    python -m bench sim [--schedules N]          # handshake simulation testing (bench/simulation.py)
 
 Exit status: 1 if a correctness check failed (a row's ``failures``: lost events or writes, a lost
 or duplicated companion, growth during the soak...), or with ``--check`` if a target is missed;
@@ -135,6 +136,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="traffic phase of the soak (with --only soak; default %(default)s)")
     parser.add_argument("--png", metavar="PATH", help="draw the growth curves into PATH (needs matplotlib)")
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["sim"]:
+        from bench import simulation  # only this command needs it
+
+        return simulation.main(argv[1:])
     if argv[:1] == ["soak"]:
         soak = argparse.ArgumentParser(prog="python -m bench soak", description="the soak: see bench/soak.py")
         soak.add_argument("--seconds", type=float, default=20.0, help="traffic phase, seconds (default %(default)s)")

@@ -45,6 +45,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, Migrate, Request
 from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.records import Records
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "bench"
@@ -136,8 +137,7 @@ class Migrations:
         return "; ".join(parts)
 
     def document_size(self) -> int:
-        path = self.nodes[self.home].workdir / "state" / f"{COMPANION}.identity.xml"
-        return path.stat().st_size
+        return len(Records(self.nodes[self.home].workdir / "state").document(COMPANION) or b"")
 
 
 class RawTransfer:

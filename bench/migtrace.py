@@ -107,22 +107,23 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 
 
 def install() -> None:
-    from cmion_mesh import identity, ion, migration, signing, zenoh_transport
-    from cmion_mesh.migration import MigrationManager, Records
+    from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
+    from cmion_mesh.migration import MigrationManager
+    from cmion_mesh.records import Records
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
-        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") else "file"
+        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
+            else "key" if name.endswith(".key") else "file"
         return f"write+fsync:{kind}"
 
     def request_label(_transport: Any, key: str, *_a: Any, **_k: Any) -> str:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(signing, "save_private", "write+fsync:key")
-    wrap(migration, "unpack", "unpack(parse+XSD)")
+    wrap(handshake, "unpack", "unpack(parse+XSD)")
     wrap(identity.Identity, "pack", "pack(JSON+XML)")
-    wrap(signing, "seal", "sign(sha256+ed25519)")
-    wrap(signing, "verify", "verify(sha256+ed25519)")
+    wrap(signing, "sign", "sign(ed25519)")
+    wrap(custody, "verify_chain", "verify custody chain")
     wrap(migration, "send_request", request_label)
     wrap(zenoh_transport.ZenohTransport, "alive", "liveliness_get(target alive?)")
     zenoh_transport.ZenohTransport.get = _traced_get  # type: ignore[method-assign]

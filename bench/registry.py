@@ -160,6 +160,12 @@ BENCHMARKS: list[Benchmark] = [
         "migration command -> companion awake at the target, 10 KiB / 1 MiB / 10 MiB, vs raw transfer + fsync",
     ),
     Benchmark(
+        "flood",
+        "bench.flood:run",
+        ("flood",),
+        "a legitimate action's latency during a flood of 20,000 action requests, vs a raw zenoh get in the same moment",
+    ),
+    Benchmark(
         "growth",
         "bench.growth:run",
         ("fanout", "wildcard", "convergence"),

@@ -47,6 +47,7 @@ from cmion_mesh.messages import (
     RemoveContainer,
     RemoveProperty,
     Request,
+    SetPolicy,
     SetProperty,
     decode,
     encode,
@@ -364,7 +365,7 @@ class MeshClient:
     def set_policy(self, companion: str, accepts: Sequence[str] | None) -> None:
         """Say which embodiments ``companion`` accepts (None: any); it travels with the companion."""
         host = self.find_companion(companion)
-        payload = Request({"accepts": None if accepts is None else list(accepts)})
+        payload = SetPolicy(None if accepts is None else list(accepts))
         require_accepted(self.request(host, "migration", "policy", payload), keys.request_key(self.mesh, host, "migration", "policy"))
 
     def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:

@@ -226,6 +226,7 @@ class Embodiment:
             "inhabitant": self.inhabitant,
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
+            "damaged": dict(self.migration.damaged) if self.migration is not None else {},
             "version": self.version,
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,

@@ -51,6 +51,9 @@ MAX_ITEMS_PER_UPDATE = 10_000
 #: Bound of the per-simulation caches of event keys and of subscriptions matching a key
 #: (cleared when full: they only save work, and remote names are not ours to bound).
 MAX_CACHED_KEYS = 4096
+#: Work waiting for the loop beyond which new requests are answered ``busy`` at once, on the
+#: transport's worker: a flood costs the flooder an answer, not this embodiment's memory.
+MAX_QUEUED = 4096
 DEFAULT_REQUEST_TIMEOUT = 10.0
 #: Longest timer delay: queue.get cannot wait past threading.TIMEOUT_MAX, and a later timer is 'never'.
 MAX_TIMER_DELAY = 30 * 24 * 3600.0
@@ -83,6 +86,10 @@ class IncomingRequest:
             self._answer(outcome)
         except Exception:  # the requester vanished: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
+
+    def answer(self, outcome: Outcome) -> None:
+        """Send a ready-made outcome (a decision taken elsewhere)."""
+        self._send(outcome)
 
     def accept(self, value: Any = None) -> None:
         self._send(Outcome("accepted", "", check_value(value)))
@@ -348,6 +355,10 @@ class Simulation:
             finally:
                 query.finish()
 
+        if self._inbox.qsize() >= MAX_QUEUED:
+            answer(Outcome("rejected", f"busy: embodiment {self.embodiment!r} has {MAX_QUEUED} requests and events waiting; "
+                                       "try again later"))
+            return
         kind = component.requests.get(name)
         if kind is None:
             known = ", ".join(sorted(component.requests)) or "none"

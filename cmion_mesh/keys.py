@@ -10,6 +10,7 @@
     cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
     cmion/<mesh>/@claim/<embodiment>/<rank>                   a daemon's claim on its name (liveliness)
     cmion/<mesh>/@competency/<embodiment>/<type>/<name>       remote competencies (liveliness)
+    cmion/<mesh>/@custody/<embodiment>/<companion>/<epoch>    custody: who holds which companion (liveliness)
 
 ``<mesh>`` names one deployment (default ``default``): two meshes never hear each other.
 Every name is one key chunk; a name containing ``/ * $ # ?``, a leading ``@``, white space at its
@@ -32,6 +33,7 @@ EVENTS = "ev"
 REQUESTS = "rq"
 ALIVE = "@alive"
 COMPETENCY = "@competency"
+CUSTODY = "@custody"
 CLAIM = "@claim"
 
 _FORBIDDEN = set("/*$#?")
@@ -107,6 +109,15 @@ def request_key(mesh: str, embodiment: str, component: str, request: str, sender
 
 def alive_key(mesh: str, embodiment: str) -> str:
     return f"{mesh_prefix(mesh)}/{ALIVE}/{check_name(embodiment, 'embodiment')}"
+
+
+def custody_key(mesh: str, embodiment: str, companion: str, epoch: int) -> str:
+    """Liveliness token by which ``embodiment`` says it holds ``companion`` at ``epoch``."""
+    return f"{mesh_prefix(mesh)}/{CUSTODY}/{check_name(embodiment, 'embodiment')}/{check_name(companion, 'companion')}/{int(epoch)}"
+
+
+def custody_pattern(mesh: str) -> str:
+    return f"{mesh_prefix(mesh)}/{CUSTODY}/*/*/*"
 
 
 def claim_key(mesh: str, embodiment: str, rank: str) -> str:

@@ -50,6 +50,8 @@ class _Active:
 
 #: Longest plan deadline an action may ask for (a day).
 MAX_DEADLINE = 24 * 3600.0
+#: Actions running at once; more are refused ``busy`` (a flood of actions must not queue for minutes).
+MAX_RUNNING = 64
 
 
 class CompetencyManager(Component):
@@ -97,6 +99,9 @@ class CompetencyManager(Component):
             return
         if len(act.action_id) > keys.MAX_NAME:
             request.reject(f"action id {act.action_id[:40]!r}... is longer than {keys.MAX_NAME} characters")
+            return
+        if len(self._active) >= MAX_RUNNING:
+            request.reject(f"busy: {MAX_RUNNING} actions are running on {self.sim.embodiment!r}; try again later")
             return
         action = MindAction(act.name, tuple(act.parameters), act.subject)
         action_id = act.action_id or f"{self.sim.embodiment}-{next(self._ids)}"

@@ -174,27 +174,33 @@ class Migrate(Message, frozen=True, tag="migrate"):
 
 
 class MigratePrepare(Message, frozen=True, tag="migrate_prepare"):
-    """Source -> target: store this identity durably and say prepared (``.../rq/migration/prepare``)."""
+    """Source -> target: store this identity durably and say prepared (``.../rq/migration/prepare/<source>``).
+
+    ``chain`` is the companion's chain of custody (``custody.encode_chain``), ``proof`` the source's
+    signature over the ``custody.Offer`` made of these fields, by the custody key at the chain's head.
+    The answer's value is ``{"state": "prepared", "custody_key": <base64>}``: the target's fresh key."""
 
     companion: str
     epoch: int
+    seq: int
     attempt: str
     source: str
     target: str
     document: bytes
-    envelope: bytes = b""  # canonical MessagePack of ``signing.Envelope``
-    signature: bytes = b""  # Ed25519 by the companion's key over ``envelope``
-    companion_key: bytes = b""  # the companion's private key: it lives with the companion
+    chain: bytes
+    proof: bytes
 
 
 class MigrateCommit(Message, frozen=True, tag="migrate_commit"):
-    """Source -> target, after the source recorded ``handed``: become the companion's home."""
+    """Source -> target, after the source recorded ``handed``: become the companion's home. ``link``
+    (a MessagePack ``custody.Link``) hands custody at ``epoch + 1`` to the target's fresh key."""
 
     companion: str
     epoch: int
     attempt: str
     source: str
     target: str
+    link: bytes
 
 
 class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
@@ -203,17 +209,28 @@ class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
     attempt: str
 
 
+class SetPolicy(Message, frozen=True, tag="set_policy"):
+    """Set the companion's own policy (``.../rq/migration/policy``): the embodiments it accepts, or
+    null for any. It is part of its identity, so it travels with it."""
+
+    accepts: list[str] | None
+
+
 class MigrateStatus(Message, frozen=True, tag="migrate_status"):
-    """Target -> source after a restart: what became of this attempt? (committed/aborted/pending)."""
+    """What became of an attempt? Asked of its source by a target that is ``incoming`` (``of="source"``:
+    pending/committed/aborted, with the custody link when committed), and of its target by a source
+    whose commit was refused (``of="target"``: incoming/committed/dropped)."""
 
     companion: str
     attempt: str
+    epoch: int = 0
+    of: Literal["source", "target"] = "source"
 
 
 AnyMessage = (
     Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
     | Act | CancelAction | ActionReport | StartRun | CancelRun | RunEnded
-    | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus
+    | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy
 )
 
 _encoder = msgspec.msgpack.Encoder()

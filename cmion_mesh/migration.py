@@ -1,31 +1,27 @@
-"""Migration: a crash-safe queryable handshake that moves a companion between embodiments.
+"""Migration: the ``migration`` component runs the handshake of ``handshake`` on real transports and disks.
 
-Invariant: at any moment at most one embodiment is inhabited by a companion, and after any
-crash or network fault, once things heal, exactly one is. Each side keeps a durable record per
-companion (``Records``: temp file, fsync, rename, fsync directory) and moves it through:
+The decisions (what each record accepts, what it answers, how a side resolves) and the argument
+for why they keep exactly one host are in ``handshake``; custody (who may hand a companion on) is
+in ``custody``; the durable records in ``records``. This module moves messages and threads:
 
-source (S, owner at epoch e)           target (T)
-  active(e)
-  freeze; pack the identity
-  prepared(a) ---- prepare(doc) ---->  checks empty (or an older epoch of this companion),
-                                       validates the document, stores it,
-               <--- prepared --------  incoming(a)
-  handed(a)  (commit point: S never runs the companion again)
-             ---- commit (until acked)->  active(e+1), restores sections, wakes the mind
-               <--- committed -------
-  released(a)
-
-A timeout, an empty reply or an error is "outcome unknown", never success. While S is
-``prepared`` it may always abort (T cannot activate without a commit, which S sends only after
-``handed``). Recovery on restart: S ``prepared`` aborts and resumes; S ``handed`` resumes sending
-commit; T ``incoming`` asks S (``status``) and follows its answer, forever if need be: nothing is
-taken over because a peer went quiet. Messages are idempotent and keyed by (companion, epoch,
-attempt); stale ones are refused.
+* the loop thread runs request handlers, ``_start``, packing and inhabiting (the ``Component`` API);
+* one thread per handshake in flight sends the prepare and the commit (``_send``,
+  ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
+  these threads touch only the records (locked) and hand everything else to the loop (``_post``);
+* the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
+  ``_on_custody``), under ``_watch_lock``.
 
 Before packing, the source raises ``MigrationStarting`` and gives every component one update to
 ``contribute`` its section (or ``wait`` and ``resolve`` later, within a deadline). Sections that
 no component here understands are carried on unchanged. The target raises ``MigrationOccurred``
 after activation; each component takes its own section back with ``section(name)``.
+
+A holder says so in the mesh with a liveliness token ``@custody/<holder>/<companion>/<epoch>``.
+Targets refuse prepares from anyone but the live holder; and if two embodiments ever hold one
+companion (a fork across a partition, an old backup restored), both report it loudly
+(``CustodyConflict`` events, the log, the description) and the rule below decides which keeps
+running it: **the higher epoch; at equal epochs, the embodiment whose name sorts first**. The
+other freezes (its minds sleep) until the conflict is gone.
 
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
@@ -41,147 +37,39 @@ import signal
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import msgspec
 
-from cmion_mesh import keys, signing
+from cmion_mesh import custody, handshake, keys, signing
 from cmion_mesh.competency import Competency, RunContext
-from cmion_mesh.errors import ConfigError, InvalidName, MeshError, OutcomeUnknown
-from cmion_mesh.identity import MAX_DOCUMENT, Identity, unpack
+from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
+from cmion_mesh.handshake import POLICY_SECTION, refuses
+from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
-from cmion_mesh.messages import Migrate, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request
+from cmion_mesh.messages import (
+    Migrate,
+    MigrateAbort,
+    MigrateCommit,
+    MigratePrepare,
+    MigrateStatus,
+    Outcome,
+    SetPolicy,
+)
+from cmion_mesh.mind import Mind
+from cmion_mesh.records import HOSTING, Record, Records
+from cmion_mesh.storage import Store
+from cmion_mesh.transport import Closeable
 
 log = logging.getLogger(__name__)
 
-State = Literal["active", "prepared", "handed", "released", "incoming", "dropped"]
-HOSTING: frozenset[str] = frozenset({"active", "prepared", "handed", "incoming"})
-#: Largest record file read (a record is a few hundred bytes).
-MAX_RECORD = 64 * 1024
-
-
-class Record(msgspec.Struct, frozen=True):
-    """The durable state of one companion on one embodiment."""
-
-    companion: str
-    state: State
-    epoch: int
-    attempt: str = ""
-    peer: str = ""  # the target (source side) or the source (target side) of ``attempt``
-    updated: float = 0.0
-    public_key: str = ""  # the companion's key, pinned when first seen (base64)
-
-
-class Records:
-    """Durable records and identity documents in one directory, written atomically."""
-
-    def __init__(self, directory: str | os.PathLike[str]) -> None:
-        self.dir = Path(directory)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.RLock()
-        self._cache: dict[str, Record] = {}
-        for path in sorted(self.dir.glob("*.record.json")):
-            companion, record = self._load(path)
-            self._cache[companion] = record
-
-    @staticmethod
-    def _load(path: Path) -> tuple[str, Record]:
-        try:
-            with open(path, "rb") as f:
-                raw = f.read(MAX_RECORD + 1)
-        except OSError as exc:
-            raise ConfigError(f"unreadable migration record: {exc.strerror or exc}", path=str(path)) from None
-        if len(raw) > MAX_RECORD:
-            raise ConfigError(f"migration record larger than {MAX_RECORD} bytes", path=str(path))
-        try:
-            record = msgspec.json.decode(raw, type=Record)
-        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
-            raise ConfigError(f"unreadable migration record: {exc}", path=str(path)) from None
-        try:
-            keys.check_name(record.companion, "companion")
-        except InvalidName as exc:
-            raise ConfigError(f"unusable migration record: {exc}", path=str(path)) from None
-        if path.name != f"{record.companion}.record.json":
-            raise ConfigError(f"the record is of companion {record.companion!r}, not of the one its file is named after",
-                              path=str(path))
-        if record.epoch < 0:
-            raise ConfigError(f"unusable migration record: negative epoch {record.epoch}", path=str(path))
-        return record.companion, record
-
-    def _write(self, name: str, data: bytes) -> None:
-        target = self.dir / name
-        tmp = self.dir / f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-        fd = os.open(self.dir, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-    def get(self, companion: str) -> Record | None:
-        with self._lock:
-            return self._cache.get(companion)
-
-    def put(self, record: Record) -> Record:
-        record = msgspec.structs.replace(record, updated=time.time())
-        with self._lock:
-            self._write(f"{keys.check_name(record.companion, 'companion')}.record.json", msgspec.json.encode(record))
-            self._cache[record.companion] = record
-        return record
-
-    def move(self, companion: str, state: State, epoch: int, attempt: str = "", peer: str = "",
-             public_key: str | None = None) -> Record:
-        """Write the companion's next state; the pinned public key is kept unless a new one is given."""
-        with self._lock:
-            current = self._cache.get(companion)
-            pinned = public_key if public_key is not None else (current.public_key if current else "")
-            return self.put(Record(companion, state, epoch, attempt, peer, public_key=pinned))
-
-    def all(self) -> list[Record]:
-        with self._lock:
-            return list(self._cache.values())
-
-    def hosting(self) -> Record | None:
-        """The companion this embodiment holds (active, or in a handshake), if any."""
-        with self._lock:
-            held = [r for r in self._cache.values() if r.state in HOSTING]
-        return held[0] if held else None
-
-    def put_document(self, companion: str, data: bytes) -> None:
-        with self._lock:
-            self._write(f"{keys.check_name(companion, 'companion')}.identity.xml", data)
-
-    def document(self, companion: str) -> bytes | None:
-        path = self.dir / f"{companion}.identity.xml"
-        try:
-            with open(path, "rb") as f:
-                return f.read(MAX_DOCUMENT + 1)  # one more than unpack takes, so excess is noticed
-        except FileNotFoundError:
-            return None
-        except OSError as exc:
-            raise ConfigError(f"unreadable identity document: {exc.strerror or exc}", path=str(path)) from None
-
-    def check_documents(self) -> None:
-        """``ConfigError`` naming the file if the document of a companion held here is unusable."""
-        for record in self.all():
-            data = self.document(record.companion) if record.state in HOSTING else None
-            if data is not None:
-                unpack(data, name=str(self.dir / f"{record.companion}.identity.xml"))
-
-    def put_key(self, companion: str, private: bytes) -> None:
-        with self._lock:
-            signing.save_private(self.dir / f"{keys.check_name(companion, 'companion')}.key", private)
-
-    def key(self, companion: str) -> bytes | None:
-        path = self.dir / f"{companion}.key"
-        return path.read_bytes() if path.exists() else None
+#: Prepares a sender may have refused or dropped in a burst, and how many more per second: a
+#: stranger's flood of prepares costs it ``rejected: busy``, not this embodiment's disk or time.
+PREPARE_BURST = 20
+PREPARE_RATE = 5.0
 
 
 def crash_point(point: str) -> None:
@@ -210,49 +98,73 @@ class WaitToken:
     component: str
 
 
+class _Bucket:
+    """A token bucket: ``take()`` is False once a sender has used its burst faster than the rate."""
+
+    def __init__(self) -> None:
+        self.tokens = float(PREPARE_BURST)
+        self.at = time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(PREPARE_BURST, self.tokens + (now - self.at) * PREPARE_RATE)
+        self.at = now
+        if self.tokens < 1:
+            return False
+        self.tokens -= 1
+        return True
+
+
 class MigrationManager(Component):
     """The ``migration`` component: owns the records, runs both sides of the handshake."""
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
-                "status": MigrateStatus, "policy": Request}
+                "status": MigrateStatus, "policy": SetPolicy}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
     sender_requests = frozenset({"prepare", "commit", "abort", "status"})
 
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = 5.0,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
                  admit: dict[str, bytes | None] | None = None) -> None:
-        """``admit``: which companions may enter (name -> trusted public key, or None to pin it on
-        first sight); None admits any companion (its key is pinned on first sight)."""
+        """``admit``: which companions may enter (name -> trusted identity key, or None to pin it at the
+        first commit); None admits any companion (its identity key is pinned at its first commit here)."""
         super().__init__("migration")
         self.admit = admit
         self.records = Records(state_dir)
-        self.records.check_documents()
+        #: Companions whose stored identity is unusable: reported (description, log, event), never run.
+        self.damaged = self.records.damaged()
         self.seed = keys.check_name(companion, "companion") if companion else None
         self.section_deadline = section_deadline
         self.request_timeout = request_timeout
         self.retry = retry
-        self.identity: Identity | None = None  # the companion living here, when inhabited
-        self._outgoing: _Outgoing | None = None
+        self.identity: Identity | None = None  # the companion living here, when inhabited (loop)
+        self.contested_by: str | None = None  # the embodiment that keeps the companion by the conflict rule (loop)
+        self._outgoing: _Outgoing | None = None  # loop
+        self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
+        self._buckets: dict[str, _Bucket] = {}  # sender -> prepare budget (loop)
+        self._token: Closeable | None = None  # this embodiment's custody claim (loop)
         self._stop = threading.Event()
+        self._threads_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._alive: set[str] = set()  # embodiments whose liveliness token is present
-        self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit
-        self._alive_watch: Any = None
+        self._watch_lock = threading.Lock()
+        self._alive: set[str] = set()  # embodiments whose liveliness token is present (transport worker)
+        self._claims: dict[str, dict[str, int]] = {}  # companion -> {holder: epoch} (transport worker)
+        self._watches: list[Closeable] = []
 
-    # --- state seen from outside ---------------------------------------------------------------
+    # --- state seen from outside (any thread) --------------------------------------------------
 
     @property
     def inhabitant(self) -> str | None:
         """The companion living here: active, or frozen in a handshake it may still abort. Read
         from the durable record, which the handshake thread moves past its commit point at once."""
         identity = self.identity
-        if identity is None:
+        if identity is None or self.contested_by is not None:
             return None
         record = self.records.get(identity.companion)
         return identity.companion if record is not None and record.state in ("active", "prepared") else None
 
     def public_key(self) -> str | None:
-        """The inhabitant's public key (base64), for admission lists elsewhere."""
+        """The inhabitant's identity key (base64), for admission lists elsewhere."""
         identity = self.identity
         record = self.records.get(identity.companion) if identity is not None else None
         return record.public_key or None if record is not None else None
@@ -261,76 +173,183 @@ class MigrationManager(Component):
         """The section ``component`` contributed to the identity living here (None if absent)."""
         return None if self.identity is None else self.identity.sections.get(component)
 
-    # --- life cycle -----------------------------------------------------------------------------
+    def holders(self, companion: str) -> dict[str, int]:
+        """The embodiments that say, in the mesh, that they hold ``companion`` (name -> epoch)."""
+        with self._watch_lock:
+            return dict(self._claims.get(companion, {}))
+
+    # --- life cycle (loop) ----------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
         # Kept current by the transport's worker, so that choosing a target never blocks the loop.
-        self._alive_watch = sim.transport.watch_liveliness(f"{keys.mesh_prefix(sim.mesh)}/{keys.ALIVE}/*", self._on_token)
+        self._watches = [sim.transport.watch_liveliness(f"{keys.mesh_prefix(sim.mesh)}/{keys.ALIVE}/*", self._on_token),
+                         sim.transport.watch_liveliness(keys.custody_pattern(sim.mesh), self._on_custody)]
         if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
-            # First start of the companion's home: it is born here, at epoch 1.
-            identity = Identity(self.seed, 1, {})
-            private = signing.new_key()
-            self.records.put_key(self.seed, private)
-            self.records.put_document(self.seed, identity.pack())
-            self.records.move(self.seed, "active", 1, public_key=signing.encode_public(signing.public_of(private)))
+            self._give_birth(self.seed)
+        for companion, error in self.damaged.items():
+            log.error("companion %s is damaged and will not run here: %s", companion, error)
+            self.raise_event("CompanionDamaged", {"companion": companion, "error": error})
         for record in self.records.all():
+            if record.companion in self.damaged:
+                continue
+            if record.state in HOSTING and not record.chain:
+                record = self._adopt_legacy(record)
             if record.state == "prepared":
                 # Never handed: the target cannot have activated. Abort and resume here.
-                self.records.move(record.companion, "active", record.epoch)
+                self.records.put(handshake.resume(record))
                 self._send_abort_later(record)
                 self._resume(record.companion, "recovered: a migration had not reached its commit point")
             elif record.state == "active":
                 self._resume(record.companion, "started")
             elif record.state == "handed":
+                self._claim(record.companion, record.epoch)
                 self._spawn(f"commit-{record.companion}", self._commit_until_acked, record)
             elif record.state == "incoming":
+                self._claim(record.companion, record.epoch)
                 self._spawn(f"resolve-{record.companion}", self._resolve_incoming, record)
         if self.identity is None:
             self._minds_sleep()
 
-    def _on_token(self, key: str, alive: bool) -> None:
-        name = key.rsplit("/", 1)[-1]
-        if alive:
-            self._alive.add(name)
-        else:
-            self._alive.discard(name)
+    def _give_birth(self, companion: str) -> None:
+        """First start of the companion's home: it is born here, at epoch 1, with its identity key."""
+        document = Identity(companion, 1, {}).pack()
+        private = signing.new_key()
+        chain = [custody.birth(companion, self.sim.embodiment, private, document)]
+        self.records.put_key(companion, private)
+        self.records.put(Record(companion, "active", 1, chain=chain, public_key=signing.encode_public(chain[0].public_key)),
+                         document=document)
+
+    def _adopt_legacy(self, record: Record) -> Record:
+        """A record written before custody chains: an active companion starts its chain here (its old
+        key, if kept, stays its identity key); one caught mid-handshake cannot be continued."""
+        legacy = self.records.dir / f"{record.companion}.identity.xml"
+        if record.state != "active":
+            raise ConfigError(f"migration record of {record.companion!r} is mid-handshake ({record.state}) in an older "
+                              "format: finish it with the version that started it", path=str(legacy.with_suffix(".record.json")))
+        try:
+            document = legacy.read_bytes()
+        except FileNotFoundError:
+            document = Identity(record.companion, record.epoch, {}).pack()
+        private = self.records.key(record.companion) or signing.new_key()
+        chain = [custody.birth(record.companion, self.sim.embodiment, private, document, record.epoch)]
+        self.records.put_key(record.companion, private)
+        record = self.records.put(Record(record.companion, "active", record.epoch, chain=chain,
+                                         public_key=signing.encode_public(chain[0].public_key)), document=document)
+        legacy.unlink(missing_ok=True)
+        return record
 
     def detach(self) -> None:
-        if self._alive_watch is not None:
-            self._alive_watch.close()
-            self._alive_watch = None
+        for watch in self._watches:
+            watch.close()
+        self._watches = []
         self._stop.set()
-        for thread in self._threads:
+        with self._threads_lock:
+            threads, self._threads = self._threads, []
+        for thread in threads:
             thread.join(10.0)
-        self._threads.clear()
+        self._withdraw_claim()
         identity = self.identity
-        if identity is not None:
+        record = self.records.get(identity.companion) if identity is not None else None
+        if identity is not None and record is not None and record.state == "active":
             # A clean stop keeps what the companion learnt since it arrived.
             self._refresh_sections(identity)
-            self.records.put_document(identity.companion, identity.pack())
+            self.records.put(record, document=identity.pack())
 
-    def _spawn(self, name: str, fn: Any, *args: Any) -> None:
+    def _spawn(self, name: str, fn: Callable[..., None], *args: Any) -> None:
         thread = threading.Thread(target=fn, args=args, name=f"migration-{name}", daemon=True)
-        self._threads = [t for t in self._threads if t.is_alive()]
-        self._threads.append(thread)
+        with self._threads_lock:
+            self._threads = [t for t in self._threads if t.is_alive()]
+            self._threads.append(thread)
         thread.start()
 
-    def _post(self, fn: Any, *args: Any) -> None:
+    def _post(self, fn: Callable[..., None], *args: Any) -> None:
         try:
             self.sim.call(functools.partial(fn, *args))
         except MeshError:
             pass  # closing
 
+    # --- the mesh as seen by liveliness (transport worker) ----------------------------------------
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        with self._watch_lock:
+            if alive:
+                self._alive.add(name)
+            else:
+                self._alive.discard(name)
+
+    def _on_custody(self, key: str, alive: bool) -> None:
+        try:
+            holder, companion, epoch_text = key.split("/")[-3:]
+            epoch = int(epoch_text)
+        except ValueError:
+            log.warning("ignored custody token %s: not <holder>/<companion>/<epoch>", key)
+            return
+        with self._watch_lock:
+            claims = self._claims.setdefault(companion, {})
+            if alive:
+                claims[holder] = epoch
+            elif claims.get(holder) == epoch:
+                del claims[holder]
+        if holder != self.sim.embodiment:
+            self._post(self._check_conflict)
+
+    def _is_alive(self, name: str) -> bool:
+        with self._watch_lock:
+            return name in self._alive
+
+    # --- custody claims and conflicts (loop) --------------------------------------------------------
+
+    def _claim(self, companion: str, epoch: int) -> None:
+        self._withdraw_claim()
+        self._token = self.sim.transport.declare_token(keys.custody_key(self.sim.mesh, self.sim.embodiment, companion, epoch))
+
+    def _withdraw_claim(self) -> None:
+        if self._token is not None:
+            self._token.close()
+            self._token = None
+
+    def _check_conflict(self) -> None:
+        identity = self.identity
+        if identity is None:
+            return
+        me = self.sim.embodiment
+        record = self.records.get(identity.companion)
+        claims = self.holders(identity.companion)
+        # Claims this embodiment's own chain explains (a former holder not yet withdrawn) or its own
+        # handshake makes (the target it is handing the companion to) are no conflict.
+        partner = record.peer if record is not None and record.state in ("prepared", "handed") else None
+        others = {h: claims[h] for h in custody.rivals(record.chain if record is not None else [], claims, me) if h != partner}
+        winner = min([(-e, h) for h, e in others.items()] + [(-identity.epoch, me)])[1]
+        keeper = None if winner == me else winner
+        if others:
+            log.error("custody conflict: %s is also held by %s; by the rule (higher epoch, then first name) %s keeps it",
+                      identity.companion, ", ".join(f"{h} at epoch {e}" for h, e in sorted(others.items())), winner)
+        if keeper == self.contested_by:
+            return
+        self.contested_by = keeper
+        self.raise_event("CustodyConflict", {"companion": identity.companion, "holders": {**others, me: identity.epoch},
+                                             "keeper": winner})
+        if keeper is not None:
+            self._minds_sleep()
+        else:
+            self._wake_minds()
+
     # --- minds and sections (loop) --------------------------------------------------------------
 
-    def _minds(self) -> list[Any]:
-        from cmion_mesh.mind import Mind
-
+    def _minds(self) -> list[Mind]:
         return [c for c in self.sim.components if isinstance(c, Mind)]
 
     def _minds_sleep(self) -> None:
         for mind in self._minds():
             mind.sleep()
+
+    def _wake_minds(self) -> None:
+        world = self.sim.components_by_name().get(keys.WORLD_MODEL)
+        tree = world.tree() if isinstance(world, Store) else {}
+        for mind in self._minds():
+            mind.wake()
+            mind.on_arrived(tree)
 
     def _refresh_sections(self, identity: Identity) -> None:
         for mind in self._minds():
@@ -346,19 +365,15 @@ class MigrationManager(Component):
 
     def _inhabit(self, identity: Identity, event: str, why: str) -> None:
         self.identity = identity
+        self._claim(identity.companion, identity.epoch)
         for mind in self._minds():
             state = identity.sections.get(mind.name)
             if isinstance(state, dict) and state:
                 mind.restore(state)
         self.raise_event(event, {"companion": identity.companion, "epoch": identity.epoch, "why": why,
                                  "sections": sorted(identity.sections)})
-        from cmion_mesh.storage import Store
-
-        world = self.sim.components_by_name().get(keys.WORLD_MODEL)
-        tree = world.tree() if isinstance(world, Store) else {}
-        for mind in self._minds():
-            mind.wake()
-            mind.on_arrived(tree)
+        self._wake_minds()
+        self._check_conflict()
 
     # --- outgoing (source side) ---------------------------------------------------------------
 
@@ -366,8 +381,11 @@ class MigrationManager(Component):
         """Start migrating the companion living here to ``target``; thread-safe. The future ends
         with the outcome (accepted when the target committed; rejected with the reason)."""
         future: Future[Outcome] = Future()
-        self._post(self._start, Migrate(companion or self.inhabitant or "", target), future)
+        self._post(self._start_from_thread, Migrate(companion or self.inhabitant or "", target), future)
         return future
+
+    def _start_from_thread(self, request: Migrate, future: Future[Outcome]) -> None:
+        self._start(request, future)
 
     def _start(self, request: Migrate, future: Future[Outcome]) -> _Outgoing | None:
         def refuse(reason: str) -> None:
@@ -380,7 +398,10 @@ class MigrationManager(Component):
             return None
         if request.companion and request.companion != identity.companion:
             refuse(f"companion {request.companion!r} does not live on {self.sim.embodiment!r} "
-                          f"(its inhabitant is {identity.companion!r})")
+                   f"(its inhabitant is {identity.companion!r})")
+            return None
+        if self.contested_by is not None:
+            refuse(f"custody of {identity.companion!r} is contested: {self.contested_by!r} keeps it by the conflict rule")
             return None
         if self._outgoing is not None:
             refuse(f"a migration of {identity.companion!r} to {self._outgoing.target!r} is already under way")
@@ -393,7 +414,7 @@ class MigrationManager(Component):
         if request.target == self.sim.embodiment:
             refuse(f"{identity.companion!r} already lives on {request.target!r}")
             return None
-        if request.target not in self._alive:
+        if not self._is_alive(request.target):
             refuse(f"unknown target: embodiment {request.target!r} is not alive in mesh {self.sim.mesh!r}")
             return None
         record = self.records.get(identity.companion)
@@ -471,35 +492,43 @@ class MigrationManager(Component):
             return
         self._spawn(f"send-{out.companion}", self._send, out, document)
 
+    def _request(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
+        key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
+        return send_request(self.sim.transport, key, message, timeout=self.request_timeout if timeout is None else timeout)
+
     def _send(self, out: _Outgoing, document: bytes) -> None:
-        self.records.put_document(out.companion, document)
-        prepared = self.records.move(out.companion, "prepared", out.epoch, out.attempt, out.target)
+        """Handshake thread: prepare, then (once handed) commit."""
+        active = self.records.get(out.companion)
+        private = self.records.key(out.companion)
+        if active is None or active.state != "active" or private is None:
+            self._post(self._aborted, out, f"{out.companion!r} is not active here with its custody key")
+            return
+        prepared, message = handshake.offer(active, attempt=out.attempt, me=self.sim.embodiment, target=out.target,
+                                            document=document, private=private)
+        prepared = self.records.put(prepared, document=document)
         crash_point("source:prepared")
-        private = self.records.key(out.companion) or b""
-        envelope, signature = (signing.seal(private, out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document)
-                               if private else (b"", b""))
-        message = MigratePrepare(out.companion, out.epoch, out.attempt, self.sim.embodiment, out.target, document,
-                                 envelope, signature, private)
-        key = keys.request_key(self.sim.mesh, out.target, "migration", "prepare", self.sim.embodiment)
         reply: Outcome | None = None
         unknown = ""
         for _ in range(3):  # prepare is idempotent: a lost reply may be asked again
             try:
-                reply = send_request(self.sim.transport, key, message, timeout=self.request_timeout)
+                reply = self._request(out.target, "prepare", message)
                 break
             except OutcomeUnknown as exc:
                 unknown = str(exc)
                 if self._stop.wait(self.retry[0]):
                     break
-        if reply is None or reply.status != "accepted":
-            reason = (f"{out.target} refused: {reply.reason}" if reply is not None
+        after = handshake.after_prepare(prepared, reply, private=private, document=document) if reply is not None \
+            else handshake.resume(prepared)
+        if after.state != "handed":
+            self.records.put(after)
+            if reply is None or reply.status == "accepted":
+                self._send_abort_later(prepared)  # T may hold it incoming: tell it, or it will ask us
+            reason = (f"{out.target} refused: {reply.reason}" if reply is not None and reply.status != "accepted"
+                      else f"{out.target} gave no custody key" if reply is not None
                       else f"outcome unknown ({unknown}); the companion resumes here")
-            self.records.move(out.companion, "active", out.epoch)
-            if reply is None:
-                self._send_abort_later(prepared)
             self._post(self._aborted, out, reason)
             return
-        handed = self.records.move(out.companion, "handed", out.epoch, out.attempt, out.target)
+        handed = self.records.put(after)
         crash_point("source:handed")
         self._post(self._handed, out)
         self._commit_until_acked(handed)
@@ -509,18 +538,38 @@ class MigrationManager(Component):
         self._resume(out.companion, f"migration to {out.target} failed")
 
     def _handed(self, out: _Outgoing) -> None:
-        self.identity = None  # the commit point: never run the companion here again
+        # The commit point: never run the companion here again. The custody claim stays until the
+        # target has taken it, so no moment passes in which nobody in the mesh claims the companion.
+        self.identity = None
 
     def _commit_until_acked(self, handed: Record) -> None:
-        message = MigrateCommit(handed.companion, handed.epoch, handed.attempt, self.sim.embodiment, handed.peer)
-        key = keys.request_key(self.sim.mesh, handed.peer, "migration", "commit", self.sim.embodiment)
+        """Handshake thread: send the commit until the target answers; a refusal is settled by
+        asking the target what it made of the attempt (never by looping on the refusal)."""
+        assert handed.link is not None
+        message = MigrateCommit(handed.companion, handed.epoch, handed.attempt, self.sim.embodiment, handed.peer,
+                                custody.encode_link(handed.link))
+        status = MigrateStatus(handed.companion, handed.attempt, handed.epoch, "target")
         delay = self.retry[0]
         while not self._stop.is_set():
             try:
-                reply = send_request(self.sim.transport, key, message, timeout=self.request_timeout)
+                reply = self._request(handed.peer, "commit", message)
                 if reply.status == "accepted":
-                    break
-                log.error("%s refused the commit of %s (%s): retrying", handed.peer, handed.companion, reply.reason)
+                    self._finish_handed(msgspec.structs.replace(handed, state="released"))
+                    return
+                log.warning("%s refused the commit of %s (%s): asking it where it stands", handed.peer, handed.companion,
+                            reply.reason)
+                answer = self._request(handed.peer, "status", status)
+                next_step, record = handshake.after_refused_commit(handed, answer.value if answer.status == "accepted" else None)
+                if next_step == "released" and record is not None:
+                    self._finish_handed(record)
+                    return
+                if next_step == "resume" and record is not None:
+                    self.records.put(record)
+                    self._post(self._taken_back, record, f"{handed.peer} dropped attempt {handed.attempt}")
+                    return
+                if next_step == "abort":
+                    self._request(handed.peer, "abort", MigrateAbort(handed.companion, handed.epoch, handed.attempt))
+                    continue  # then ask again: dropped -> resume
                 self._post(self.raise_event, "MigrationStuck", {"companion": handed.companion, "target": handed.peer,
                                                                 "reason": reply.reason})
             except OutcomeUnknown as exc:
@@ -528,15 +577,26 @@ class MigrationManager(Component):
             if self._stop.wait(delay):
                 return
             delay = min(self.retry[1], delay * 2)
-        else:
-            return
-        self.records.move(handed.companion, "released", handed.epoch, handed.attempt, handed.peer)
+
+    def _finish_handed(self, released: Record) -> None:
+        self.records.put(released)
         crash_point("source:released")
-        self._post(self._released, handed)
+        self._post(self._released, released)
+
+    def _taken_back(self, record: Record, why: str) -> None:
+        out = self._outgoing
+        self._outgoing = None
+        reason = f"migration of {record.companion!r} to {why}; the companion resumes here"
+        self.raise_event("MigrationFailed", {"companion": record.companion, "attempt": out.attempt if out else "", "reason": reason})
+        if out is not None and not out.future.done():
+            out.future.set_result(Outcome("rejected", reason))
+        self._resume(record.companion, reason)
 
     def _released(self, record: Record) -> None:
         out = self._outgoing
         self._outgoing = None
+        if self.identity is None:
+            self._withdraw_claim()
         data = {"companion": record.companion, "target": record.peer, "attempt": record.attempt, "epoch": record.epoch + 1}
         self.raise_event("MigrationSucceeded", data)
         if out is not None and out.attempt == record.attempt and not out.future.done():
@@ -544,196 +604,130 @@ class MigrationManager(Component):
 
     def _send_abort_later(self, record: Record) -> None:
         def abort() -> None:
-            key = keys.request_key(self.sim.mesh, record.peer, "migration", "abort", self.sim.embodiment)
             try:
-                send_request(self.sim.transport, key, MigrateAbort(record.companion, record.epoch, record.attempt), timeout=2.0)
+                self._request(record.peer, "abort", MigrateAbort(record.companion, record.epoch, record.attempt), timeout=2.0)
             except OutcomeUnknown:
                 pass  # the target will ask us (status) and hear "aborted"
 
         self._spawn(f"abort-{record.companion}", abort)
 
-    # --- incoming (target side) and queries (loop) --------------------------------------------
+    # --- requests (loop) ------------------------------------------------------------------------
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         for request in batch:
-            payload = request.payload
             try:
-                if isinstance(payload, Migrate):
-                    out = self._start(payload, _AnswerFuture(request))
-                    if out is not None:  # started: the end is reported by MigrationSucceeded/Failed events
-                        request.accept({"attempt": out.attempt, "companion": out.companion, "target": out.target})
-                elif isinstance(payload, MigratePrepare):
-                    if request.requester != payload.source:
-                        request.reject(f"{request.requester!r} cannot send a prepare on behalf of {payload.source!r}")
-                    else:
-                        self._on_prepare(request, payload)
-                elif isinstance(payload, MigrateCommit):
-                    if request.requester != payload.source:
-                        request.reject(f"{request.requester!r} cannot send a commit on behalf of {payload.source!r}")
-                    else:
-                        self._on_commit(request, payload)
-                elif isinstance(payload, MigrateAbort):
-                    self._on_abort(request, payload)
-                elif isinstance(payload, MigrateStatus):
-                    self._on_status(request, payload)
-                elif isinstance(payload, Request):
-                    self._on_policy(request, payload.args.get("accepts"))
-            except ConfigError as exc:
+                self._handle(request)
+            except MeshError as exc:
                 request.reject(str(exc))
 
-    def _on_policy(self, request: IncomingRequest, accepts: Any) -> None:
+    def _handle(self, request: IncomingRequest) -> None:
+        match request.payload:
+            case Migrate() as payload:
+                out = self._start(payload, _AnswerFuture(request))
+                if out is not None:  # started: the end is reported by MigrationSucceeded/Failed events
+                    request.accept({"attempt": out.attempt, "companion": out.companion, "target": out.target})
+            case MigratePrepare() as payload:
+                if request.requester != payload.source:
+                    request.reject(f"{request.requester!r} cannot send a prepare on behalf of {payload.source!r}")
+                else:
+                    self._on_prepare(request, payload)
+            case MigrateCommit() as payload:
+                if request.requester != payload.source:
+                    request.reject(f"{request.requester!r} cannot send a commit on behalf of {payload.source!r}")
+                else:
+                    self._on_commit(request, payload)
+            case MigrateAbort() as payload:
+                decision = handshake.on_abort(payload, self.records.get(payload.companion), requester=request.requester)
+                if decision.record is not None:
+                    self.records.put(decision.record)
+                    self._prepared.pop(payload.attempt, None)
+                    if self.identity is None:
+                        self._withdraw_claim()
+                    self.raise_event("MigrationDropped", {"companion": payload.companion, "attempt": payload.attempt,
+                                                          "source": request.requester})
+                request.answer(decision.outcome)
+            case MigrateStatus() as payload:
+                request.answer(handshake.on_status(payload, self.records.get(payload.companion), requester=request.requester).outcome)
+            case SetPolicy() as payload:
+                self._on_policy(request, payload.accepts)
+            case other:
+                request.reject(f"migration has no request of type {type(other).__name__}")
+
+    def _on_policy(self, request: IncomingRequest, accepts: list[str] | None) -> None:
         """Set the companion's own policy (``accepts``: embodiment names, or None for any); it is
         part of its identity, so it travels with it and every later host enforces it too."""
         identity = self.identity
-        if identity is None:
+        record = self.records.get(identity.companion) if identity is not None else None
+        if identity is None or record is None or record.state != "active":
             request.reject(f"embodiment {self.sim.embodiment!r} hosts no companion")
             return
+        for name in accepts or []:
+            keys.check_name(name, "accepted embodiment")
         if accepts is None:
             identity.sections.pop(POLICY_SECTION, None)
-        elif isinstance(accepts, list) and all(isinstance(a, str) for a in accepts):
-            for name in accepts:
-                keys.check_name(name, "accepted embodiment")
-            identity.sections[POLICY_SECTION] = {"accepts": sorted(set(accepts))}
         else:
-            request.reject("policy: 'accepts' must be a list of embodiment names, or null")
-            return
+            identity.sections[POLICY_SECTION] = {"accepts": sorted(set(accepts))}
         self._refresh_sections(identity)
-        self.records.put_document(identity.companion, identity.pack())
+        self.records.put(record, document=identity.pack())
         request.accept(identity.sections.get(POLICY_SECTION))
 
-    def attempt_state(self, companion: str, attempt: str) -> str:
-        """What this embodiment, as a source, made of ``attempt``: committed, aborted or pending."""
-        record = self.records.get(companion)
-        if record is None or record.attempt != attempt:
-            return "aborted"
-        return {"prepared": "pending", "handed": "committed", "released": "committed"}.get(record.state, "aborted")
-
     def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
-        me = self.sim.embodiment
-        try:
-            keys.check_name(msg.companion, "companion")
-            keys.check_name(msg.source, "source")
-            keys.check_name(msg.attempt, "attempt")
-        except InvalidName as exc:
-            request.reject(str(exc))
-            return
-        if msg.target != me:
-            request.reject(f"this is {me!r}, not {msg.target!r}")
-            return
+        bucket = self._buckets.setdefault(msg.source, _Bucket())
+        if len(self._buckets) > 1024:
+            self._buckets = {msg.source: bucket}  # bounded: forget strangers, keep the one asking
         record = self.records.get(msg.companion)
-        refusal = self._check_signature(msg, record)
-        if refusal:
-            request.reject(refusal)
+        repeat = record is not None and record.state == "incoming" and record.attempt == msg.attempt
+        if not repeat and not bucket.take():
+            request.reject(f"busy: too many prepares from {msg.source!r}; try again later")
             return
-        held = self.records.hosting()
-        if held is not None and held.companion != msg.companion:
-            request.reject(f"{me!r} is occupied by companion {held.companion!r}")
+        holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
+        decision = handshake.on_prepare(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit,
+                                        live_claims=holders)
+        if decision.record is None:
+            request.answer(decision.outcome)
             return
-        if record is not None:
-            if record.state == "incoming" and record.attempt == msg.attempt:
-                request.accept({"state": "prepared"})  # a repeated prepare: same answer
-                return
-            if record.state in ("active", "prepared", "handed") and record.epoch >= msg.epoch:
-                request.reject(f"stale: {me!r} holds {msg.companion!r} at epoch {record.epoch} >= {msg.epoch}")
-                return
-            if record.epoch > msg.epoch:
-                request.reject(f"stale: {me!r} knows {msg.companion!r} at epoch {record.epoch} > {msg.epoch}")
-                return
-        identity = unpack(msg.document, name=f"identity of {msg.companion} from {msg.source}")
-        if identity.companion != msg.companion or identity.epoch != msg.epoch:
-            request.reject(f"document is for {identity.companion!r} at epoch {identity.epoch}, "
-                           f"not {msg.companion!r} at epoch {msg.epoch}")
-            return
-        refused_by = refuses(identity, me)
-        if refused_by:
-            request.reject(refused_by)
-            return
-        self._prepared = {msg.attempt: identity}  # one handshake at a time: parsing it again at commit is waste
-        self.records.put_key(msg.companion, msg.companion_key)
-        self.records.put_document(msg.companion, msg.document)
-        public = signing.encode_public(signing.public_of(msg.companion_key))
-        incoming = self.records.move(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, public_key=public)
+        assert decision.key is not None and decision.identity is not None
+        self.records.put_key(msg.companion, decision.key)
+        incoming = self.records.put(decision.record, document=decision.document)
         crash_point("target:incoming")
-        request.accept({"state": "prepared"})
+        self._claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
+        self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
+        request.answer(decision.outcome)
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
         # abort may be lost for good: once overdue, ask the source, as after a restart.
         self._spawn(f"resolve-{msg.companion}", self._resolve_incoming, incoming, self.retry[1])
 
-    def _check_signature(self, msg: MigratePrepare, record: Record | None) -> str:
-        """Why this prepare is refused before its XML is read ("" when the envelope holds)."""
-        if self.admit is not None and msg.companion not in self.admit:
-            return f"admission: companion {msg.companion!r} may not enter {self.sim.embodiment!r}"
-        trusted = self.admit.get(msg.companion) if self.admit is not None else None
-        if trusted is None and record is not None and record.public_key:
-            trusted = signing.decode_public(record.public_key)  # pinned when first seen
-        if not msg.envelope or not msg.signature:
-            return f"refused: the identity of {msg.companion!r} is not signed"
-        expected = signing.Envelope(msg.companion, msg.epoch, msg.attempt, msg.source, msg.target, b"", b"")
-        try:
-            envelope = signing.verify(msg.envelope, msg.signature, expected=expected, document=msg.document, trusted_key=trusted)
-            if len(msg.companion_key) != 32 or signing.public_of(msg.companion_key) != envelope.public_key:
-                return "refused: the companion's key does not match its signature"
-        except signing.SignatureRefused as exc:
-            return f"refused: {exc}"
-        return ""
-
     def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
-        record = self.records.get(msg.companion)
-        if record is not None and record.peer != msg.source:
-            request.reject(f"{msg.source!r} is not the source of {msg.companion!r}'s migration here")
-            return
-        if record is not None and record.state == "active" and record.attempt == msg.attempt:
-            request.accept({"state": "committed"})
-            return
-        if record is None or record.state != "incoming" or record.attempt != msg.attempt:
-            request.reject(f"no incoming migration {msg.attempt} of {msg.companion!r} here")
-            return
-        self._activate(record)
-        request.accept({"state": "committed"})
+        decision = handshake.on_commit(msg, self.records.get(msg.companion), me=self.sim.embodiment)
+        if decision.record is not None:
+            self._activate(decision.record)
+        request.answer(decision.outcome)
 
-    def _activate(self, incoming: Record) -> None:
-        active = self.records.move(incoming.companion, "active", incoming.epoch + 1, incoming.attempt, incoming.peer)
+    def _activate(self, active: Record) -> None:
+        active = self.records.put(active)
         crash_point("target:active")
-        identity = self._prepared.pop(incoming.attempt, None)
+        identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
-            data = self.records.document(incoming.companion)
-            identity = unpack(data or b"", name=f"{incoming.companion}.identity.xml")
+            data = self.records.document(active.companion)
+            identity = unpack(data or b"", name=f"{active.companion}.identity.xml")
         identity.epoch = active.epoch
-        self._inhabit(identity, "MigrationOccurred", f"arrived from {incoming.peer}")
-
-    def _on_abort(self, request: IncomingRequest, msg: MigrateAbort) -> None:
-        record = self.records.get(msg.companion)
-        if record is not None and record.state == "incoming" and record.attempt == msg.attempt:
-            if record.peer != request.requester:
-                request.reject(f"only {record.peer!r}, the source of attempt {msg.attempt}, may abort it")
-                return
-            self.records.move(msg.companion, "dropped", record.epoch, record.attempt, record.peer)
-        request.accept()
-
-    def _on_status(self, request: IncomingRequest, msg: MigrateStatus) -> None:
-        record = self.records.get(msg.companion)
-        if record is not None and record.attempt == msg.attempt and record.peer != request.requester:
-            request.reject(f"attempt {msg.attempt} is not {request.requester!r}'s to ask about")
-            return
-        request.accept({"state": self.attempt_state(msg.companion, msg.attempt)})
+        self._inhabit(identity, "MigrationOccurred", f"arrived from {active.peer}")
 
     def _resolve_incoming(self, record: Record, overdue: float = 0.0) -> None:
-        """Ask the source until it says committed or aborted: after a restart in ``incoming``, and
-        ``overdue`` seconds after a prepare if neither a commit nor an abort has come by then."""
+        """Handshake thread: ask the source until it says committed or aborted: after a restart in
+        ``incoming``, and ``overdue`` seconds after a prepare if neither a commit nor an abort has come."""
         if overdue and self._stop.wait(overdue):
             return
-        key = keys.request_key(self.sim.mesh, record.peer, "migration", "status", self.sim.embodiment)
         delay = self.retry[0]
+        status = MigrateStatus(record.companion, record.attempt, record.epoch, "source")
         while not self._stop.is_set():
             current = self.records.get(record.companion)
             if current is None or current.state != "incoming" or current.attempt != record.attempt:
                 return  # a commit or abort arrived meanwhile
             try:
-                reply = send_request(self.sim.transport, key, MigrateStatus(record.companion, record.attempt),
-                                     timeout=self.request_timeout)
-                state = reply.value.get("state") if isinstance(reply.value, dict) else None
-                if state in ("committed", "aborted"):
-                    self._post(self._settle_incoming, record, state)
+                reply = self._request(record.peer, "status", status)
+                if reply.status == "accepted" and handshake.settle_incoming(current, reply.value, me=self.sim.embodiment):
+                    self._post(self._settle_incoming, record, reply.value)
                     return
             except OutcomeUnknown as exc:
                 log.info("asking %s about %s: %s", record.peer, record.attempt, exc)
@@ -741,30 +735,22 @@ class MigrationManager(Component):
                 return
             delay = min(self.retry[1] * 2, delay * 2)
 
-    def _settle_incoming(self, record: Record, state: str) -> None:
+    def _settle_incoming(self, record: Record, answer: Any) -> None:
         current = self.records.get(record.companion)
         if current is None or current.state != "incoming" or current.attempt != record.attempt:
             return
-        if state == "committed":
-            self._activate(current)
+        settled = handshake.settle_incoming(current, answer, me=self.sim.embodiment)
+        if settled is None:
+            return
+        if settled.state == "active":
+            self._activate(settled)
         else:
-            self.records.move(record.companion, "dropped", record.epoch, record.attempt, record.peer)
+            self.records.put(settled)
+            self._prepared.pop(record.attempt, None)
+            if self.identity is None:
+                self._withdraw_claim()
             self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,
                                                   "source": record.peer})
-
-
-POLICY_SECTION = "policy"
-
-
-def refuses(identity: Identity, embodiment: str) -> str:
-    """Why the companion itself refuses ``embodiment`` ("" if it accepts it).
-
-    A companion's identity may hold a ``policy`` section ``{"accepts": [embodiment names]}``."""
-    policy = identity.sections.get(POLICY_SECTION)
-    accepts = policy.get("accepts") if isinstance(policy, dict) else None
-    if isinstance(accepts, list) and embodiment not in accepts:
-        return f"companion {identity.companion!r} does not accept embodiment {embodiment!r} (its policy: {accepts})"
-    return ""
 
 
 class _AnswerFuture(Future[Outcome]):

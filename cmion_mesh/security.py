@@ -16,12 +16,12 @@ What a trusted **embodiment** ``X`` may do (checked by every member on its links
     publish, delete, answer, declare queryables    cmion/<mesh>/X/**
     query and subscribe                             cmion/<mesh>/X/**
     liveliness tokens                               cmion/<mesh>/@alive/X, cmion/<mesh>/@competency/X/**,
-                                                    cmion/<mesh>/@claim/X/*
+                                                    cmion/<mesh>/@custody/X/**, cmion/<mesh>/@claim/X/*
     subscribe to others' public keys                cmion/<mesh>/*/{bb,wm,ev}/**
     query others' public keys                       cmion/<mesh>/*/{bb,wm}/**, cmion/<mesh>/*/rq/embodiment/describe
     migration handshake, as sender X only           cmion/<mesh>/*/rq/migration/*/X
     liveliness queries and subscriptions            cmion/<mesh>/@alive/**, cmion/<mesh>/@competency/**,
-                                                    cmion/<mesh>/@claim/**
+                                                    cmion/<mesh>/@custody/**, cmion/<mesh>/@claim/**
 
 and what a member sends to ``X`` (egress) is limited to what ``X`` may read. An **operator**
 (administrator's tools) may do anything under ``cmion/<mesh>/``.
@@ -103,8 +103,9 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     member filtered it by sender on its own links), and untrusted names still nothing.
     """
     m = keys.mesh_prefix(mesh)
-    alive, competency, claim = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}", f"{m}/{keys.CLAIM}"
-    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{claim}/**"]
+    alive, competency = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}"
+    custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
+    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**"]
     if mode == "client":
         names = sorted(trust.names)
         for name in names:
@@ -115,7 +116,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
                 "policies": [{"id": "my-router", "rules": ["from-my-router"], "subjects": [f"member:{n}" for n in names]}] if names else []}
     subscribe_public = [f"{m}/*/{keys.BLACKBOARD}/**", f"{m}/*/{keys.WORLD_MODEL}/**", f"{m}/*/{keys.EVENTS}/**"]
     query_public = [f"{m}/*/{keys.BLACKBOARD}/**", f"{m}/*/{keys.WORLD_MODEL}/**", f"{m}/*/{keys.REQUESTS}/embodiment/describe"]
-    liveliness_public = [f"{alive}/**", f"{competency}/**", f"{claim}/**"]
+    liveliness_public = [f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**"]
     rules = [
         # What any trusted embodiment may do and be sent.
         _rule("public-subscribe", ["ingress"], ["declare_subscriber"], subscribe_public),
@@ -124,7 +125,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
         _rule("send-public-data", ["egress"], ["put", "delete"], subscribe_public),
         _rule("send-public-replies", ["egress"], ["reply"], query_public),
         _rule("send-public-queries", ["egress"], ["query"], query_public),
-        _rule("send-tokens", ["egress"], ["liveliness_token"], [f"{alive}/*", f"{competency}/**", f"{claim}/**"]),
+        _rule("send-tokens", ["egress"], ["liveliness_token"], [f"{alive}/*", f"{competency}/**", f"{custody}/**", f"{claim}/**"]),
         _rule("send-declarations", ["egress"], ["declare_subscriber", "declare_queryable"], [f"{m}/**"]),
     ]
     shared = [r["id"] for r in rules]
@@ -144,7 +145,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
             _rule(f"{name}:own", ["ingress"],
                   ["put", "delete", "declare_queryable", "reply", "declare_subscriber", "query"], [own]),
             _rule(f"{name}:tokens", ["ingress"], ["liveliness_token"],
-                  [f"{alive}/{name}", f"{competency}/{name}/**", f"{claim}/{name}/*"]),
+                  [f"{alive}/{name}", f"{competency}/{name}/**", f"{custody}/{name}/**", f"{claim}/{name}/*"]),
             _rule(f"{name}:handshakes", ["ingress"], ["query"], [handshakes]),
             _rule(f"{name}:send-own", ["egress"], ["put", "delete", "query", "reply"], [own]),
             _rule(f"{name}:send-handshake-replies", ["egress"], ["reply"], [handshakes]),

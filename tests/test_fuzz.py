@@ -8,7 +8,7 @@
     keeps answering.
 (c) Identity documents (``identity.unpack``) and the semantic loaders of CMION configuration
     files (``tests/test_xmlsafe.py`` already fuzzes ``xmlsafe.loads`` itself): only ``ConfigError``.
-(d) ``signing.verify``: only ``SignatureRefused``.
+(d) custody chains and offers (``custody.verify_chain``, ``verify_offer``): only ``SignatureRefused``.
 (e) The planner spec (``spec_from_data``, ``load_spec``): only ``ConfigError``.
 
 Hangs: every call is timed against ``BOUND`` (pytest-timeout stops a call that never returns).
@@ -33,7 +33,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from cmion_mesh import identity, keys, messages, signing
+from cmion_mesh import custody, identity, keys, messages, signing
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.competency import Competency, RunContext, read_library
 from cmion_mesh.embodiment import Embodiment
@@ -61,6 +61,7 @@ from cmion_mesh.messages import (
     RemoveProperty,
     Request,
     RunEnded,
+    SetPolicy,
     SetProperty,
     StartRun,
     StorageChange,
@@ -75,6 +76,7 @@ from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import load_world_model_init
 
 from .conftest import CMION_2011
+from .custody_helpers import Holder
 from .remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(120)
@@ -143,7 +145,6 @@ EDITS = st.lists(
 
 # --- (a) messages.decode ---------------------------------------------------------------------------------
 
-_KEY = b"\x01" * 32
 SAMPLES: list[Message] = [
     Property({"x": [1, 2.5, None, "é"]}, True),
     Container("agent"),
@@ -162,10 +163,11 @@ SAMPLES: list[Message] = [
     CancelRun("r-1"),
     RunEnded("r-1", "succeeded", ""),
     Migrate("spirit", "screen"),
-    MigratePrepare("spirit", 3, "a1b2", "robot", "screen", b"<Identity/>", b"\x97\xa1s", b"\x00" * 64, _KEY),
-    MigrateCommit("spirit", 3, "a1b2", "robot", "screen"),
+    MigratePrepare("spirit", 3, 1, "a1b2", "robot", "screen", b"<Identity/>", b"\x91\x97\xa1s", b"\x00" * 64),
+    MigrateCommit("spirit", 3, "a1b2", "robot", "screen", b"\x97\xa1s"),
     MigrateAbort("spirit", 3, "a1b2"),
-    MigrateStatus("spirit", "a1b2"),
+    MigrateStatus("spirit", "a1b2", 3, "target"),
+    SetPolicy(["robot", "screen"]),
 ]
 MESSAGE_TYPES = sorted(
     (c for c in vars(messages).values() if isinstance(c, type) and issubclass(c, Message) and c is not Message),
@@ -497,61 +499,50 @@ def test_config_loaders_on_mutated_files(config_dir: Path) -> None:
     one()
 
 
-# --- (d) signing.verify ------------------------------------------------------------------------------------
+# --- (d) custody: chains and offers ------------------------------------------------------------------------
 
 _PRIVATE = signing.new_key()
 _DOCUMENT = Identity("s", 1, {"mind": {"x": 1}}).pack()
-_ENVELOPE, _SIGNATURE = signing.seal(_PRIVATE, "s", 1, "a1", "robot", "screen", _DOCUMENT)
-_EXPECTED = signing.Envelope("s", 1, "a1", "robot", "screen", b"", b"")
-ENVELOPES = (
+_PREPARE = Holder("s", "robot", private=_PRIVATE).prepare("screen", _DOCUMENT, "a1")
+_CHAIN, _PROOF = _PREPARE.chain, _PREPARE.proof
+_OFFER = custody.Offer("s", 1, 1, "a1", "robot", "screen", custody.digest(_DOCUMENT))
+CHAINS = (
     st.binary(max_size=200)
-    | st.just(_ENVELOPE)
-    | EDITS.map(lambda edits: _edit(_ENVELOPE, edits))
+    | st.just(_CHAIN)
+    | EDITS.map(lambda edits: _edit(_CHAIN, edits))
     | st.lists(WIRE, max_size=9).map(msgspec.msgpack.encode)
-    | st.integers(4090, 5000).map(lambda n: b"\x00" * n)
 )
-EXPECTED = st.just(_EXPECTED) | st.builds(signing.Envelope, st.sampled_from(["s", "t", ""]), st.integers(-1, 3),
-                                          st.sampled_from(["a1", "a2"]), st.sampled_from(["robot", "phone"]),
-                                          st.sampled_from(["screen", "robot"]), st.just(b""), st.just(b""))
-NON_UTF8_ENVELOPE = _ENVELOPE.replace(b"\xa5robot", b"\xa5rob\xfft", 1)
+OFFERS = st.just(_OFFER) | st.builds(custody.Offer, st.sampled_from(["s", "t", ""]), st.integers(-1, 3), st.integers(0, 2),
+                                     st.sampled_from(["a1", "a2"]), st.sampled_from(["robot", "phone"]),
+                                     st.sampled_from(["screen", "robot"]), st.just(custody.digest(_DOCUMENT)) | st.binary(max_size=33))
+NON_UTF8_CHAIN = _CHAIN.replace(b"\xa5robot", b"\xa5rob\xfft", 1)
 
 
-def _verify_checked(envelope: bytes, signature: bytes, expected: signing.Envelope, document: bytes, trusted: bytes | None) -> None:
+def _verify_checked(chain: bytes, proof: bytes, offer: custody.Offer, trusted: bytes | None) -> None:
     try:
         with within():
-            result = signing.verify(envelope, signature, expected=expected, document=document, trusted_key=trusted)
+            links = custody.decode_chain(chain)
+            custody.verify_chain(links, "s", identity=trusted)
+            custody.verify_offer(links, offer, proof)
     except signing.SignatureRefused as exc:
         assert str(exc), "a refusal says which check failed"
         return
-    # Accepted: only the genuine envelope, signature, message and document get here.
-    assert (envelope, signature, expected, document) == (_ENVELOPE, _SIGNATURE, _EXPECTED, _DOCUMENT)
-    assert result.public_key == signing.public_of(_PRIVATE)
+    # Accepted: only the genuine chain, proof and offer get here.
+    assert (chain, proof, offer) == (_CHAIN, _PROOF, _OFFER)
 
 
 @FUZZ
-@given(ENVELOPES, st.just(_SIGNATURE) | st.binary(max_size=80), EXPECTED, st.just(_DOCUMENT) | st.binary(max_size=40),
+@given(CHAINS, st.just(_PROOF) | st.binary(max_size=80), OFFERS,
        st.none() | st.just(signing.public_of(_PRIVATE)) | st.binary(min_size=32, max_size=32))
-@example(NON_UTF8_ENVELOPE, _SIGNATURE, _EXPECTED, _DOCUMENT, None)
-def test_verify_only_refuses(envelope: bytes, signature: bytes, expected: signing.Envelope, document: bytes,
-                             trusted: bytes | None) -> None:
-    _verify_checked(envelope, signature, expected, document, trusted)
+@example(NON_UTF8_CHAIN, _PROOF, _OFFER, None)
+def test_custody_checks_only_refuse(chain: bytes, proof: bytes, offer: custody.Offer, trusted: bytes | None) -> None:
+    _verify_checked(chain, proof, offer, trusted)
 
 
-@FUZZ
-@given(ENVELOPES, st.just(_SIGNATURE) | st.binary(max_size=80), EXPECTED, st.just(_DOCUMENT) | st.binary(max_size=40),
-       st.none() | st.just(signing.public_of(_PRIVATE)) | st.binary(min_size=32, max_size=32))
-def test_verify_tolerating_the_unicode_bug(envelope: bytes, signature: bytes, expected: signing.Envelope, document: bytes,
-                                         trusted: bytes | None) -> None:
-    """Random and mutated envelopes, tolerating the known UnicodeDecodeError bug (kept running meanwhile)."""
-    try:
-        _verify_checked(envelope, signature, expected, document, trusted)
-    except UnicodeDecodeError:
-        pass
-
-
-def test_verify_accepts_the_genuine_envelope() -> None:
-    envelope = signing.verify(_ENVELOPE, _SIGNATURE, expected=_EXPECTED, document=_DOCUMENT, trusted_key=None)
-    assert envelope.companion == "s" and envelope.public_key == signing.public_of(_PRIVATE)
+def test_custody_accepts_the_genuine_offer() -> None:
+    links = custody.decode_chain(_CHAIN)
+    custody.verify_chain(links, "s", identity=signing.public_of(_PRIVATE))
+    custody.verify_offer(links, _OFFER, _PROOF)
 
 
 # --- (e) the planner spec ------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ what went wrong, so a regression is recognised at once.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import threading
@@ -30,7 +31,7 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import identity, keys, signing, xmlsafe
+from cmion_mesh import custody, identity, keys, records, signing, xmlsafe
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext, load_library
@@ -63,6 +64,7 @@ from cmion_mesh.statedir import LOCK_FILE
 from cmion_mesh.storage import WorldModel
 
 from .conftest import CMION_2011
+from .custody_helpers import Holder
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -514,14 +516,13 @@ class PrepareRow:
 
 
 def _signed(companion: str, epoch: int, attempt: str, source: str, target: str, document: bytes, private: bytes) -> MigratePrepare:
-    envelope, signature = signing.seal(private, companion, epoch, attempt, source, target, document)
-    return MigratePrepare(companion, epoch, attempt, source, target, document, envelope, signature, private)
+    """A prepare made by ``source`` holding ``companion`` since its birth at ``epoch`` (key ``private``)."""
+    return Holder(companion, source, epoch, private=private).prepare(target, document, attempt)
 
 
-def _bad_utf8_envelope(message: MigratePrepare) -> bytes:
-    envelope = signing.Envelope(_MARK, 1, "a1", SOURCE, "screen", b"\x00" * 32, b"\x00" * 32)
-    raw = msgspec.msgpack.encode(envelope).replace(b"\xa3\x00\x01\x02", b"\xa3\xff\xfe\xfd")
-    return encode(msgspec.structs.replace(message, envelope=raw))
+def _bad_utf8_chain(message: MigratePrepare) -> bytes:
+    raw = custody.encode_chain(custody.decode_chain(message.chain)).replace(COMPANION.encode(), b"\xff", 1)
+    return encode(msgspec.structs.replace(message, chain=raw))
 
 
 PREPARE_ROWS = [
@@ -556,18 +557,23 @@ PREPARE_ROWS = [
     PrepareRow("companion with a line feed", doc(companion="s&#10;"), ("companion",), companion="s\n"),
     # Refused because the sender in the (per-sender) key, a checked name, can never be 'no/where'.
     PrepareRow("source that is not a name", doc(), ("no/where",), source="no/where"),
-    PrepareRow("unsigned", doc(), ("not signed",), tamper=lambda m: encode(msgspec.structs.replace(m, signature=b""))),
-    PrepareRow("bad signature", doc(), ("bad signature",), tamper=lambda m: encode(msgspec.structs.replace(m, signature=bytes(64)))),
-    PrepareRow("envelope garbage", doc(), ("malformed envelope",), tamper=lambda m: encode(msgspec.structs.replace(m, envelope=b"\xc1"))),
-    PrepareRow("envelope over 4 KiB", doc(), ("envelope larger than 4 KiB",),
-               tamper=lambda m: encode(msgspec.structs.replace(m, envelope=b"\x00" * 5000))),
-    PrepareRow("companion key of a wrong length", doc(), ("does not match",),
-               tamper=lambda m: encode(msgspec.structs.replace(m, companion_key=b"\x01" * 7))),
+    PrepareRow("unsigned", doc(), ("bad signature on the offer",), tamper=lambda m: encode(msgspec.structs.replace(m, proof=b""))),
+    PrepareRow("bad signature", doc(), ("bad signature on the offer",),
+               tamper=lambda m: encode(msgspec.structs.replace(m, proof=bytes(64)))),
+    PrepareRow("chain garbage", doc(), ("malformed custody chain",), tamper=lambda m: encode(msgspec.structs.replace(m, chain=b"\xc1"))),
+    PrepareRow("chain empty", doc(), ("no chain of custody",),
+               tamper=lambda m: encode(msgspec.structs.replace(m, chain=custody.encode_chain([])))),
+    PrepareRow("birth link not self-signed", doc(), ("bad self-signature",),
+               tamper=lambda m: encode(msgspec.structs.replace(m, chain=custody.encode_chain(
+                   [msgspec.structs.replace(custody.decode_chain(m.chain)[0], signature=bytes(64))])))),
+    PrepareRow("chain of another companion", doc(), ("custody link 0 is of 't'",),
+               tamper=lambda m: encode(msgspec.structs.replace(m, chain=custody.encode_chain(
+                   [custody.birth("t", SOURCE, signing.new_key(), b"")])))),
     PrepareRow("another target", doc(), ("this is 'screen', not 'phone'",),
                tamper=lambda m: encode(msgspec.structs.replace(m, target="phone"))),
     PrepareRow("epoch as a string", doc(), ("malformed message", "$.epoch"),
                tamper=lambda m: msgspec.msgpack.encode({**msgspec.structs.asdict(m), "type": "migrate_prepare", "epoch": "1"})),
-    PrepareRow("envelope not UTF-8", doc(), ("malformed envelope",), tamper=_bad_utf8_envelope),
+    PrepareRow("chain not UTF-8", doc(), ("malformed custody chain",), tamper=_bad_utf8_chain),
 ]
 
 
@@ -630,6 +636,10 @@ class RecordRow:
     found: str = ""  # the bug this row found when it was written (fixed since): why the row exists
 
 
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
 def _record(**changes: Any) -> bytes:
     return json.dumps({**GOOD_RECORD, **changes}).encode()
 
@@ -651,7 +661,7 @@ RECORD_ROWS = [
     RecordRow("nested past the recursion limit", {"s.record.json": _record()[:-1] + b', "x": ' + b"[" * 5000 + b"]" * 5000 + b"}"},
               "s.record.json", "unreadable migration record",
               "an unknown field nested 5000 deep makes msgspec raise RecursionError, which Records does not catch"),
-    RecordRow("oversized", {"s.record.json": _record() + b" " * (1024 * 1024)}, "s.record.json", "larger than", RECORDS_NO_CAP),
+    RecordRow("oversized", {"s.record.json": _record() + b" " * records.MAX_RECORD}, "s.record.json", "larger than", RECORDS_NO_CAP),
     RecordRow("a directory", {"s.record.json": None}, "s.record.json", "record",
               "Records reads with Path.read_bytes and does not catch OSError: IsADirectoryError escapes"),
     RecordRow("companion that is not a name", {"s.record.json": _record(companion="../escape")}, "s.record.json", "companion",
@@ -662,15 +672,6 @@ RECORD_ROWS = [
               "(and shadows or is shadowed by t.record.json)"),
     RecordRow("negative epoch", {"s.record.json": _record(epoch=-3)}, "s.record.json", "epoch",
               "Records accepts a negative epoch (epochs start at 1)"),
-    RecordRow("identity document of the active companion is corrupt", {"s.record.json": _record(), "s.identity.xml": b"<Identity"},
-              "s.identity.xml", "malformed XML",
-              "the document is first read in MigrationManager.attach, on the loop: the XmlError is logged and the "
-              "embodiment runs without its companion, its record still saying active"),
-    RecordRow("identity document of the active companion is oversized",
-              {"s.record.json": _record(), "s.identity.xml": b"<Identity" + b" " * identity.MAX_DOCUMENT + b"/>"},
-              "s.identity.xml", "larger than",
-              "Records.document reads the whole file, and the refusal happens on the loop: the embodiment runs without "
-              "its companion"),
 ]
 
 
@@ -689,6 +690,42 @@ def test_corrupt_state_folder_refuses_to_start(row: RecordRow, network: MemoryNe
         pytest.fail(f"started, inhabited by {e.inhabitant!r}")
     assert str(state / row.culprit) in str(refused.value), refused.value
     assert row.fragment in str(refused.value), refused.value
+
+
+DAMAGED_ROWS = [
+    RecordRow("identity document of the active companion is corrupt",
+              {"s.record.json": _record(document=_sha(b"<Identity")), f"s.{_sha(b'<Identity')}.identity.xml": b"<Identity"},
+              f"s.{_sha(b'<Identity')}.identity.xml", "malformed XML",
+              "the document is first read in MigrationManager.attach, on the loop: the XmlError is logged and the "
+              "embodiment runs without its companion, its record still saying active"),
+    RecordRow("identity document of the active companion is oversized",
+              {"s.record.json": _record(document=_sha(b"big")),
+               f"s.{_sha(b'big')}.identity.xml": b"<Identity" + b" " * identity.MAX_DOCUMENT + b"/>"},
+              f"s.{_sha(b'big')}.identity.xml", "altered at rest",
+              "Records.document reads the whole file, and the refusal happens on the loop: the embodiment runs without "
+              "its companion"),
+    RecordRow("identity document altered at rest", {"s.record.json": _record(document=_sha(b"<Identity/>")),
+                                                    f"s.{_sha(b'<Identity/>')}.identity.xml": b"<Identity Companion='x'/>"},
+              f"s.{_sha(b'<Identity/>')}.identity.xml", "altered at rest"),
+    RecordRow("identity document missing", {"s.record.json": _record(document=_sha(b"gone"))},
+              f"s.{_sha(b'gone')}.identity.xml", "missing"),
+]
+
+
+@pytest.mark.parametrize("row", _params(DAMAGED_ROWS))
+def test_damaged_identity_at_rest_is_reported_not_run(row: RecordRow, network: MemoryNetwork, mesh: str, tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    for name, content in row.files.items():
+        assert content is not None
+        (state / name).write_bytes(content)
+    with MemoryTransport(network, "robot") as transport, Embodiment("robot", mesh=mesh, transport=transport, state_dir=state) as e:
+        settled(e.sim)
+        assert e.inhabitant is None, "an altered or unusable identity is never run"
+        assert e.migration is not None
+        error = e.migration.damaged.get("s", "")
+        assert str(state / row.culprit) in error and row.fragment in error, error
+        assert e.describe()["damaged"] == {"s": error}
 
 
 # --- configuration files ----------------------------------------------------------------------------

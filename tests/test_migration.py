@@ -9,16 +9,17 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import signing
+from cmion_mesh import custody, signing
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request
-from cmion_mesh.migration import Records
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request, SetPolicy
 from cmion_mesh.procs import wait_for
+from cmion_mesh.records import Records
 
+from .custody_helpers import Holder
 from .remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(60)
@@ -89,37 +90,35 @@ def handshake(client: MeshClient, op: str, message: Any, sender: str = "robot") 
     return client.request("screen", "migration", op, message, sender=sender)
 
 
-def signed(companion: str, epoch: int, attempt: str, source: str, target: str, document: bytes, private: bytes,
-           *, envelope_target: str | None = None) -> MigratePrepare:
-    envelope, signature = signing.seal(private, companion, epoch, attempt, source, envelope_target or target, document)
-    return MigratePrepare(companion, epoch, attempt, source, target, document, envelope, signature, private)
-
-
 def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork, mesh: str, tmp_path: Path,
                                                           client: MeshClient) -> None:
     screen = body(network, mesh, "screen", tmp_path).start()
-    key = signing.new_key()
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
         hostile = b'<!DOCTYPE Identity [<!ENTITY x SYSTEM "file:///etc/passwd">]><Identity SchemaVersion="1" Companion="s" Epoch="1"/>'
-        bad = handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", hostile, key))
+        bad = handshake(client, "prepare", Holder("s", "robot").prepare("screen", hostile, "a1"))
         assert bad.status == "rejected" and "internal DTD subset" in bad.reason and "identity of s from robot" in bad.reason
         huge = b"<Identity" + b" " * (50 * 1024 * 1024) + b"/>"
-        too_big = handshake(client, "prepare", signed("s", 1, "a0", "robot", "screen", huge, key))
+        too_big = handshake(client, "prepare", Holder("s", "robot").prepare("screen", huge, "a0"))
         assert too_big.status == "rejected"
         doc = Identity("s", 4, {"mind": {"entries": []}, "face": {"smile": 0.7}}).pack()
-        ok = handshake(client, "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
-        again = handshake(client, "prepare", signed("s", 4, "a2", "robot", "screen", doc, key))
+        robot = Holder("s", "robot", 4)
+        prepare = robot.prepare("screen", doc, "a2")
+        ok = handshake(client, "prepare", prepare)
+        again = handshake(client, "prepare", prepare)
         assert ok.status == again.status == "accepted", "a duplicated prepare gets the same answer"
-        stale = handshake(client, "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen"))
+        assert ok.value == again.value and set(ok.value) == {"state", "custody_key"}
+        stale = handshake(client, "commit", MigrateCommit("s", 4, "old-attempt", "robot", "screen", b""))
         assert stale.status == "rejected" and "old-attempt" in stale.reason
+        forged = handshake(client, "commit", Holder("s", "robot", 4).commit(prepare, ok))
+        assert forged.status == "rejected" and "not by its holder's custody key" in forged.reason
         assert screen.inhabitant is None
-        commit = MigrateCommit("s", 4, "a2", "robot", "screen")
+        commit = robot.commit(prepare, ok)
         assert handshake(client, "commit", commit).status == "accepted"
         assert handshake(client, "commit", commit).status == "accepted", "duplicate commit: same answer"
         assert screen.inhabitant == "s"
-        older = handshake(client, "prepare", signed("s", 3, "a3", "robot", "screen", doc, key))
-        assert older.status == "rejected" and "stale" in older.reason
+        older = handshake(client, "prepare", Holder("s", "robot", 3).prepare("screen", doc, "a3"))
+        assert older.status == "rejected" and "holds 's' itself" in older.reason
         # the unknown "face" section is kept and carried on
         kept = unpack(Records(tmp_path / "screen").document("s") or b"")
         assert kept.sections["face"] == {"smile": 0.7}
@@ -129,9 +128,8 @@ def test_invalid_document_and_stale_or_duplicate_messages(network: MemoryNetwork
         close(screen)
 
 
-def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+def test_custody_checks_come_before_any_xml(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
     screen = body(network, mesh, "screen", tmp_path).start()
-    key, other = signing.new_key(), signing.new_key()
     doc = Identity("s", 1, {"mind": {"entries": ["x"]}}).pack()
 
     def prepare(message: MigratePrepare) -> Outcome:
@@ -139,26 +137,30 @@ def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str,
 
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
-        unsigned = prepare(MigratePrepare("s", 1, "a1", "robot", "screen", doc))
-        assert unsigned.status == "rejected" and "not signed" in unsigned.reason
-        redirected = prepare(signed("s", 1, "a1", "robot", "screen", doc, key, envelope_target="phone"))
-        assert redirected.status == "rejected" and "target is 'phone'" in redirected.reason
-        altered = signed("s", 1, "a1", "robot", "screen", doc, key)
-        altered = msgspec.structs.replace(altered, document=doc.replace(b'"x"', b'"y"'))
-        assert "truncated or altered" in prepare(altered).reason
-        truncated = msgspec.structs.replace(signed("s", 1, "a1", "robot", "screen", doc, key), document=doc[:-5])
-        assert "truncated or altered" in prepare(truncated).reason
-        bad_sig = signed("s", 1, "a1", "robot", "screen", doc, key)
-        bad_sig = msgspec.structs.replace(bad_sig, signature=bytes(64))
-        assert "bad signature" in prepare(bad_sig).reason
-        mismatched = msgspec.structs.replace(signed("s", 1, "a1", "robot", "screen", doc, key), companion_key=other)
-        assert "does not match" in prepare(mismatched).reason
-        # the first good prepare pins the companion's key; another key is refused afterwards
-        assert prepare(signed("s", 1, "a1", "robot", "screen", doc, key)).status == "accepted"
+        robot = Holder("s", "robot")
+        unsigned = prepare(msgspec.structs.replace(robot.prepare("screen", doc, "a1"), proof=b""))
+        assert unsigned.status == "rejected" and "bad signature on the offer" in unsigned.reason
+        no_chain = prepare(msgspec.structs.replace(robot.prepare("screen", doc, "a1"), chain=custody.encode_chain([])))
+        assert "no chain of custody" in no_chain.reason
+        redirected = robot.prepare("phone", doc, "a1")
+        assert "this is 'screen', not 'phone'" in prepare(redirected).reason
+        redirected = msgspec.structs.replace(redirected, target="screen")
+        assert "bad signature on the offer" in prepare(redirected).reason
+        altered = msgspec.structs.replace(robot.prepare("screen", doc, "a1"), document=doc.replace(b'"x"', b'"y"'))
+        assert "bad signature on the offer" in prepare(altered).reason
+        by_another = Holder("s", "robot", chain=robot.chain)  # the chain, but not its holder's key
+        assert "bad signature on the offer" in prepare(by_another.prepare("screen", doc, "a1")).reason
+        # an offer that is aborted pins nothing: another companion of the same name may come next
+        assert prepare(robot.prepare("screen", doc, "a1")).status == "accepted"
         assert handshake(client, "abort", MigrateAbort("s", 1, "a1")).status == "accepted"
-        impostor = prepare(signed("s", 2, "a2", "robot", "screen", Identity("s", 2, {}).pack(), other))
-        assert impostor.status == "rejected" and "key other than the one trusted" in impostor.reason
-        assert screen.inhabitant is None
+        assert Records(tmp_path / "screen").get("s").public_key == ""
+        other = Holder("s", "robot")
+        first = other.prepare("screen", doc, "a2", seq=9)
+        answer = prepare(first)
+        assert answer.status == "accepted", answer
+        assert handshake(client, "commit", other.commit(first, answer)).status == "accepted"
+        assert Records(tmp_path / "screen").get("s").public_key == signing.encode_public(other.identity_key), "pinned at the commit"
+        assert screen.inhabitant == "s"
     finally:
         close(screen)
 
@@ -166,20 +168,24 @@ def test_signature_checks_come_before_any_xml(network: MemoryNetwork, mesh: str,
 def test_handshake_senders_are_known_from_their_keys(network: MemoryNetwork, mesh: str, tmp_path: Path,
                                                      client: MeshClient) -> None:
     screen = body(network, mesh, "screen", tmp_path).start()
-    key = signing.new_key()
     doc = Identity("s", 1, {}).pack()
+    robot = Holder("s", "robot")
     try:
         wait_for(lambda: screen.sim.updates > 0, 5, "screen up")
-        sender_less = client.request("screen", "migration", "prepare", signed("s", 1, "a1", "robot", "screen", doc, key))
+        message = robot.prepare("screen", doc, "a1")
+        sender_less = client.request("screen", "migration", "prepare", message)
         assert sender_less.status == "rejected" and "prepare/<sender>" in sender_less.reason
-        spoofed = handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", doc, key), sender="phone")
+        spoofed = handshake(client, "prepare", message, sender="phone")
         assert spoofed.status == "rejected" and "on behalf of 'robot'" in spoofed.reason
-        assert handshake(client, "prepare", signed("s", 1, "a1", "robot", "screen", doc, key)).status == "accepted"
+        answer = handshake(client, "prepare", message)
+        assert answer.status == "accepted"
         assert handshake(client, "abort", MigrateAbort("s", 1, "a1"), sender="phone").status == "rejected"
         assert handshake(client, "status", MigrateStatus("s", "a1"), sender="phone").status == "rejected"
-        assert handshake(client, "commit", MigrateCommit("s", 1, "a1", "phone", "screen"), sender="phone").status == "rejected"
+        commit = robot.commit(message, answer)
+        spoofed_commit = msgspec.structs.replace(commit, source="phone")
+        assert handshake(client, "commit", spoofed_commit, sender="phone").status == "rejected"
         assert screen.inhabitant is None
-        assert handshake(client, "commit", MigrateCommit("s", 1, "a1", "robot", "screen")).status == "accepted"
+        assert handshake(client, "commit", commit).status == "accepted"
         assert screen.inhabitant == "s"
     finally:
         close(screen)
@@ -201,7 +207,9 @@ def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str
             client.migrate("spirit", "screen", timeout=20)
         assert robot.inhabitant == "spirit"
         bad = client.request("robot", "migration", "policy", Request({"accepts": "screen"}))
-        assert bad.status == "rejected" and "must be a list" in bad.reason
+        assert bad.status == "rejected" and "Invalid value 'request'" in bad.reason
+        empty = client.request("robot", "migration", "policy", SetPolicy(["a/b"]))
+        assert empty.status == "rejected" and "'a/b'" in empty.reason
         client.set_policy("spirit", None)
         client.migrate("spirit", "screen", timeout=20)
         assert screen.inhabitant == "spirit"

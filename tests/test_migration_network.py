@@ -202,7 +202,9 @@ class Body:
         return None if record is None else (record["state"], record["epoch"])
 
     def document_size(self) -> int:
-        return (self.state / f"{COMPANION}.identity.xml").stat().st_size
+        record = self.record()
+        assert record is not None and record["document"], f"{self.name} holds no document"
+        return (self.state / f"{COMPANION}.{record['document']}.identity.xml").stat().st_size
 
     def signal(self, sig: signal.Signals) -> None:
         assert self.daemon is not None and self.daemon.proc.poll() is None, f"{self.name} is not running"

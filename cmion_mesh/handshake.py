@@ -1,0 +1,289 @@
+"""The migration handshake's decisions: pure functions from a durable record and a message to the
+next record and the answer. ``migration.MigrationManager`` runs them on real transports and disks;
+``tests/test_handshake_simulation.py`` runs the same functions through random schedules.
+
+The model (S the source, holder of the companion at epoch e; T the target)::
+
+    S active(e, seq s)
+      prepared(e, s+1, A) --- prepare(chain, offer signed by S's key) --->  T checks, stores the document,
+                                                                            makes a fresh custody key pair,
+                          <--- prepared(T's public custody key) --------  incoming(e, s+1, A)
+      handed(A, link)      (commit point: the link hands custody at e+1 to T's key, signed by S's key)
+                          --- commit(link), until answered ------------->  active(e+1): the chain grows by the link
+                          <--- committed ------------------------------
+      released(A)
+
+**Invariant: attempts only move forward.** Attempts of a companion are totally ordered by
+``(epoch, seq)``: only the holder at epoch e makes attempts of epoch e, numbering them from its
+durable record. A record accepts a message only for the attempt it is in, or -- a prepare -- for
+a strictly newer attempt, and only when it is in no handshake and not holding the companion
+(``active``, ``prepared``, ``handed``: a host never accepts a prepare for a companion it holds; an
+``incoming`` record refuses every other attempt without being touched). ``dropped`` and
+``released`` records keep their attempt's order, so an attempt that ended is never resurrected,
+across restarts. The replay case: T dropped attempt (e, 1); S, active again, sends (e, 2); a
+replayed prepare of (e, 1), before or after, is refused as not newer, and a replayed commit of
+(e, 1) names an attempt T is not in. Nothing a network can duplicate, delay or replay moves a
+record backwards.
+
+**Safety** (never two hosts): T becomes active only with a commit link signed by S's custody key
+for the attempt T holds ``incoming``, which S signs only after recording ``handed``; from
+``handed`` S never runs the companion again *unless T says the attempt is dropped*, which T says
+only from a durable record that can no longer become active for that attempt (it is ``dropped``,
+or it never held the attempt: a later prepare of it makes a new custody key, which the link S
+signed does not name). **Liveness**: every undecided state has a peer to ask: S ``prepared``
+after a restart aborts and resumes; S ``handed`` sends the commit until it is answered, and when
+it is refused asks T (``status of=target``): committed -> released; dropped -> resume; incoming ->
+abort it, then ask again. T ``incoming`` asks S (``status of=source``) once the commit is overdue
+or after a restart: committed (with the link) -> active; aborted -> dropped. A timeout, an empty
+reply or an error is "outcome unknown": asked again, never taken for success, and nothing is
+taken over because a peer went quiet.
+
+Custody (``custody``) makes the same decisions unforgeable by a former host: see its docstring.
+"""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import msgspec
+
+from cmion_mesh import custody, keys, signing
+from cmion_mesh.custody import Link, Offer
+from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
+from cmion_mesh.records import Record
+
+POLICY_SECTION = "policy"
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to write (key first, then the document and the record) and what to answer."""
+
+    outcome: Outcome
+    record: Record | None = None
+    document: bytes | None = None
+    key: bytes | None = None
+    identity: Identity | None = None  # the parsed document of an accepted prepare
+
+
+def refused(reason: str) -> Decision:
+    return Decision(Outcome("rejected", reason))
+
+
+def refuses(identity: Identity, embodiment: str) -> str:
+    """Why the companion itself refuses ``embodiment`` ("" if it accepts it).
+
+    A companion's identity may hold a ``policy`` section ``{"accepts": [embodiment names]}``."""
+    policy = identity.sections.get(POLICY_SECTION)
+    accepts = policy.get("accepts") if isinstance(policy, dict) else None
+    if isinstance(accepts, list) and embodiment not in accepts:
+        return f"companion {identity.companion!r} does not accept embodiment {embodiment!r} (its policy: {accepts})"
+    return ""
+
+
+def link_text(link: Link) -> str:
+    """A link as plain data (base64 text), for an answer's value."""
+    return base64.b64encode(custody.encode_link(link)).decode()
+
+
+def link_of_text(text: Any) -> Link:
+    try:
+        raw = base64.b64decode(str(text), validate=True)
+    except ValueError as exc:
+        raise signing.SignatureRefused(f"malformed custody link: {exc}") from None
+    return custody.decode_link(raw)
+
+
+# --- target side --------------------------------------------------------------------------------------
+
+
+def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Record | None,
+               admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int],
+               new_key: Callable[[], bytes] = signing.new_key) -> Decision:
+    """A prepare at T. ``held``: the record of a companion T holds, if any; ``live_claims``: the other
+    embodiments that say in the mesh they hold the companion, and at which epoch (custody tokens)."""
+    try:
+        keys.check_name(msg.companion, "companion")
+        keys.check_name(msg.source, "source")
+        keys.check_name(msg.attempt, "attempt")
+    except InvalidName as exc:
+        return refused(str(exc))
+    if msg.target != me:
+        return refused(f"this is {me!r}, not {msg.target!r}")
+    if admit is not None and msg.companion not in admit:
+        return refused(f"admission: companion {msg.companion!r} may not enter {me!r}")
+    attempt = (msg.epoch, msg.seq)
+    if record is not None:
+        if record.state == "incoming" and record.attempt == msg.attempt and record.order == attempt:
+            return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": record.custody_key}))
+        if record.state in ("active", "prepared", "handed"):
+            return refused(f"custody: {me!r} holds {msg.companion!r} itself (epoch {record.epoch}); "
+                           "a host never accepts a prepare for a companion it holds")
+        if record.state == "incoming":
+            return refused(f"busy: {me!r} is in migration {record.attempt} of {msg.companion!r} from {record.peer!r}, "
+                           "not yet decided")
+        if attempt <= record.order:
+            return refused(f"stale: attempt {msg.attempt} ({msg.epoch}.{msg.seq}) of {msg.companion!r} is not newer than "
+                           f"{record.epoch}.{record.seq}, {record.state} here")
+    if held is not None and held.companion != msg.companion:
+        return refused(f"{me!r} is occupied by companion {held.companion!r}")
+    trusted = admit.get(msg.companion) if admit is not None else None
+    if trusted is None and record is not None and record.public_key:
+        trusted = signing.decode_public(record.public_key)
+    try:
+        chain = custody.decode_chain(msg.chain)
+        custody.verify_chain(chain, msg.companion, identity=trusted)
+        fork = custody.forks(record.chain if record is not None else [], chain)
+        if fork:
+            return refused(f"custody: {fork}")
+        # Another live claim is a rival unless the chain shows that claimant handing the companion
+        # on at the epoch it claims (a former holder's token not yet withdrawn everywhere).
+        claimed = live_claims.get(msg.source)
+        if claimed is not None and claimed != msg.epoch and (msg.source, claimed) not in {(k.holder, k.epoch) for k in chain}:
+            return refused(f"custody: {msg.source!r} says in the mesh it holds {msg.companion!r} at epoch {claimed}, "
+                           f"and offers it at epoch {msg.epoch}")
+        rivals = custody.rivals(chain, live_claims, msg.source)
+        if rivals:
+            return refused(f"custody: {', '.join(map(repr, rivals))} holds {msg.companion!r} now (it says so in the mesh), "
+                           f"not {msg.source!r}")
+        digest = custody.digest(msg.document)
+        custody.verify_offer(chain, Offer(msg.companion, msg.epoch, msg.seq, msg.attempt, msg.source, msg.target, digest), msg.proof)
+    except signing.SignatureRefused as exc:
+        return refused(f"refused: {exc}")
+    try:
+        identity = unpack(msg.document, name=f"identity of {msg.companion} from {msg.source}")
+    except ConfigError as exc:
+        return refused(str(exc))
+    if identity.companion != msg.companion or identity.epoch != msg.epoch:
+        return refused(f"document is for {identity.companion!r} at epoch {identity.epoch}, not {msg.companion!r} at epoch {msg.epoch}")
+    policy = refuses(identity, me)
+    if policy:
+        return refused(policy)
+    private = new_key()
+    public = signing.encode_public(signing.public_of(private))
+    incoming = Record(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, seq=msg.seq, chain=chain,
+                      custody_key=public, public_key=record.public_key if record is not None else "")
+    return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": public}), incoming, msg.document, private, identity)
+
+
+def _activation(record: Record, link: Link, me: str) -> Record:
+    """The active record of T once ``link`` proves S handed ``record``'s attempt to T (raises SignatureRefused)."""
+    custody.check_link(record.chain[-1], link, companion=record.companion, attempt=record.attempt, holder=me,
+                       public_key=signing.decode_public(record.custody_key), document_sha256=bytes.fromhex(record.document))
+    chain = [*record.chain, link]
+    # The identity key is pinned here, at the commit, never at a prepare that may still be aborted.
+    return msgspec.structs.replace(record, state="active", epoch=link.epoch, seq=0, chain=chain, custody_key="",
+                                   public_key=signing.encode_public(custody.identity_key(chain)))
+
+
+def on_commit(msg: MigrateCommit, record: Record | None, *, me: str) -> Decision:
+    if record is not None and record.peer != msg.source:
+        return refused(f"{msg.source!r} is not the source of {msg.companion!r}'s migration here")
+    if record is not None and record.state == "active" and record.attempt == msg.attempt:
+        return Decision(Outcome("accepted", "", {"state": "committed"}))
+    if record is None or record.state != "incoming" or record.attempt != msg.attempt or record.epoch != msg.epoch:
+        return refused(f"no incoming migration {msg.attempt} of {msg.companion!r} here")
+    try:
+        active = _activation(record, custody.decode_link(msg.link), me)
+    except signing.SignatureRefused as exc:
+        return refused(f"refused: {exc}")
+    return Decision(Outcome("accepted", "", {"state": "committed"}), active)
+
+
+def on_abort(msg: MigrateAbort, record: Record | None, *, requester: str) -> Decision:
+    if record is not None and record.state == "incoming" and record.attempt == msg.attempt:
+        if record.peer != requester:
+            return refused(f"only {record.peer!r}, the source of attempt {msg.attempt}, may abort it")
+        return Decision(Outcome("accepted", "", {"state": "dropped"}), dropped(record))
+    return Decision(Outcome("accepted", "", {"state": "dropped"}))
+
+
+def dropped(record: Record) -> Record:
+    """T's record of an attempt that ended without a commit. Its order stays (never resurrected); the
+    chain it offered stays only if it extends custody pinned here before: an aborted offer teaches nothing."""
+    return msgspec.structs.replace(record, state="dropped", custody_key="", chain=record.chain if record.public_key else [])
+
+
+def on_status(msg: MigrateStatus, record: Record | None, *, requester: str) -> Decision:
+    """What this embodiment made of an attempt, as its source (``of="source"``) or its target."""
+    if record is not None and record.attempt == msg.attempt and record.peer != requester:
+        return refused(f"attempt {msg.attempt} is not {requester!r}'s to ask about")
+    ours = record is not None and record.attempt == msg.attempt
+    if msg.of == "source":
+        if ours and record is not None and record.state == "prepared":
+            return Decision(Outcome("accepted", "", {"state": "pending"}))
+        if ours and record is not None and record.state in ("handed", "released") and record.link is not None:
+            return Decision(Outcome("accepted", "", {"state": "committed", "link": link_text(record.link)}))
+        return Decision(Outcome("accepted", "", {"state": "aborted"}))
+    if ours and record is not None and record.state == "incoming":
+        return Decision(Outcome("accepted", "", {"state": "incoming"}))
+    if record is not None and ((ours and record.state != "dropped") or record.epoch > msg.epoch):
+        return Decision(Outcome("accepted", "", {"state": "committed"}))
+    return Decision(Outcome("accepted", "", {"state": "dropped"}))
+
+
+def settle_incoming(record: Record, answer: Any, *, me: str) -> Record | None:
+    """T ``incoming``, told by S what became of the attempt: the next record, or None to ask again."""
+    state = answer.get("state") if isinstance(answer, dict) else None
+    if state == "aborted":
+        return dropped(record)
+    if state == "committed":
+        try:
+            return _activation(record, link_of_text(answer.get("link", "")), me)
+        except signing.SignatureRefused:
+            return None  # not a link that proves the hand-over: ask again, never take it over
+    return None
+
+
+# --- source side ------------------------------------------------------------------------------------
+
+
+def offer(record: Record, *, attempt: str, me: str, target: str, document: bytes, private: bytes) -> tuple[Record, MigratePrepare]:
+    """S, active: the ``prepared`` record of a new attempt and its prepare."""
+    seq = record.seq + 1
+    digest = custody.digest(document)
+    proof = custody.sign_offer(private, Offer(record.companion, record.epoch, seq, attempt, me, target, digest))
+    prepared = msgspec.structs.replace(record, state="prepared", seq=seq, attempt=attempt, peer=target, link=None)
+    message = MigratePrepare(record.companion, record.epoch, seq, attempt, me, target, document,
+                             custody.encode_chain(record.chain), proof)
+    return prepared, message
+
+
+Next = Literal["commit", "resume", "released", "abort", "ask", "retry"]
+
+
+def after_prepare(prepared: Record, outcome: Outcome, *, private: bytes, document: bytes) -> Record:
+    """S ``prepared``, answered: ``handed`` with the link when T prepared, else ``active`` again."""
+    value = outcome.value if isinstance(outcome.value, dict) else {}
+    if outcome.status == "accepted":
+        try:
+            public = signing.decode_public(str(value.get("custody_key", "")))
+        except Exception:
+            public = b""
+        if public:
+            link = custody.hand_on(private, prepared.companion, prepared.epoch + 1, prepared.peer, public, prepared.attempt,
+                                   custody.digest(document))
+            return msgspec.structs.replace(prepared, state="handed", link=link)
+    return resume(prepared)
+
+
+def resume(record: Record) -> Record:
+    """S takes the companion back at the same epoch; the attempt's order stays, so the next is newer."""
+    return msgspec.structs.replace(record, state="active", attempt="", peer="", link=None)
+
+
+def after_refused_commit(handed: Record, answer: Any) -> tuple[Next, Record | None]:
+    """S ``handed`` whose commit was refused, told by T (``status of=target``) where it stands."""
+    state = answer.get("state") if isinstance(answer, dict) else None
+    if state == "committed":
+        return "released", msgspec.structs.replace(handed, state="released")
+    if state == "dropped":
+        return "resume", resume(handed)
+    if state == "incoming":
+        return "abort", None
+    return "retry", None

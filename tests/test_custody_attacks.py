@@ -1,0 +1,330 @@
+"""Attacks on a companion's custody, replayed against real daemons in separate processes.
+
+A replayed prepare of a dropped attempt; an eavesdropper capturing prepares; a former host that
+kept its custody key trying to take over, clone or wipe the companion (secure mode: mutual TLS,
+access control); a stranger poisoning the pin; a flood of first-contact prepares and of actions;
+an identity edited at rest. After each: exactly one host, its memory intact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import queue
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cmion_mesh import certs, custody, keys, signing
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import OutcomeUnknown
+from cmion_mesh.identity import Identity
+from cmion_mesh.ion import send_request
+from cmion_mesh.messages import Act, Migrate, MigrateAbort, MigrateCommit, MigratePrepare, Outcome, Request, decode, encode
+from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.records import Record, Records
+from cmion_mesh.transport import TransportConfig
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+from .custody_helpers import Holder
+from .remote_helpers import diary_embodiment_config
+from .test_migration_crash import Node, memory
+from .test_security_mtls import Pki, secure_config
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    base = tmp_path_factory.mktemp("pki")
+    certs.init(base / "mesh")
+    for name in ("robot", "screen", "phone"):
+        certs.issue(base / "mesh", name)
+    certs.issue(base / "mesh", "admin", role="operator")
+    return Pki(base / "mesh", base / "unused", base / "unused")
+
+
+@pytest.fixture
+def trio(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node, Node]]:
+    ports = {name: free_port() for name in ("a", "b", "c")}
+    nodes = []
+    for name, port in ports.items():
+        others = [f"tcp/127.0.0.1:{p}" for n, p in ports.items() if n != name]
+        nodes.append(Node(name, mesh, diary_embodiment_config(tmp_path / name, name), tmp_path / f"state-{name}", port, others,
+                          companion="spirit" if name == "a" else None))
+    try:
+        yield nodes[0], nodes[1], nodes[2]
+    finally:
+        for node in nodes:
+            node.stop()
+
+
+def homes(client: MeshClient, names: tuple[str, ...]) -> dict[str, Any]:
+    found: dict[str, Any] = {}
+    for name in names:
+        try:
+            found[name] = client.describe(name, timeout=1.0).get("inhabitant")
+        except OutcomeUnknown:
+            found[name] = "?"
+    return found
+
+
+def record_of(state: Path) -> Record | None:
+    return Records(state).get("spirit") if (state / "spirit.record.json").exists() else None
+
+
+@contextlib.contextmanager
+def pair(trio: tuple[Node, Node, Node], mesh: str) -> Iterator[tuple[ZenohTransport, MeshClient]]:
+    """a (spirit's home) and b up, a client joined to both, spirit living on a."""
+    a, b, _ = trio
+    a.start()
+    b.start()
+    with ZenohTransport(TransportConfig(connect=(a.endpoint, b.endpoint), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: homes(client, ("a", "b")) == {"a": "spirit", "b": None}, 30, "spirit born on a")
+        yield t, client
+
+
+class Capture:
+    """A plain zenoh session that overhears every handshake request sent in the mesh (never replies)."""
+
+    def __init__(self, transport: ZenohTransport, mesh: str) -> None:
+        self.seen: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+
+        def on_query(query: Any) -> None:
+            self.seen.put((query.key, query.payload or b""))
+            query.finish()
+
+        self.handle = transport.declare_queryable(f"{keys.mesh_prefix(mesh)}/*/{keys.REQUESTS}/migration/prepare/*", on_query)
+
+    def prepares(self) -> list[tuple[str, MigratePrepare]]:
+        out = []
+        while not self.seen.empty():
+            key, payload = self.seen.get()
+            out.append((key, decode(payload, MigratePrepare)))
+        return out
+
+
+def test_a_replayed_prepare_never_loses_the_companion(trio: tuple[Node, Node, Node], mesh: str) -> None:
+    """The lost-companion scenario: a dropped attempt's prepare, captured and resent every ~2 ms while
+    the companion migrates again, is refused; the migration ends, exactly one host, memory intact."""
+    a = trio[0]
+    with pair(trio, mesh) as (t, client):
+        client.request("a", "mind", "message", Request({"note": "met Ada"}))
+        client.migrate("spirit", "b", timeout=30)
+        # a dies right after recording 'incoming' for the attempt back; b resumes; a, restarted, drops it
+        assert a.daemon is not None
+        a.daemon.kill()
+        a.start("target:incoming")
+        capture = Capture(t, mesh)
+        try:
+            wait_for(lambda: "a" in {d["name"] for d in client.describe_all(timeout=1.0)}, 30, "a back")
+            assert client.request("b", "migration", "migrate", Request()).status == "rejected"  # a typed request only
+            started = client.request("b", "migration", "migrate", Migrate("spirit", "a"))
+            assert started.status == "accepted"
+            assert a.died() == -9
+            captured = [p for k, p in capture.prepares() if k.endswith("/a/rq/migration/prepare/b")]
+        finally:
+            capture.handle.close()
+        assert captured, "the prepare to a was overheard"
+        stale = captured[0]
+        a.start()
+        wait_for(lambda: (r := record_of(a.state)) is not None and r.state == "dropped", 30, "a dropped the old attempt")
+        wait_for(lambda: homes(client, ("a", "b")) == {"a": None, "b": "spirit"}, 30, "spirit resumed on b")
+        # resend the stale prepare every ~2 ms while the companion migrates to a for real
+        answers: list[Outcome] = []
+        stop = threading.Event()
+        key = keys.request_key(mesh, "a", "migration", "prepare", "b")
+
+        def replay() -> None:
+            deadline = time.monotonic() + 20
+            while not stop.is_set() and time.monotonic() < deadline and len(answers) < 5000:
+                try:
+                    answers.append(send_request(t, key, stale, timeout=2.0))
+                except OutcomeUnknown:
+                    pass
+                stop.wait(0.002)
+
+        replayer = threading.Thread(target=replay, name="replayer")
+        replayer.start()
+        try:
+            result = client.migrate("spirit", "a", timeout=30)
+        finally:
+            stop.set()
+            replayer.join(30)
+        assert result["target"] == "a"
+        assert answers and all(o.status == "rejected" for o in answers), [o for o in answers if o.status != "rejected"][:3]
+        assert {o.reason.split(":")[0] for o in answers} <= {"stale", "busy", "custody"}, {o.reason for o in answers}
+        wait_for(lambda: homes(client, ("a", "b")) == {"a": "spirit", "b": None}, 30, "exactly one host: a")
+        assert memory(client, "a") == ["met Ada"]
+
+
+def test_a_captured_prepare_holds_nothing_that_signs(trio: tuple[Node, Node, Node], mesh: str) -> None:
+    """Plain mode: an eavesdropper sees the prepare, but no private key travels in it."""
+    a, b, _ = trio
+    with pair(trio, mesh) as (t, client):
+        source_key = (a.state / "spirit.key").read_bytes()
+        capture = Capture(t, mesh)
+        try:
+            client.migrate("spirit", "b", timeout=30)
+            overheard = capture.prepares()
+        finally:
+            capture.handle.close()
+        assert overheard
+        target_key = (b.state / "spirit.key").read_bytes()
+        for _, prepare in overheard:
+            raw = encode(prepare)
+            assert source_key not in raw and target_key not in raw, "a private key crossed the wire"
+        assert not (a.state / "spirit.key").exists(), "the former host's custody key is deleted"
+        # and the overheard prepare, replayed, is refused: the target already holds the companion
+        refused = send_request(t, keys.request_key(mesh, "b", "migration", "prepare", "a"), overheard[0][1], timeout=5)
+        assert refused.status == "rejected" and "holds 'spirit' itself" in refused.reason
+
+
+def _secure_daemon(pki: Pki, tmp: Path, mesh: str, name: str, port: int, peers: list[int], *extra: str) -> Daemon:
+    argv = ["up", str(diary_embodiment_config(tmp / name, name)), "--name", name, "--mesh", mesh, "--certs", str(pki.dir),
+            "--no-multicast", "--listen", f"tcp/127.0.0.1:{port}", "--state-dir", str(tmp / f"state-{name}"), *extra]
+    for peer in peers:
+        argv += ["--connect", f"tcp/127.0.0.1:{peer}"]
+    daemon = Daemon(cli_argv(*argv), name=name)
+    daemon.wait_line("up in mesh", 30)
+    return daemon
+
+
+def test_a_former_host_cannot_take_over_clone_or_wipe_in_secure_mode(pki: Pki, tmp_path: Path, mesh: str) -> None:
+    """spirit goes robot -> screen -> robot; screen turns hostile, with every custody key it ever had,
+    its certificate, and the chain it knew: takeover, clone and wipe-out are all refused."""
+    ports = {n: free_port() for n in ("robot", "screen", "phone")}
+    daemons = []
+    try:
+        for name in ports:
+            daemons.append(_secure_daemon(pki, tmp_path, mesh, name, ports[name], [p for n, p in ports.items() if n != name],
+                                          *(["--companion", "spirit"] if name == "robot" else [])))
+        endpoints = [f"tls/127.0.0.1:{p}" for p in ports.values()]
+        with ZenohTransport(secure_config(pki, "admin", mesh, *endpoints)) as admin_t:
+            admin = MeshClient(admin_t, mesh)
+            names = ("robot", "screen", "phone")
+            wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None, "phone": None}, 30, "three secure daemons")
+            admin.request("robot", "mind", "message", Request({"note": "met Ada"}))
+            admin.migrate("spirit", "screen", timeout=30)
+            screen_state = tmp_path / "state-screen"
+            kept_key = (screen_state / "spirit.key").read_bytes()  # what a hostile screen would keep
+            kept_chain = Records(screen_state).get("spirit").chain  # type: ignore[union-attr]
+            admin.migrate("spirit", "robot", timeout=30)
+            wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None, "phone": None}, 30, "back on robot")
+            hostile = Holder("spirit", "screen", kept_chain[-1].epoch, private=kept_key, chain=list(kept_chain))
+            altered = Identity("spirit", hostile.epoch, {"mind": {"entries": ["HACKED"]}}).pack()
+            # a fork: screen hands custody at its old epoch to a key of its own, up to epoch 20
+            fork_key = signing.new_key()
+            fork = [*kept_chain, custody.hand_on(kept_key, "spirit", hostile.epoch + 1, "screen", signing.public_of(fork_key),
+                                                 "forged", custody.digest(altered))]
+            forked = Holder("spirit", "screen", hostile.epoch + 1, private=fork_key, chain=fork)
+            with ZenohTransport(secure_config(pki, "screen", mesh, *endpoints)) as screen_t:
+                def handshake(target: str, op: str, message: Any) -> Outcome:
+                    return send_request(screen_t, keys.request_key(mesh, target, "migration", op, "screen"), message, timeout=5)
+
+                wait_for(lambda: screen_t.alive(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", timeout=1.0) != [], 20, "joined")
+                takeover = handshake("robot", "prepare", forked.prepare("robot", Identity("spirit", forked.epoch, {}).pack(), "t1"))
+                assert takeover.status == "rejected" and "holds 'spirit' itself" in takeover.reason, takeover
+                for target in ("phone", "robot"):
+                    for holder in (hostile, forked):
+                        doc = Identity("spirit", holder.epoch, {"mind": {"entries": ["HACKED"]}}).pack()
+                        answer = handshake(target, "prepare", holder.prepare(target, doc, f"clone-{target}-{holder.epoch}"))
+                        assert answer.status == "rejected", answer
+                        assert "custody" in answer.reason, answer.reason
+                forged_commit = MigrateCommit("spirit", hostile.epoch, "clone", "screen", "phone",
+                                              custody.encode_link(kept_chain[-1]))
+                assert handshake("phone", "commit", forged_commit).status == "rejected"
+            assert homes(admin, names) == {"robot": "spirit", "screen": None, "phone": None}
+            assert memory(admin, "robot") == ["met Ada"]
+            phone = record_of(tmp_path / "state-phone")
+            assert phone is None or phone.state == "dropped"
+    finally:
+        for daemon in daemons:
+            daemon.kill()
+
+
+def test_strangers_cannot_poison_the_pin_fill_the_disk_or_stall_actions(trio: tuple[Node, Node, Node], mesh: str) -> None:
+    b = trio[1]
+    with pair(trio, mesh) as (t, client):
+
+        def to_b(op: str, message: Any, sender: str = "x") -> Outcome:
+            return send_request(t, keys.request_key(mesh, "b", "migration", op, sender), message, timeout=5)
+
+        # poisoning: a stranger's "spirit" (its own key) is refused while spirit's holder is alive,
+        # and in any case an aborted prepare pins nothing
+        impostor = Holder("spirit", "x")
+        poisoned = to_b("prepare", impostor.prepare("b", Identity("spirit", 1, {}).pack(), "p1"))
+        assert poisoned.status == "rejected" and "custody" in poisoned.reason
+        to_b("abort", MigrateAbort("spirit", 1, "p1"))
+        # disk fill: first-contact prepares of 300 companions with 64 KiB documents, each aborted
+        statuses: dict[str, int] = {}
+        blob = {"mind": {"blob": "z" * 65536}}
+        for i in range(300):
+            holder = Holder(f"x{i}", "x")
+            answer = to_b("prepare", holder.prepare("b", Identity(f"x{i}", 1, blob).pack(), f"f{i}"))
+            statuses[answer.reason.split(":")[0] if answer.status == "rejected" else "accepted"] = \
+                statuses.get(answer.reason.split(":")[0] if answer.status == "rejected" else "accepted", 0) + 1
+            if answer.status == "accepted":
+                assert to_b("abort", MigrateAbort(f"x{i}", 1, f"f{i}")).status == "accepted"
+        assert statuses.get("busy", 0) > 0, statuses  # the sender's budget ran out
+        files = list(b.state.iterdir())
+        assert len(files) <= 64 + 1, len(files)
+        assert sum(f.stat().st_size for f in files) < 256 * 1024, "aborted documents are deleted"
+        # the real companion still migrates to b
+        client.migrate("spirit", "b", timeout=30)
+        # an action flood is bounded: every request answered, busy beyond the limits, and a legitimate
+        # action afterwards runs
+        act_key = keys.request_key(mesh, "b", "manager", "act")
+        outcomes: list[str] = []
+        lock = threading.Lock()
+
+        def flood(n: int) -> None:
+            for i in range(n):
+                try:
+                    status = send_request(t, act_key, Act("TestAction", ["test"], action_id=f"flood-{threading.get_ident()}-{i}"),
+                                          timeout=10).status
+                except OutcomeUnknown:
+                    status = "unknown"
+                with lock:
+                    outcomes.append(status)
+
+        threads = [threading.Thread(target=flood, args=(500,), name=f"flood-{k}") for k in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+        assert len(outcomes) == 2000 and "unknown" not in outcomes
+        assert "rejected" in outcomes, "beyond the running-action limit, the flood is refused busy"
+        report = client.act("b", "TestAction", ["test"], timeout=60)
+        assert report.status in ("succeeded", "failed"), report
+
+
+def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, Node, Node], mesh: str) -> None:
+    a = trio[0]
+    a.start()
+    with ZenohTransport(TransportConfig(connect=(a.endpoint,), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: homes(client, ("a",)) == {"a": "spirit"}, 30, "spirit born on a")
+        client.request("a", "mind", "message", Request({"note": "met Ada"}))
+        assert a.daemon is not None
+        a.daemon.stop()
+        record = json.loads((a.state / "spirit.record.json").read_bytes())
+        document = a.state / f"spirit.{record['document']}.identity.xml"
+        assert oct(document.stat().st_mode & 0o777) == "0o600" and oct(a.state.stat().st_mode & 0o777) == "0o700"
+        document.write_bytes(document.read_bytes().replace(b"met Ada", b"HACKED!"))
+        a.start()
+        def damaged() -> bool:
+            try:
+                return "spirit" in client.describe("a", timeout=1.0).get("damaged", {})
+            except OutcomeUnknown:
+                return False
+
+        wait_for(damaged, 30, "a reports spirit damaged")
+        description = client.describe("a", timeout=2.0)
+        assert description["inhabitant"] is None
+        assert "altered at rest" in description["damaged"]["spirit"] and str(document) in description["damaged"]["spirit"]
