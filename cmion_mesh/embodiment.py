@@ -160,7 +160,8 @@ class Embodiment:
         """Where the live embodiment ``name`` runs, for a refusal (host, pid, zenoh id, up since)."""
         with MeshClient(self.transport, self.mesh) as client:
             try:
-                found = client.describe(name, timeout=2.0)
+                client.wait_for_embodiment(name, timeout=3.0)  # its token may still be on its way
+                found = client.describe(name, timeout=3.0)
             except MeshError:
                 return ""
         since = time.strftime("%H:%M:%S", time.localtime(found.get("started_at", 0))) if found.get("started_at") else "?"
