@@ -290,7 +290,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
         return ExitCode.FAILED
     print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
-    return ExitCode.OK
+    sys.stderr.flush()
+    # Said only when it is true: everything is closed and on disk, so leave now rather than let
+    # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
+    os._exit(ExitCode.OK)
 
 
 def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:

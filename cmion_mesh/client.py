@@ -122,7 +122,7 @@ class MeshClient:
         if embodiment in presence.alive():
             return
         # Others are alive, not this one (yet?). The daemons have seen the mesh longer: ask them.
-        reported = self._reported_alive(presence.alive(), deadline)
+        reported = self.reported_alive(presence.alive(), deadline)
         if embodiment in reported | presence.alive() and \
                 presence.wait(lambda alive: embodiment in alive, deadline - time.monotonic()):
             return
@@ -141,7 +141,7 @@ class MeshClient:
             raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
                            f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
 
-    def _reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
+    def reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
         """The embodiments that the daemons ``asked`` see alive (those that answer before ``deadline``)."""
         names = sorted(asked)
         out: set[str] = set()
@@ -400,24 +400,27 @@ class MeshClient:
         return value if isinstance(value, dict) else {"name": embodiment}
 
     def _describe_replies(self, embodiment: str, deadline: float) -> list[dict[str, Any]]:
-        """Every description answering for ``embodiment`` (two when two daemons share its name)."""
+        """Every description answering for ``embodiment``: two when two daemons share its name (when
+        one says it sees a twin, the twin's answer is waited for too, within ``deadline``)."""
         key = keys.request_key(self.mesh, embodiment, "embodiment", "describe")
         payload = encode(Describe())
+        found: dict[str, dict[str, Any]] = {}  # by zenoh id
         delay = 0.01
         while True:
             left = deadline - time.monotonic()
             replies = self.transport.get(key, payload, timeout=max(0.01, left))
-            found = []
             for reply in replies:
                 try:
                     outcome = decode(reply.payload, Outcome, where=key) if reply.ok else None
                 except ProtocolError:
                     continue
                 if outcome is not None and outcome.status == "accepted" and isinstance(outcome.value, dict):
-                    found.append(outcome.value)
-            if found:
-                return found
-            if replies or deadline - time.monotonic() < delay:
+                    found[str(outcome.value.get("zenoh_id", len(found)))] = outcome.value
+            expected = 1 + max((len(d.get("duplicates") or ()) for d in found.values()), default=0)
+            late = deadline - time.monotonic() < delay
+            if found and (len(found) >= expected or late):
+                return list(found.values())
+            if not found and (replies or late):
                 raise OutcomeUnknown(f"{embodiment} did not describe itself within {max(0.0, left):.1f} s", key=key)
             self.presence.wait(lambda alive: embodiment not in alive, delay)  # not routed yet: again, soon
             if embodiment not in self.presence.alive():
@@ -495,8 +498,8 @@ def mesh_problems(described: Sequence[dict[str, Any]]) -> list[str]:
         if d.get("inhabitant"):
             hosts.setdefault(str(d["inhabitant"]), []).append(str(d.get("name")))
         for twin in d.get("duplicates") or ():
-            problems.append(f"{d.get('name')} (zenoh id {d.get('zenoh_id')}) sees another daemon named {d.get('name')!r} "
-                            f"(zenoh id {twin}) in the mesh")
+            problems.append(f"DUPLICATE EMBODIMENT: {d.get('name')} (zenoh id {d.get('zenoh_id')}) sees another daemon named "
+                            f"{d.get('name')!r} (zenoh id {twin}) in the mesh")
     for name, count in sorted(names.items()):
         if count > 1:
             where = ", ".join(f"{d.get('host', '?')} pid {d.get('pid', '?')}" for d in described if d.get("name") == name)

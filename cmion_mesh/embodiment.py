@@ -89,7 +89,10 @@ class Embodiment:
                 self._state_lock = StateLock(state_dir)
             self.presence = Presence(self.transport, self.mesh)
             if join is not None:
-                self._claim = NameClaim(self.transport, self.mesh, self.name, window=join, describe=self._where)
+                # Only the zenoh adapter knows its links (``peers``); a transport without it waits the window.
+                links = getattr(self.transport, "peers", None)
+                self._claim = NameClaim(self.transport, self.mesh, self.name, window=join, describe=self._where,
+                                        connected=None if links is None else lambda: bool(links()), views=self._views)
                 if companion is not None:
                     companion = self._unborn_elsewhere(companion)
             self.blackboard = Blackboard()
@@ -159,11 +162,17 @@ class Embodiment:
         """Where the live embodiment ``name`` runs, for a refusal (host, pid, zenoh id, up since)."""
         with MeshClient(self.transport, self.mesh) as client:
             try:
-                found = client.describe(name, timeout=2.0)
+                client.wait_for_embodiment(name, timeout=3.0)  # its token may still be on its way
+                found = client.describe(name, timeout=3.0)
             except MeshError:
                 return ""
         since = time.strftime("%H:%M:%S", time.localtime(found.get("started_at", 0))) if found.get("started_at") else "?"
         return f"on host {found.get('host', '?')}, pid {found.get('pid', '?')}, zenoh id {found.get('zenoh_id', '?')}, up since {since}"
+
+    def _views(self, asked: set[str]) -> set[str]:
+        """The embodiments that the daemons ``asked`` see alive."""
+        with MeshClient(self.transport, self.mesh) as client:
+            return client.reported_alive(asked, time.monotonic() + 2.0)
 
     def _unborn_elsewhere(self, companion: str) -> str | None:
         """``companion``, or None when a live embodiment of the mesh already hosts it (never born twice)."""

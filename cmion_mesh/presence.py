@@ -24,11 +24,15 @@ from cmion_mesh import keys
 from cmion_mesh.errors import Refused
 from cmion_mesh.transport import Closeable, Handle, Transport
 
-#: After the first sign of another member, how long a joining daemon waits for the rest of the
-#: mesh's tokens (peers found by scouting connect at about the same time).
-SETTLE = 0.2
-#: Longest wait for the answer to "is the name alive?", asked once someone has been seen.
-ALIVE_QUERY_TIMEOUT = 2.0
+#: After the first sign of another member (a token, a link), how long a joining daemon waits for the
+#: rest of the mesh's tokens (peers found by scouting connect at about the same time).
+SETTLE = 0.15
+#: How long a joining daemon waits for the token of a same-named embodiment that the others say is
+#: alive, to say where it runs (it refuses either way).
+REPORTED_WAIT = 3.0
+#: How often a joining daemon looks whether its session has connected to anyone (zenoh gives no
+#: event for it); tokens wake it at once.
+POLL = 0.02
 #: A foreign claim on our name older than this is not a newcomer deciding: it is a duplicate.
 DUPLICATE_GRACE = 5.0
 
@@ -88,12 +92,15 @@ class NameClaim(Handle):
     """This daemon's claim on ``name`` in ``mesh``; raises ``Refused`` if the name is taken.
 
     ``window``: how long to look for the rest of the mesh when nobody has been seen yet (0 when
-    this session has no way to find anyone: it can only be found). ``describe(name)`` words where
-    the other holder runs, for the refusal.
+    this session has no way to find anyone: it can only be found); ``connected()`` says whether the
+    session has a link to anyone, which ends that wait early. ``views(names)`` asks those daemons
+    which embodiments they see alive (they have been in the mesh longer than this session).
+    ``describe(name)`` words where the other holder runs, for the refusal.
     """
 
     def __init__(self, transport: Transport, mesh: str, name: str, *, window: float,
-                 describe: Callable[[str], str] = lambda name: "") -> None:
+                 describe: Callable[[str], str] = lambda name: "", connected: Callable[[], bool] | None = None,
+                 views: Callable[[set[str]], set[str]] = lambda asked: set()) -> None:
         self.name = keys.check_name(name, "embodiment")
         self.rank = f"{time.time_ns():020d}-{transport.id}"
         self._cond = threading.Condition()
@@ -108,17 +115,27 @@ class NameClaim(Handle):
         joining = transport.watch_liveliness(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", self._on_alive)
         try:
             self._watch = transport.watch_liveliness(keys.claim_pattern(mesh, name), self._on_claim)
+            deadline = time.monotonic() + window
             with self._cond:
-                answered = self._cond.wait_for(lambda: bool(self._claims or self._alive), window)
-                if answered:
-                    # Someone answered: the rest of the mesh is connecting at about the same time.
-                    self._cond.wait_for(lambda: name in self._alive, SETTLE)
-                taken = name in self._alive
+                for _ in range(int(window / POLL) + 2):  # bounded: ends on a sign of the mesh or the window's end
+                    if self._claims or self._alive or (connected is not None and connected()):
+                        # Someone is there: its tokens, and the rest of the mesh, arrive within moments.
+                        self._cond.wait_for(lambda: name in self._alive, SETTLE)
+                        break
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(min(POLL, left))  # woken at once by any token; links have no event
+                seen = set(self._alive)
+            # Tokens of the daemons this session is not linked to yet may still be on their way (under
+            # load, longer than SETTLE): the daemons it sees know the whole mesh. Ask them.
+            if name not in seen and seen and name in views(seen):
+                with self._cond:
+                    self._cond.wait_for(lambda: name in self._alive, REPORTED_WAIT)
+                seen.add(name)
+            with self._cond:
+                taken = name in seen or name in self._alive
                 older = sorted(rank for rank in self._claims if rank < self.rank)
-            if answered and not taken:
-                # The watch delivers tokens one by one, and a loaded machine can spread them over
-                # more than SETTLE; a liveliness query ends when the peers have answered it all.
-                taken = bool(transport.alive(keys.alive_key(mesh, name), timeout=ALIVE_QUERY_TIMEOUT))
             if taken:
                 where = describe(name)
                 raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "

@@ -29,6 +29,7 @@ from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.identity import MAX_DOCUMENT, unpack
+from cmion_mesh.statedir import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -122,22 +123,7 @@ class Records:
                 path.unlink(missing_ok=True)
 
     def _write(self, name: str, data: bytes) -> None:
-        target = self.dir / name
-        tmp = self.dir / f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-        self._sync_dir()
-
-    def _sync_dir(self) -> None:
-        fd = os.open(self.dir, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        write_atomic(self.dir / name, data)
 
     def get(self, companion: str) -> Record | None:
         with self._lock:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import threading
 from pathlib import Path
 
 from cmion_mesh import keys
@@ -54,10 +55,13 @@ class StateLock(Handle):
 
 def write_atomic(path: str | os.PathLike[str], data: bytes) -> None:
     """Replace ``path`` with ``data`` so that a crash leaves the old or the new content, never a mix:
-    a temporary file, fsync, rename, fsync of the folder."""
+    a temporary file (readable by this user only), fsync, rename, fsync of the folder. Temporary
+    names carry the process and thread, so concurrent writers never share one; start-up sweeps
+    what a crash left (``Records``)."""
     target = Path(path)
-    tmp = target.with_name(f".{target.name}.tmp")
-    with open(tmp, "wb") as f:
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
