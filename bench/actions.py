@@ -43,8 +43,9 @@ from cmion_mesh import keys
 from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import send_request
-from cmion_mesh.messages import Act, ActionReport, Event, Request
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.messages import Act, ActionReport, Event, MindMessage
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 EMBODIMENT = "bench-act"
@@ -86,7 +87,7 @@ class DaemonMind:
 
     def _run(self, count: int, timeout: float) -> list[float]:
         tag = f"{self.metric}-{next(self.tags)}"
-        outcome = self.client.request(EMBODIMENT, "timer", "message", Request({"action": self.action, "count": count, "tag": tag}))
+        outcome = self.client.request(EMBODIMENT, "timer", "message", MindMessage({"action": self.action, "count": count, "tag": tag}))
         if outcome.status != "accepted":
             raise MeshError(f"timer mind refused: {outcome.reason}")
         deadline = time.monotonic() + timeout

@@ -53,7 +53,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event, SetProperty, encode
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport, build_config
 

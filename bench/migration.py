@@ -43,9 +43,10 @@ from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Event, Migrate, Request
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.messages import Event, Migrate, MindMessage
+from cmion_mesh.procs import unique_mesh
 from cmion_mesh.records import Records
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "bench"
@@ -87,7 +88,7 @@ class Migrations:
         return B if self.home == A else A
 
     def tell_mind(self, args: dict[str, int]) -> None:
-        outcome = self.client.request(self.home, "mind", "message", Request(dict(args)), timeout=30.0)
+        outcome = self.client.request(self.home, "mind", "message", MindMessage(dict(args)), timeout=30.0)
         if outcome.status != "accepted":
             raise MeshError(f"the companion's mind on {self.home} refused {args}: {outcome.reason}")
 
@@ -212,6 +213,8 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         for name in nodes:
             client.wait_for_embodiment(name, timeout=20.0)
         wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
+        for target in (B, A):  # there and back: each daemon has seen the other alive before anything is timed
+            migrate_once_seen(client, COMPANION, target)
         mig = Migrations(client, nodes)
         stack.callback(mig.close)
         raw = RawTransfer(session, mesh)

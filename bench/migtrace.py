@@ -34,7 +34,8 @@ from bench.migration import COMPANION, OVERHEAD, SIZES, A, B, Migrations, size_n
 from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 TRACE = re.compile(r"^TRACE (.+) (\d+) (\d+) (\S+)$")

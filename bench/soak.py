@@ -46,8 +46,9 @@ from bench.stats import summarize
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Event, Property, Request, SetProperty
-from cmion_mesh.procs import unique_mesh, wait_for
+from cmion_mesh.messages import Event, MindMessage, MindState, Property, SetProperty
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 COMPANION = "soak"
@@ -152,7 +153,10 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         for name in NAMES:
             client.wait_for_embodiment(name, timeout=20.0)
         wait_for(lambda: client.describe(NAMES[0], timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born")
-        outcome = client.request(NAMES[0], "mind", "message", Request({"size": BLOB}), timeout=10.0)
+        for target in NAMES[1:] + NAMES[:1]:  # one round before the traffic: each host has seen its next target alive
+            migrate_once_seen(client, COMPANION, target)
+            traffic.arrivals.append(target)  # an arrival the mind remembers like any other
+        outcome = client.request(NAMES[0], "mind", "message", MindMessage({"size": BLOB}), timeout=10.0)
         if outcome.status != "accepted":
             raise MeshError(f"the companion's mind refused its blob: {outcome.reason}")
         stack.enter_context(client.events(sequences.on_event))
@@ -237,7 +241,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         homes = [d["name"] for d in client.describe_all(timeout=5.0) if d.get("inhabitant") == COMPANION]
         arrivals: Any = None
         if len(homes) == 1:
-            state = client.request(homes[0], "mind", "state", timeout=10.0).value
+            state = client.request(homes[0], "mind", "state", MindState(), timeout=10.0).value
             arrivals = state.get("arrivals") if isinstance(state, dict) else None
         log(f"{elapsed:.1f} s: {len(traffic.migrate_times)} migrations, {len(traffic.act_times)} actions, "
             f"{len(traffic.write_times)} writes, {sequences.received} events")

@@ -5,7 +5,7 @@ blackboard answers reads on its zenoh queryable, as in every daemon) with a ``lo
 and a raw zenoh session with a queryable that answers ``bench/<tag>/raw/many/<n>/**`` with ``n``
 replies carrying the same bytes a blackboard property would (an encoded ``Property``).
 
-The loader fills the blackboard to the size asked (request ``loader/fill`` ``{"total": n}``):
+The loader fills the blackboard to the size asked (request ``loader/fill``, a ``fill`` message ``{"total": n}``):
 properties ``p000000``... at the root, applied on the update loop as the store applies a write
 (``Store._apply`` under its lock) but without publishing a change event for each, which nobody
 listens to and which would dominate the fill time at 100k properties. The measuring process then
@@ -32,9 +32,9 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, IncomingRequest
-from cmion_mesh.messages import Property, Request, SetProperty, encode
-from cmion_mesh.procs import wait_for
+from cmion_mesh.messages import Message, Property, SetProperty, encode
 from cmion_mesh.storage import Blackboard
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 STORE = "bb-store"
@@ -44,10 +44,16 @@ def raw_prefix(tag: str) -> str:
     return f"bench/{tag}/raw/many"
 
 
+class Fill(Message, frozen=True, tag="fill"):
+    """``loader/fill``: fill the blackboard up to ``total`` properties."""
+
+    total: int
+
+
 class Loader(Component):
     """``fill {"total": n}``: add properties ``p<i>`` to the blackboard until it holds ``n``."""
 
-    requests = {"fill": Request}
+    requests = {"fill": Fill}
 
     def __init__(self, blackboard: Blackboard) -> None:
         super().__init__("loader")
@@ -56,7 +62,7 @@ class Loader(Component):
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         for request in batch:
-            total = int(request.payload.args.get("total", 0))
+            total = request.payload.total
             with self.blackboard._lock:
                 while self.count < total:
                     self.blackboard._apply(SetProperty("", f"p{self.count:06d}", self.count), set())
@@ -129,7 +135,7 @@ def measure(mesh: str, sizes: Sequence[int], repeats: dict[int, int]) -> dict[tu
         wait_for(lambda: raw_get(1) == 1, 20.0, "the raw queryable answering")
         for size in sizes:
             t0 = time.monotonic()
-            outcome = client.request(STORE, "loader", "fill", Request({"total": size}), timeout=300.0)
+            outcome = client.request(STORE, "loader", "fill", Fill(size), timeout=300.0)
             if outcome.status != "accepted":
                 raise MeshError(f"fill to {size}: {outcome.reason}")
             fill = time.monotonic() - t0

@@ -56,17 +56,12 @@ class Architecture:
         return built
 
 
-def _line(element: object) -> int | None:
-    line = getattr(element, "sourceline", None)
-    return line if isinstance(line, int) else None
-
-
 def load_architecture(path: str | os.PathLike[str]) -> Architecture:
     """Read and check a configuration: schema, embodiment name, referenced files exist."""
     config = Path(path).resolve()
     tree = xmlsafe.load(config, "ArchitectureConfiguration.xsd")
     root = tree.getroot()
-    line = _line(root)
+    line = xmlsafe.sourceline(root)
 
     def referenced(attribute: str, required: bool) -> Path | None:
         value = root.get(attribute)
@@ -92,7 +87,7 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
     except InvalidName as exc:
         raise ConfigError(str(exc), path=str(config), line=line) from None
     components = tuple(
-        ComponentSpec(el.get("ClassName", ""), split_parameters(el.get("ConstructorParameters")), _line(el))
+        ComponentSpec(el.get("ClassName", ""), split_parameters(el.get("ConstructorParameters")), xmlsafe.sourceline(el))
         for el in root if el.tag == "ArchitectureComponent"
     )
     companion = root.get("Companion") or None
@@ -109,5 +104,5 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
             try:
                 admit[el.get("Name", "")] = signing.decode_public(key) if key else None
             except MeshError as exc:
-                raise ConfigError(str(exc), path=str(config), line=_line(el)) from None
+                raise ConfigError(str(exc), path=str(config), line=xmlsafe.sourceline(el)) from None
     return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line, companion, admit)

@@ -36,21 +36,21 @@ from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_reque
 from cmion_mesh.messages import (
     Act,
     ActionReport,
-    AddContainer,
+    ActionStatus,
     CancelAction,
     Container,
+    Describe,
     Event,
     Message,
     Migrate,
     Outcome,
     Property,
-    RemoveContainer,
-    RemoveProperty,
-    Request,
     SetPolicy,
     SetProperty,
+    StorageWrite,
     decode,
     encode,
+    tag,
 )
 from cmion_mesh.presence import Presence
 from cmion_mesh.transport import Closeable, Handle, Sample, Transport
@@ -221,15 +221,10 @@ class MeshClient:
                     return entry
         raise StorageError(f"no property at {key} (or no store answered)")
 
-    def write(self, embodiment: str, store: str, write: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
+    def write(self, embodiment: str, store: str, write: StorageWrite, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
         """Send one storage write; returns its outcome (accepted, rejected, conflict)."""
-        op = {
-            SetProperty: "set_property",
-            RemoveProperty: "remove_property",
-            AddContainer: "add_container",
-            RemoveContainer: "remove_container",
-        }[type(write)]
-        return self._send(embodiment, keys.request_key(self.mesh, embodiment, store, op), write, timeout=timeout)
+        key = keys.request_key(self.mesh, embodiment, store, tag(type(write)))
+        return self._send(embodiment, key, write, timeout=timeout)
 
     def set_property(
         self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False
@@ -241,11 +236,11 @@ class MeshClient:
     # --- requests and events ------------------------------------------------------------------
 
     def request(
-        self, embodiment: str, component: str, name: str, payload: Message | None = None,
+        self, embodiment: str, component: str, name: str, payload: Message,
         *, timeout: float = DEFAULT_REQUEST_TIMEOUT, sender: str | None = None,
     ) -> Outcome:
         key = keys.request_key(self.mesh, embodiment, component, name, sender)
-        return self._send(embodiment, key, payload if payload is not None else Request(), timeout=timeout)
+        return self._send(embodiment, key, payload, timeout=timeout)
 
     def _send(self, embodiment: str, key: str, payload: Message, *, timeout: float) -> Outcome:
         """``send_request``, sent again for a moment while it reaches nobody although ``embodiment`` is
@@ -400,7 +395,7 @@ class MeshClient:
 
     def describe(self, embodiment: str, *, timeout: float = 2.0) -> dict[str, Any]:
         """An embodiment's description (name, competency types, actions, inhabitant, version, started at...)."""
-        outcome = self.request(embodiment, "embodiment", "describe", timeout=timeout)
+        outcome = self.request(embodiment, "embodiment", "describe", Describe(), timeout=timeout)
         value = require_accepted(outcome, keys.request_key(self.mesh, embodiment, "embodiment", "describe"))
         return value if isinstance(value, dict) else {"name": embodiment}
 
@@ -408,7 +403,7 @@ class MeshClient:
         """Every description answering for ``embodiment``: two when two daemons share its name (when
         one says it sees a twin, the twin's answer is waited for too, within ``deadline``)."""
         key = keys.request_key(self.mesh, embodiment, "embodiment", "describe")
-        payload = encode(Request())
+        payload = encode(Describe())
         found: dict[str, dict[str, Any]] = {}  # by zenoh id
         delay = 0.01
         while True:
@@ -570,7 +565,7 @@ class ActionRun(Handle):
         if self.vanished:
             raise Vanished(f"{self.embodiment} left the mesh {time.monotonic() - self._started:.1f} s into action "
                            f"{self.action_id}: its outcome is unknown", key=key)
-        status = self.client.request(self.embodiment, "manager", "status", Request({"action_id": self.action_id}))
+        status = self.client.request(self.embodiment, "manager", "status", ActionStatus(self.action_id))
         if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
             report: ActionReport = msgspec.convert(status.value, ActionReport)
             return report

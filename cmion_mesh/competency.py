@@ -25,16 +25,15 @@ import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from cmion_mesh import keys
+from cmion_mesh import keys, xmlsafe
 from cmion_mesh.classes import construct, split_parameters
-from cmion_mesh.errors import ConfigError, MeshError, RequestRejected
-from cmion_mesh.messages import AddContainer, RemoveContainer, RemoveProperty, SetProperty
-
-if TYPE_CHECKING:
-    from cmion_mesh.ion import Simulation
-    from cmion_mesh.storage import Store
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.ion import Simulation, require_accepted
+from cmion_mesh.messages import RemoveProperty, RunStatus, SetProperty, StorageWrite, tag
+from cmion_mesh.storage import Store
 
 log = logging.getLogger(__name__)
 
@@ -73,22 +72,16 @@ class RunContext:
 
     def store(self, name: str) -> Store:
         """A local store, for reads (thread-safe); write through ``write`` so that writes are mediated."""
-        from cmion_mesh.storage import Store
-
         store = self.competency.sim.component(name)
         assert isinstance(store, Store)
         return store
 
     def read(self, store: str, container: str, name: str, default: Any = None) -> Any:
         """A property's value: from the local store, or over the mesh when this competency is remote."""
-        from cmion_mesh.storage import Store
-
         sim = self.competency.sim
         local = sim.components_by_name().get(store)
         if isinstance(local, Store):
             return local.get(container, name, default)
-        from cmion_mesh.client import MeshClient
-
         try:
             return MeshClient(sim.transport, sim.mesh).get_property(sim.embodiment, store, container, name).value
         except MeshError:
@@ -101,11 +94,10 @@ class RunContext:
     def wm_get(self, entity: str, prop: str, default: Any = None) -> Any:
         return self.read(keys.WORLD_MODEL, entity, prop, default)
 
-    def write(self, store: str, message: Any, timeout: float = 10.0) -> None:
-        """Send a write request to a local store and wait for its outcome; raises unless accepted."""
-        outcome = self.competency.sim.request(store, _OPS[type(message)], message).result(timeout)
-        if outcome.status != "accepted":
-            raise RequestRejected(f"{store}: {outcome.status}: {outcome.reason}", status=outcome.status, reason=outcome.reason)
+    def write(self, store: str, message: StorageWrite, timeout: float = 10.0) -> None:
+        """Send a write request to a local store and wait for its outcome; ``RequestRejected``
+        (whose ``code`` says why) unless accepted."""
+        require_accepted(self.competency.sim.request(store, tag(type(message)), message).result(timeout), store)
 
     def bb_set(self, path: str, value: Any, *, persistent: bool = False) -> None:
         container, _, name = path.rpartition("/")
@@ -122,18 +114,10 @@ class RunContext:
         self.raise_event("Progress", {"run_id": self.run_id, "progress": data})
 
 
-_OPS: dict[type, str] = {
-    SetProperty: "set_property",
-    RemoveProperty: "remove_property",
-    AddContainer: "add_container",
-    RemoveContainer: "remove_container",
-}
-
-
 @dataclass(frozen=True, slots=True)
 class RunResult:
     run_id: str
-    status: str  # succeeded | failed | cancelled
+    status: RunStatus
     reason: str = ""
 
 
@@ -289,15 +273,13 @@ class LibraryEntry:
 
 
 def read_library(path: str | os.PathLike[str]) -> list[LibraryEntry]:
-    from cmion_mesh import xmlsafe
-
     tree = xmlsafe.load(path, "CompetencyLibrary.xsd")
     entries = []
     for element in tree.getroot():
         if element.tag != "Competency":
             continue  # SamgarCompetency entries need a Samgar connector, which this mesh does not have
-        line = element.sourceline if isinstance(element.sourceline, int) else None
-        entries.append(LibraryEntry(element.get("ClassName", ""), split_parameters(element.get("ConstructorParameters")), line))
+        entries.append(LibraryEntry(element.get("ClassName", ""), split_parameters(element.get("ConstructorParameters")),
+                                    xmlsafe.sourceline(element)))
     return entries
 
 

@@ -24,8 +24,9 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Event
-from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh, wait_for
+from cmion_mesh.messages import Event, MindState
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -87,7 +88,7 @@ def stop_bodies(scenario: Scenario) -> None:
 
 
 def mind_state(client: MeshClient, embodiment: str) -> dict[str, Any]:
-    value = client.request(embodiment, "mind", "state", timeout=5).value
+    value = client.request(embodiment, "mind", "state", MindState(), timeout=5).value
     return value if isinstance(value, dict) else {}
 
 

@@ -27,11 +27,11 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
-from cmion_mesh.messages import Event, Request
+from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import NameClaim, Presence
-from cmion_mesh.rules import Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
@@ -77,6 +77,8 @@ class Embodiment:
         self._state_lock: StateLock | None = None
         self.presence: Presence | None = None
         if transport is None:
+            # Imported here for start time: an embodiment on a given transport (the tests' memory
+            # transport) never loads zenoh.
             from cmion_mesh.zenoh_transport import ZenohTransport
 
             transport = ZenohTransport(transport_config)
@@ -274,7 +276,7 @@ class Embodiment:
 class Describer(Component):
     """Answers ``.../rq/embodiment/describe`` for discovery."""
 
-    requests = {"describe": Request}
+    requests = {"describe": Describe}
 
     def __init__(self, embodiment: Embodiment) -> None:
         super().__init__("embodiment")
@@ -288,8 +290,6 @@ class Describer(Component):
 
 def with_migrate_rule(rules: RuleSet) -> RuleSet:
     """Add the built-in rule ``Migrate <target>`` -> one ``Migration`` step, unless the rules have one."""
-    from cmion_mesh.rules import MindAction
-
     if rules.candidates(MindAction("Migrate", ("somewhere",))):
         return rules
     step = Step("1", "Migration", (), (("target", "$parameter1"),), 0)

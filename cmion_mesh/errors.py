@@ -55,11 +55,15 @@ class RequestError(MeshError):
 
 
 class RequestRejected(RequestError):
-    """The component answered: rejected (with its reason) or lost a conflict."""
+    """The component answered: rejected (with its reason) or lost a conflict.
 
-    def __init__(self, message: str, *, key: str = "", status: str = "rejected", reason: str = "") -> None:
+    ``code`` is the outcome's machine-readable reason (``messages.Code``): test it, not the text.
+    """
+
+    def __init__(self, message: str, *, key: str = "", status: str = "rejected", reason: str = "", code: str = "") -> None:
         self.status = status
         self.reason = reason
+        self.code = code
         super().__init__(message, key=key)
 
 
@@ -89,7 +93,16 @@ class Refused(MeshError):
 
 
 class StorageError(MeshError):
-    """A blackboard or world-model operation refers to a container or property that is not there."""
+    """A blackboard or world-model operation cannot be applied: it refers to a container or
+    property that is not there, or clashes with what is.
+
+    ``code`` says which for programs (a ``messages.Code`` value: ``not_found``, ``exists``,
+    ``invalid``); it becomes the refused request's ``Outcome.code``.
+    """
+
+    def __init__(self, message: str, *, code: str = "not_found") -> None:
+        self.code = code
+        super().__init__(message)
 
 
 class ClosedError(MeshError):

@@ -21,26 +21,31 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunResult
 from cmion_mesh.errors import MeshError, PlanError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer
-from cmion_mesh.messages import Request
+from cmion_mesh.messages import ExecutionStatus, RunStatus
+from cmion_mesh.remote import RemoteCompetency
 from cmion_mesh.rules import MindAction, Plan, Step, substitute_step
+from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PLAN_DEADLINE = 300.0
-PlanDone = Callable[[str, str], None]  # (status, reason)
+PlanDone = Callable[[RunStatus, str], None]  # (status, reason)
+StepState = Literal["pending", "waiting", "running", "succeeded", "failed", "cancelled"]
+#: ``failing`` and ``cancelling``: running steps are being stopped before the plan reports its end.
+PlanState = Literal["running", "failing", "cancelling", "done"]
 
 
 @dataclass(eq=False)
 class _StepRun:
     step: Step
-    status: str = "pending"  # pending | waiting | running | succeeded | failed | cancelled
+    status: StepState = "pending"
     tried: set[str] = field(default_factory=set)
     competency: Competency | None = None
     run_id: str = ""
@@ -54,7 +59,7 @@ class PlanRun:
     action: MindAction
     on_done: PlanDone
     steps: dict[str, _StepRun]
-    state: str = "running"  # running | failing | cancelling | done
+    state: PlanState = "running"
     reason: str = ""
     deadline: Timer | None = None
 
@@ -63,7 +68,7 @@ class PlanRun:
 
 
 class ExecutionSystem(Component):
-    requests = {"status": Request}
+    requests = {"status": ExecutionStatus}
 
     def __init__(self, competencies: Iterable[Competency] = (), name: str = "execution") -> None:
         super().__init__(name)
@@ -112,14 +117,9 @@ class ExecutionSystem(Component):
     def _on_remote_token(self, key: str, alive: bool) -> None:
         # On the transport's worker: hand over to the loop.
         *_, competency_type, name = key.split("/")
-        try:
-            self.sim.call(functools.partial(self._remote_changed, name, competency_type, alive))
-        except MeshError:
-            pass  # closing
+        self.sim.post(functools.partial(self._remote_changed, name, competency_type, alive))
 
     def _remote_changed(self, name: str, competency_type: str, alive: bool) -> None:
-        from cmion_mesh.remote import RemoteCompetency
-
         existing = self._competencies.get(name)
         if alive:
             if existing is None:
@@ -151,7 +151,7 @@ class ExecutionSystem(Component):
             raise MeshError(f"plan run {plan_id!r} is already running")
         run = PlanRun(plan_id, plan, action, on_done, {s.id: _StepRun(s) for s in plan.steps})
         self._plans[plan_id] = run
-        self.raise_event("PlanStarted", {"run_id": plan_id, "action": _describe(action), "steps": len(plan.steps)})
+        self.raise_event("PlanStarted", {"run_id": plan_id, "action": action.describe(), "steps": len(plan.steps)})
         if deadline > 0:
             run.deadline = self.sim.call_later(deadline, functools.partial(self._deadline, run, deadline))
         self._advance(run)
@@ -218,10 +218,7 @@ class ExecutionSystem(Component):
 
     def _report(self, sim: Simulation, run: PlanRun, step_run: _StepRun, competency: Competency, result: RunResult) -> None:
         # On the competency's thread: hand the result to the loop.
-        try:
-            sim.call(functools.partial(self._on_result, run, step_run, competency, result))
-        except MeshError:
-            pass  # closing: nobody is waiting for the result any more
+        sim.post(functools.partial(self._on_result, run, step_run, competency, result))
 
     def _on_result(self, run: PlanRun, step_run: _StepRun, competency: Competency, result: RunResult) -> None:
         if step_run.status != "running" or step_run.run_id != result.run_id:
@@ -272,6 +269,7 @@ class ExecutionSystem(Component):
     def _maybe_finish(self, run: PlanRun) -> None:
         if run.state == "done" or run.running():
             return
+        status: RunStatus
         if run.state == "running":
             if not all(s.status == "succeeded" for s in run.steps.values()):
                 return
@@ -284,7 +282,7 @@ class ExecutionSystem(Component):
         self._plans.pop(run.id, None)
         if run.deadline is not None:
             run.deadline.cancel()  # or the finished run would be held until its deadline
-        self.raise_event(event, {"run_id": run.id, "action": _describe(run.action), "reason": run.reason})
+        self.raise_event(event, {"run_id": run.id, "action": run.action.describe(), "reason": run.reason})
         run.on_done(status, run.reason)
 
     # --- substitutions read the stores when the step starts -----------------------------------
@@ -297,8 +295,6 @@ class ExecutionSystem(Component):
         return self._read(keys.WORLD_MODEL, entity, prop, f"$WM({entity}.{prop})")
 
     def _read(self, store_name: str, container: str, prop: str, token: str) -> Any:
-        from cmion_mesh.storage import Store
-
         store = self.sim.component(store_name)
         assert isinstance(store, Store)
         missing = object()
@@ -317,6 +313,3 @@ class ExecutionSystem(Component):
                 ],
             })
 
-
-def _describe(action: MindAction) -> str:
-    return " ".join((action.name, *action.parameters))

@@ -10,7 +10,14 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
   dispatched one at a time in the order raised, including events raised by the handlers.
   Requests raised while handling events are handled in the next update.
 * Every request gets a definite ``Outcome``: accepted, rejected with a reason, or conflict (lost
-  to another request in the same update). A request a handler leaves unanswered is rejected.
+  to another request in the same update). A request a handler leaves unanswered is rejected, with
+  the handler's error as the reason if it raised. Each request name takes one ``Message`` Struct
+  (``Component.requests``); a payload that does not decode to it, ``{}`` or a map without its
+  ``type`` included, is rejected (``Code.MALFORMED``) before the component sees it. A request the
+  component does not have is rejected (``Code.UNKNOWN_REQUEST``) with the component's
+  ``request_catalogue()`` as value: a query on ``.../rq/**`` is answered by every component.
+* ``start()`` runs updates on a thread of the simulation's own; a simulation that is not started
+  is stepped by its owner with ``run_once()`` (deterministic tests).
 * Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control);
   requests are zenoh queries on ``.../rq/<component>/<request>``. Local events and requests
   between components of one simulation are delivered directly, in order, and still published.
@@ -35,7 +42,7 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
-from cmion_mesh.messages import Event, Message, Outcome, Request, check_value, decode, encode
+from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, encode, tag
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
 log = logging.getLogger(__name__)
@@ -84,7 +91,7 @@ class IncomingRequest:
         self.outcome = outcome
         try:
             self._answer(outcome)
-        except Exception:  # the requester vanished: its outcome is its own to recover
+        except MeshError:  # the requester vanished, or we are closing: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
 
     def answer(self, outcome: Outcome) -> None:
@@ -94,21 +101,22 @@ class IncomingRequest:
     def accept(self, value: Any = None) -> None:
         self._send(Outcome("accepted", "", check_value(value)))
 
-    def reject(self, reason: str) -> None:
-        self._send(Outcome("rejected", reason))
+    def reject(self, reason: str, code: Code = Code.INVALID) -> None:
+        self._send(Outcome("rejected", reason, code=code))
 
     def conflict(self, reason: str) -> None:
-        self._send(Outcome("conflict", reason))
+        self._send(Outcome("conflict", reason, code=Code.CONFLICT))
 
 
 class Component:
     """A part of an embodiment that raises events and receives requests.
 
-    ``requests`` maps request names to the message type their payload decodes to. Subclasses
-    override ``handle_requests`` to mediate a batch, or ``on_request`` for one at a time.
+    ``requests`` maps request names to the ``Message`` Struct their payload decodes to (one Struct
+    per request kind, so handlers dispatch with ``match request.payload``). Subclasses override
+    ``handle_requests`` to mediate a batch, or ``on_request`` for one at a time.
     """
 
-    requests: Mapping[str, Any] = {}
+    requests: Mapping[str, type[Message]] = {}
     #: Requests that must arrive on the per-sender key ``.../rq/<component>/<request>/<sender>``;
     #: the sender (``IncomingRequest.requester``) is then known from the key, which access
     #: control ties to the sender's certificate in secure mode.
@@ -136,10 +144,17 @@ class Component:
             self.on_request(request)
 
     def on_request(self, request: IncomingRequest) -> None:
-        request.reject(f"component {self.name!r} does not handle {request.name!r}")
+        request.reject(f"component {self.name!r} does not handle {request.name!r}", Code.UNKNOWN_REQUEST)
 
     def raise_event(self, name: str, data: Any = None) -> None:
         self.sim.raise_event(self.name, name, data)
+
+    def request_catalogue(self) -> dict[str, Any]:
+        """What this component answers, as plain data: ``{"component", "requests": {name: message
+        type}, "per_sender": [names sent on .../<name>/<sender>]}``. It is the value of the
+        ``unknown_request`` refusal, so a query on ``.../rq/**`` lists every component's requests."""
+        return {"component": self.name, "requests": {name: tag(kind) for name, kind in sorted(self.requests.items())},
+                "per_sender": sorted(self.sender_requests)}
 
 
 class Timer:
@@ -229,6 +244,7 @@ class Simulation:
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
         self._thread: threading.Thread | None = None
+        self._stepper: threading.Thread | None = None  # the owner's thread, when run_once drives it
         self._closed = False
         self._stopped = threading.Event()
         self.updates = 0
@@ -236,6 +252,8 @@ class Simulation:
     # --- life cycle ---------------------------------------------------------------------------
 
     def start(self) -> Simulation:
+        if self._stepper is not None:
+            raise MeshError(f"simulation {self.embodiment!r} is stepped with run_once: it cannot also run a loop")
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name=f"ion-{self.embodiment}", daemon=True)
             self._thread.start()
@@ -266,7 +284,8 @@ class Simulation:
         return self._closed
 
     def on_loop(self) -> bool:
-        return threading.current_thread() is self._thread
+        current = threading.current_thread()
+        return current is self._thread or current is self._stepper
 
     # --- components ---------------------------------------------------------------------------
 
@@ -318,6 +337,24 @@ class Simulation:
             raise ClosedError(f"simulation {self.embodiment!r} is closed")
         self._inbox.put(fn)
 
+    def post(self, fn: Callable[[], None]) -> bool:
+        """``call(fn)`` from a thread reporting to the loop, unless the simulation is closing:
+        then nobody waits for the report any more, and False says it was dropped."""
+        try:
+            self.call(fn)
+        except ClosedError:
+            return False
+        return True
+
+    def queued(self) -> int:
+        """Work items waiting for the next update (requests, remote events, calls)."""
+        return self._inbox.qsize()
+
+    @property
+    def armed_timers(self) -> int:
+        """Timers armed and not cancelled; read it on the loop (or from ``call``)."""
+        return sum(1 for entry in self._timers if entry[2].fn is not None)
+
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         """Run ``fn`` on the loop after ``delay`` seconds (the loop sleeps until then, it does not poll).
 
@@ -357,27 +394,28 @@ class Simulation:
 
         if self._inbox.qsize() >= MAX_QUEUED:
             answer(Outcome("rejected", f"busy: embodiment {self.embodiment!r} has {MAX_QUEUED} requests and events waiting; "
-                                       "try again later"))
+                                       "try again later", code=Code.BUSY))
             return
         kind = component.requests.get(name)
         if kind is None:
             known = ", ".join(sorted(component.requests)) or "none"
-            answer(Outcome("rejected", f"component {component.name!r} has no request {name!r} (known: {known})"))
+            reason = f"component {component.name!r} has no request {name!r} (known: {known})"
+            answer(Outcome("rejected", reason, component.request_catalogue(), Code.UNKNOWN_REQUEST))
             return
         if (name in component.sender_requests) != bool(sender) or "/" in sender:
             form = f"{name}/<sender>" if name in component.sender_requests else name
-            answer(Outcome("rejected", f"{query.key}: request {name!r} of {component.name!r} is sent on .../{form}"))
+            reason = f"{query.key}: request {name!r} of {component.name!r} is sent on .../{form}"
+            answer(Outcome("rejected", reason, code=Code.WRONG_KEY))
             return
         try:
             payload = decode(query.payload or b"", kind, where=query.key)
         except ProtocolError as exc:
-            answer(Outcome("rejected", str(exc)))
+            answer(Outcome("rejected", str(exc), code=Code.MALFORMED))
             return
-        requester = sender or (payload.requester if isinstance(payload, Request) else "")
         if self._closed:
-            answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down"))
+            answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down", code=Code.SHUTTING_DOWN))
             return
-        self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, requester, answer)))
+        self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, sender, answer)))
 
     def _on_remote_event(self, sub: _Subscription, sample: Sample) -> None:
         # Runs on the subscription's transport worker. zenoh matched the key against this
@@ -422,7 +460,7 @@ class Simulation:
         self._events.append((event, key, None))
         try:
             self.transport.publish(key, encode(event), block=True)
-        except Exception as exc:
+        except MeshError as exc:
             log.warning("could not publish %s: %s", key, exc)
 
     def on_event(
@@ -460,7 +498,7 @@ class Simulation:
         self,
         component: str,
         name: str,
-        payload: Message | None = None,
+        payload: Message,
         *,
         embodiment: str | None = None,
         on_outcome: OutcomeHandler | None = None,
@@ -473,7 +511,6 @@ class Simulation:
         the outcome is ``rejected`` with reason ``outcome unknown: ...``; ``on_outcome`` sees it.
         """
         target = embodiment or self.embodiment
-        message = payload if payload is not None else Request()
         future: Future[Outcome] = Future()
 
         def settle(outcome: Outcome) -> None:
@@ -483,15 +520,18 @@ class Simulation:
                 self.call(lambda: on_outcome(outcome))
 
         if self._closed:
-            settle(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down"))
+            settle(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down", code=Code.SHUTTING_DOWN))
             return future
         local = self._components.get(component) if target == self.embodiment else None
         if local is not None:
             kind = local.requests.get(name)
             if kind is None:
-                settle(Outcome("rejected", f"component {component!r} has no request {name!r}"))
+                settle(Outcome("rejected", f"component {component!r} has no request {name!r}", code=Code.UNKNOWN_REQUEST))
+            elif not isinstance(payload, kind):
+                reason = f"request {name!r} of {component!r} takes {tag(kind)!r}, not {tag(type(payload))!r}"
+                settle(Outcome("rejected", reason, code=Code.MALFORMED))
             else:
-                item = IncomingRequest(component, name, message, self.embodiment, settle)
+                item = IncomingRequest(component, name, payload, self.embodiment, settle)
                 self._inbox.put(_RequestItem(local, item))
             return future
         key = keys.request_key(self.mesh, target, component, name)
@@ -502,34 +542,57 @@ class Simulation:
 
         def remote() -> None:
             try:
-                settle(send_request(self.transport, key, message, timeout=timeout))
+                settle(send_request(self.transport, key, payload, timeout=timeout))
             except OutcomeUnknown as exc:
-                settle(Outcome("rejected", f"outcome unknown: {exc}"))
+                settle(Outcome("rejected", f"outcome unknown: {exc}", code=Code.OUTCOME_UNKNOWN))
 
         self._pool.submit(remote)
         return future
 
     # --- the loop -----------------------------------------------------------------------------
 
-    def _run(self) -> None:
+    def run_once(self, timeout: float | None = 0.0) -> int:
+        """Run one update on the calling thread; returns the number of work items it ran (calls,
+        due timers, requests, remote events).
+
+        For a simulation that is stepped rather than started (deterministic tests): it takes
+        everything queued, waiting up to ``timeout`` seconds for a first item (None: until one
+        comes; 0: not at all) or for the next timer, and runs due timers, calls, requests and
+        events exactly as the loop would. The calling thread counts as the loop from now on.
+        """
+        if self._thread is not None:
+            raise MeshError(f"simulation {self.embodiment!r} runs its own loop: run_once steps one that was not started")
+        if self._closed:
+            raise ClosedError(f"simulation {self.embodiment!r} is closed")
+        self._stepper = threading.current_thread()
+        items, _ = self._take(timeout)
+        self._update(items)
+        return len(items)
+
+    def _take(self, timeout: float | None) -> tuple[list[Any], bool]:
+        """The work of one update: wait up to ``timeout`` (or the next timer) for a first item,
+        then take what else is queued. Also says whether ``close`` asked the loop to stop."""
         inbox = self._inbox
+        if self._timers:
+            due = max(0.0, self._timers[0][0] - time.monotonic())
+            timeout = due if timeout is None else min(timeout, due)
+        items: list[Any] = []
+        try:
+            items.append(inbox.get(timeout=timeout) if timeout is None or timeout > 0 else inbox.get_nowait())
+        except queue.Empty:  # a timer is due, or nothing came in time
+            pass
+        # The loop is the inbox's only reader, so this many get_nowait() cannot fail.
+        for _ in range(min(inbox.qsize(), MAX_ITEMS_PER_UPDATE - len(items))):
+            items.append(inbox.get_nowait())
+        if any(item is _STOP for item in items):
+            return [item for item in items if item is not _STOP], True
+        return items, False
+
+    def _run(self) -> None:
         try:
             stop = False
             while not stop:
-                timeout = None
-                if self._timers:
-                    timeout = max(0.0, self._timers[0][0] - time.monotonic())
-                items: list[Any] = []
-                try:
-                    items.append(inbox.get(timeout=timeout))
-                except queue.Empty:  # only when a timer is due
-                    pass
-                # The loop is the inbox's only reader, so this many get_nowait() cannot fail.
-                for _ in range(min(inbox.qsize(), MAX_ITEMS_PER_UPDATE - len(items))):
-                    items.append(inbox.get_nowait())
-                if any(item is _STOP for item in items):
-                    stop = True
-                    items = [item for item in items if item is not _STOP]
+                items, stop = self._take(None)
                 self._update(items)
         finally:
             self._shutdown()
@@ -544,22 +607,30 @@ class Simulation:
                 items.insert(0, fn)
         batches: dict[str, list[IncomingRequest]] = {}
         for item in items:
-            if isinstance(item, _RemoteEvent):
-                self._events.append((item.event, item.key, item.sub))
-            elif isinstance(item, _RequestItem):
-                batches.setdefault(item.component.name, []).append(item.request)
-            else:
-                self._guard("call", item)
+            match item:
+                case _RemoteEvent(event=event, key=key, sub=sub):
+                    self._events.append((event, key, sub))
+                case _RequestItem(component=owner, request=request):
+                    batches.setdefault(owner.name, []).append(request)
+                case _:
+                    self._guard("call", item)
         for name, batch in batches.items():
             component = self._components.get(name)
             if component is None:
                 for request in batch:
-                    request.reject(f"component {name!r} was removed")
+                    request.reject(f"component {name!r} was removed", Code.UNKNOWN_REQUEST)
                 continue
-            self._guard(f"{name}.handle_requests", component.handle_requests, batch)
+            try:
+                component.handle_requests(batch)
+            except Exception as exc:
+                log.exception("%s.handle_requests failed in embodiment %s", name, self.embodiment)
+                for request in batch:
+                    if not request.answered:
+                        request.reject(f"component {name!r} failed on {request.name!r}: {type(exc).__name__}: {exc}",
+                                       Code.HANDLER_FAILED)
             for request in batch:
                 if not request.answered:
-                    request.reject(f"component {name!r} gave no answer to {request.name!r}")
+                    request.reject(f"component {name!r} gave no answer to {request.name!r}", Code.UNANSWERED)
         events = self._events
         dispatched = 0
         while events and dispatched < MAX_EVENTS_PER_UPDATE:
@@ -592,7 +663,7 @@ class Simulation:
             except queue.Empty:
                 break
             if isinstance(item, _RequestItem):
-                item.request.reject(f"embodiment {self.embodiment!r} is shutting down")
+                item.request.reject(f"embodiment {self.embodiment!r} is shutting down", Code.SHUTTING_DOWN)
         for sub in list(self._subscriptions):
             sub.close()
         for component in reversed(list(self._components.values())):
@@ -628,7 +699,8 @@ def send_request(transport: Transport, key: str, payload: Message, *, timeout: f
 def require_accepted(outcome: Outcome, key: str) -> Any:
     """The outcome's value if accepted, else ``RequestRejected`` naming the key and reason."""
     if outcome.status != "accepted":
-        raise RequestRejected(f"{key}: {outcome.status}: {outcome.reason}", key=key, status=outcome.status, reason=outcome.reason)
+        raise RequestRejected(f"{key}: {outcome.status}: {outcome.reason}", key=key, status=outcome.status,
+                              reason=outcome.reason, code=outcome.code)
     return outcome.value
 
 

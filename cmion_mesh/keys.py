@@ -92,10 +92,6 @@ def storage_key(mesh: str, embodiment: str, store: str, path: Sequence[str], nam
     return "/".join(chunks)
 
 
-def storage_selector(mesh: str, embodiment: str, store: str) -> str:
-    return f"{embodiment_prefix(mesh, embodiment)}/{check_name(store, 'store')}/**"
-
-
 def event_key(mesh: str, embodiment: str, component: str, event: str) -> str:
     return f"{embodiment_prefix(mesh, embodiment)}/{EVENTS}/{check_name(component, 'component')}/{check_name(event, 'event')}"
 

@@ -6,12 +6,13 @@ Requests (on ``.../rq/manager/<name>``):
   rejected with the reason otherwise (unknown action, duplicate id). The outcome of the action
   itself comes later as an event.
 * ``cancel`` (``CancelAction``): stops the action's running plan; it ends ``ActionCancelled``.
-* ``status`` (``Request`` with ``args.action_id``): running, or the final report of one of the
-  last ``HISTORY`` finished actions; with no id, the ids of the running actions.
+* ``status`` (``ActionStatus``): an ``ActionReport`` - ``running`` (which rule, which attempt),
+  or the final report of one of the last ``HISTORY`` finished actions; with no id, the ids of the
+  running actions (``{"running": [...]}``).
 
-Events (data: ``ActionReport``): ``ActionStarted``, ``ActionAttempt`` (a plan is tried: which
-rule, which attempt), ``ActionSucceeded``, ``ActionFailed``, ``ActionCancelled``, each carrying
-the action id.
+Events (data: ``ActionReport``, its ``status`` saying which): ``ActionStarted`` (``started``),
+``ActionAttempt`` (``attempt``: a plan is tried, ``rule`` and ``attempt`` say which),
+``ActionSucceeded``, ``ActionFailed``, ``ActionCancelled``, each carrying the action id.
 
 Rules are tried most specific first (see ``rules``); within a rule its plans in file order. A
 plan that needs a competency type this embodiment does not have is skipped (as CMION did); when a
@@ -32,7 +33,7 @@ from cmion_mesh import keys
 from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest
-from cmion_mesh.messages import Act, ActionReport, CancelAction, Request
+from cmion_mesh.messages import Act, ActionReport, ActionState, ActionStatus, CancelAction, Code, RunStatus
 from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet
 
 
@@ -55,7 +56,7 @@ MAX_RUNNING = 64
 
 
 class CompetencyManager(Component):
-    requests = {"act": Act, "cancel": CancelAction, "status": Request}
+    requests = {"act": Act, "cancel": CancelAction, "status": ActionStatus}
     #: Finished actions remembered for ``status`` (a requester that missed the end event asks).
     HISTORY = 1024
 
@@ -75,44 +76,49 @@ class CompetencyManager(Component):
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         for request in batch:
-            if isinstance(request.payload, CancelAction):
-                self._cancel(request, request.payload.action_id)
-            elif isinstance(request.payload, Act):
-                self._act(request, request.payload)
-            else:
-                self._status(request, str(request.payload.args.get("action_id", "")))
+            match request.payload:
+                case Act() as act:
+                    self._act(request, act)
+                case CancelAction(action_id=action_id):
+                    self._cancel(request, action_id)
+                case ActionStatus(action_id=action_id):
+                    self._status(request, action_id)
 
     def _status(self, request: IncomingRequest, action_id: str) -> None:
         if action_id in self._active:
             active = self._active[action_id]
-            request.accept({"action_id": action_id, "status": "running", "rule": active.rule, "attempts": active.attempts})
+            act = active.act
+            running = ActionReport(action_id, act.name, list(act.parameters), act.subject, "running", "", active.rule,
+                                   active.attempts)
+            request.accept(msgspec.to_builtins(running))
         elif action_id in self._finished:
             request.accept(msgspec.to_builtins(self._finished[action_id]))
         elif not action_id:
             request.accept({"running": sorted(self._active)})
         else:
-            request.reject(f"no action with id {action_id!r} is running or recently finished")
+            request.reject(f"no action with id {action_id!r} is running or recently finished", Code.NOT_FOUND)
 
     def _act(self, request: IncomingRequest, act: Act) -> None:
         if not (math.isfinite(act.deadline) and 0.0 <= act.deadline <= MAX_DEADLINE):
-            request.reject(f"deadline {act.deadline!r} is not a number of seconds from 0 (the default) to {MAX_DEADLINE:g}")
+            request.reject(f"deadline {act.deadline!r} is not a number of seconds from 0 (the default) to {MAX_DEADLINE:g}",
+                           Code.INVALID)
             return
         if len(act.action_id) > keys.MAX_NAME:
-            request.reject(f"action id {act.action_id[:40]!r}... is longer than {keys.MAX_NAME} characters")
+            request.reject(f"action id {act.action_id[:40]!r}... is longer than {keys.MAX_NAME} characters", Code.INVALID)
             return
         if len(self._active) >= MAX_RUNNING:
-            request.reject(f"busy: {MAX_RUNNING} actions are running on {self.sim.embodiment!r}; try again later")
+            request.reject(f"busy: {MAX_RUNNING} actions are running on {self.sim.embodiment!r}; try again later", Code.BUSY)
             return
         action = MindAction(act.name, tuple(act.parameters), act.subject)
         action_id = act.action_id or f"{self.sim.embodiment}-{next(self._ids)}"
         if action_id in self._active:
-            request.reject(f"action id {action_id!r} is already running")
+            request.reject(f"action id {action_id!r} is already running", Code.EXISTS)
             return
         act = msgspec.structs.replace(act, action_id=action_id)
         rules = self.rules.candidates(action)
         if not rules:
-            reason = f"no rule matches action {_show(action)!r}: {self.rules.why_no_match(action)}"
-            request.reject(reason)
+            reason = f"no rule matches action {action.describe()!r}: {self.rules.why_no_match(action)}"
+            request.reject(reason, Code.NOT_FOUND)
             self._report("ActionFailed", act, "failed", reason)
             return
         types = self.execution.types()
@@ -126,8 +132,8 @@ class CompetencyManager(Component):
                 else:
                     candidates.append((rule, plan))
         if not candidates:
-            reason = f"no executable plan for {_show(action)!r}: " + "; ".join(skipped)
-            request.reject(reason)
+            reason = f"no executable plan for {action.describe()!r}: " + "; ".join(skipped)
+            request.reject(reason, Code.NOT_FOUND)
             self._report("ActionFailed", act, "failed", reason)
             return
         active = _Active(act, action, candidates, reasons=skipped)
@@ -148,9 +154,9 @@ class CompetencyManager(Component):
         active.rule = f"{rule.path}:{rule.line}"
         active.run_id = f"{active.act.action_id}#{active.attempts}"
         deadline = active.act.deadline or self.default_deadline
-        self._report("ActionAttempt", active.act, f"attempt {active.attempts}", "", active.rule)
+        self._report("ActionAttempt", active.act, "attempt", "", active.rule, active.attempts)
 
-        def done(status: str, reason: str) -> None:
+        def done(status: RunStatus, reason: str) -> None:
             if status == "succeeded":
                 self._end(active, "ActionSucceeded", "succeeded", "")
             elif status == "cancelled" or active.cancel_requested:
@@ -168,26 +174,23 @@ class CompetencyManager(Component):
     def _cancel(self, request: IncomingRequest, action_id: str) -> None:
         active = self._active.get(action_id)
         if active is None:
-            request.reject(f"no running action with id {action_id!r}")
+            request.reject(f"no running action with id {action_id!r}", Code.NOT_FOUND)
             return
         active.cancel_requested = True
         request.accept({"action_id": action_id})
         if not self.execution.cancel(active.run_id):
             self._end(active, "ActionCancelled", "cancelled", "cancelled")
 
-    def _end(self, active: _Active, event: str, status: str, reason: str) -> None:
+    def _end(self, active: _Active, event: str, status: ActionState, reason: str) -> None:
         if self._active.pop(active.act.action_id, None) is None:
             return
-        self._report(event, active.act, status, reason, active.rule)
+        self._report(event, active.act, status, reason, active.rule, active.attempts)
 
-    def _report(self, event: str, act: Act, status: str, reason: str = "", rule: str = "") -> None:
-        report = ActionReport(act.action_id, act.name, list(act.parameters), act.subject, status, reason, rule)
+    def _report(self, event: str, act: Act, status: ActionState, reason: str = "", rule: str = "", attempt: int = 0) -> None:
+        report = ActionReport(act.action_id, act.name, list(act.parameters), act.subject, status, reason, rule, attempt)
         if status in ("succeeded", "failed", "cancelled"):
             self._finished[act.action_id] = report
             while len(self._finished) > self.HISTORY:
                 self._finished.popitem(last=False)
         self.raise_event(event, msgspec.to_builtins(report))
 
-
-def _show(action: MindAction) -> str:
-    return " ".join((action.name, *action.parameters))

@@ -57,6 +57,7 @@ class MemoryNetwork:
         self.queryables: dict[int, tuple[str, _Worker, MemoryTransport]] = {}
         self.tokens: dict[int, str] = {}
         self.watchers: dict[int, tuple[str, _Worker]] = {}
+        self.members: set[str] = set()  # ids of the open transports
         self.ids = itertools.count()
 
 
@@ -95,6 +96,8 @@ class MemoryTransport:
         self._id = f"{name}-{next(network.ids)}"
         self._mine: list[_Handle] = []
         self._closed = False
+        with network.lock:
+            network.members.add(self._id)
 
     @property
     def id(self) -> str:
@@ -186,10 +189,12 @@ class MemoryTransport:
         return self._remember(undeclare)
 
     def alive(self, selector: str, *, timeout: float = 2.0) -> list[str]:
+        self._check()
         with self.net.lock:
             return [k for k in self.net.tokens.values() if matches(selector, k)]
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
+        self._check()
         worker = _Worker(f"mem-live:{selector}", lambda item: handler(*item))
         with self.net.lock:
             wid = next(self.net.ids)
@@ -204,6 +209,12 @@ class MemoryTransport:
 
         return self._remember(unwatch)
 
+    def peers(self) -> list[str]:
+        """The other open transports of the network: each hears every other."""
+        self._check()
+        with self.net.lock:
+            return sorted(self.net.members - {self._id})
+
     def _remember(self, close: Callable[[], Any]) -> Closeable:
         handle = _Handle(close)
         self._mine.append(handle)
@@ -213,6 +224,8 @@ class MemoryTransport:
         if self._closed:
             return
         self._closed = True
+        with self.net.lock:
+            self.net.members.discard(self._id)
         for handle in reversed(self._mine):
             handle.close()
         self._mine.clear()

@@ -6,10 +6,16 @@ fields are named, so a client in any language decodes them with a plain MessageP
 
 Values carried by properties, events and requests are "plain data": str, int, float, bool,
 None, lists and maps with string keys, nested to at most ``MAX_DEPTH``.
+
+Every request kind has a Struct of its own, so a component dispatches by ``match`` on the decoded
+type and a payload without its ``type`` (or with another request's) is refused before any
+component sees it. A component outside this package declares its own request Structs (subclasses
+of ``Message`` with a tag of their own) the same way.
 """
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Any, Literal, TypeVar
 
 import msgspec
@@ -25,6 +31,13 @@ Value = Any  # plain data, checked by ``check_value``
 
 class Message(msgspec.Struct, frozen=True, tag_field="type", forbid_unknown_fields=False):
     """Base of all wire messages; the subclass name (snake case) is the tag."""
+
+
+def tag(kind: type[Message]) -> str:
+    """The ``type`` a message kind carries on the wire (also each storage write's request name)."""
+    value = kind.__struct_config__.tag
+    assert isinstance(value, str), f"{kind.__name__} has no tag"
+    return value
 
 
 # --- storage -----------------------------------------------------------------------------------
@@ -67,6 +80,8 @@ class RemoveContainer(Message, frozen=True, tag="remove_container"):
 
 
 StorageWrite = SetProperty | RemoveProperty | AddContainer | RemoveContainer
+#: The writes a store serves, each on the request named by its tag (``.../rq/<store>/set_property``...).
+STORAGE_WRITES: tuple[type[StorageWrite], ...] = (SetProperty, RemoveProperty, AddContainer, RemoveContainer)
 
 
 class StorageChange(Message, frozen=True, tag="storage_change"):
@@ -94,14 +109,39 @@ class Event(Message, frozen=True, tag="event"):
     time: float = 0.0
 
 
-class Request(Message, frozen=True, tag="request"):
-    """A generic request to a component; sent as a query on ``.../rq/<component>/<name>``."""
-
-    args: dict[str, Value] = {}
-    requester: str = ""
-
-
 Status = Literal["accepted", "rejected", "conflict"]
+
+
+class Code(StrEnum):
+    """Why a request was not accepted, for programs (``Outcome.code``); the reason is for people.
+
+    The field is a plain string on the wire, so a peer that knows more codes is still understood.
+    """
+
+    NONE = ""
+    #: The payload does not decode to the request's Struct (no ``type``, another type, bad fields).
+    MALFORMED = "malformed"
+    #: The component has no request of that name, or there is no such component.
+    UNKNOWN_REQUEST = "unknown_request"
+    #: The request came on the wrong form of its key (per-sender or not).
+    WRONG_KEY = "wrong_key"
+    SHUTTING_DOWN = "shutting_down"
+    #: The component's handler raised; the reason holds the error.
+    HANDLER_FAILED = "handler_failed"
+    #: The component's handler left the request unanswered.
+    UNANSWERED = "unanswered"
+    #: Nobody answered, or the link failed: the request may or may not have been applied.
+    OUTCOME_UNKNOWN = "outcome_unknown"
+    #: The request names a thing (container, property, action, run...) that is not there.
+    NOT_FOUND = "not_found"
+    #: The request would create a thing whose name is taken.
+    EXISTS = "exists"
+    #: A value or name the request carries is not acceptable (a property where a container is...).
+    INVALID = "invalid"
+    #: Another request to the same thing in the same update won.
+    CONFLICT = "conflict"
+    #: The component cannot take the request now (a competency running, a mind asleep...).
+    BUSY = "busy"
 
 
 class Outcome(Message, frozen=True, tag="outcome"):
@@ -110,6 +150,39 @@ class Outcome(Message, frozen=True, tag="outcome"):
     status: Status
     reason: str = ""
     value: Value = None
+    code: str = ""  # a ``Code`` when not accepted (see ``Code``)
+
+
+# --- requests that only ask -------------------------------------------------------------------------
+
+
+class Describe(Message, frozen=True, tag="describe"):
+    """What an embodiment is and hosts (``.../rq/embodiment/describe``)."""
+
+
+class ExecutionStatus(Message, frozen=True, tag="execution_status"):
+    """The execution system's running plans and competencies (``.../rq/execution/status``)."""
+
+
+# --- minds ---------------------------------------------------------------------------------------------
+
+
+class Sleep(Message, frozen=True, tag="sleep"):
+    """Put a mind to sleep (``.../rq/<mind>/sleep``): it perceives nothing and sends no action."""
+
+
+class Wake(Message, frozen=True, tag="wake"):
+    """Wake a mind (``.../rq/<mind>/wake``)."""
+
+
+class MindState(Message, frozen=True, tag="mind_state"):
+    """Ask for a mind's plain-data state, the one migration carries (``.../rq/<mind>/state``)."""
+
+
+class MindMessage(Message, frozen=True, tag="mind_message"):
+    """Raw data for a mind to interpret (``.../rq/<mind>/message``), e.g. a goal for the planner."""
+
+    data: dict[str, Value]
 
 
 # --- competency manager --------------------------------------------------------------------------
@@ -129,6 +202,17 @@ class CancelAction(Message, frozen=True, tag="cancel_action"):
     action_id: str
 
 
+class ActionStatus(Message, frozen=True, tag="action_status"):
+    """``.../rq/manager/status``: how one action stands (running, or its final report), or with
+    no id the ids of the running actions."""
+
+    action_id: str = ""
+
+
+#: An action's report: ``started``, a plan ``attempt``, ``running`` (a status answer), or how it ended.
+ActionState = Literal["started", "attempt", "running", "succeeded", "failed", "cancelled"]
+
+
 class ActionReport(Message, frozen=True, tag="action_report"):
     """Data of the manager's ``ActionStarted/Succeeded/Failed/Cancelled`` events."""
 
@@ -136,9 +220,10 @@ class ActionReport(Message, frozen=True, tag="action_report"):
     name: str
     parameters: list[str] = []
     subject: str = ""
-    status: str = ""
+    status: ActionState = "started"
     reason: str = ""
     rule: str = ""
+    attempt: int = 0  # plans tried so far (1 for the first)
 
 
 # --- remote competencies ---------------------------------------------------------------------------
@@ -155,11 +240,14 @@ class CancelRun(Message, frozen=True, tag="cancel_run"):
     run_id: str
 
 
+RunStatus = Literal["succeeded", "failed", "cancelled"]
+
+
 class RunEnded(Message, frozen=True, tag="run_ended"):
     """Data of a remote competency's ``RunSucceeded`` / ``RunFailed`` / ``RunCancelled`` events."""
 
     run_id: str
-    status: Literal["succeeded", "failed", "cancelled"]
+    status: RunStatus
     reason: str = ""
 
 
@@ -211,7 +299,8 @@ class MigrateAbort(Message, frozen=True, tag="migrate_abort"):
 
 class SetPolicy(Message, frozen=True, tag="set_policy"):
     """Set the companion's own policy (``.../rq/migration/policy``): the embodiments it accepts, or
-    null for any. It is part of its identity, so it travels with it."""
+    null for any. It is part of its identity, so it travels with it. ``accepts`` is required, so
+    that clearing the policy is said, never implied by a map that forgot the field."""
 
     accepts: list[str] | None
 
@@ -228,10 +317,16 @@ class MigrateStatus(Message, frozen=True, tag="migrate_status"):
 
 
 AnyMessage = (
-    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Request | Outcome
-    | Act | CancelAction | ActionReport | StartRun | CancelRun | RunEnded
+    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Outcome
+    | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
+    | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy
 )
+
+
+class _Untagged(Message, frozen=True, tag=""):
+    """Never sent: decoding into ``kind | _Untagged`` makes msgspec require the ``type`` field,
+    which it leaves optional when decoding into one tagged Struct."""
 
 _encoder = msgspec.msgpack.Encoder()
 _any_decoder = msgspec.msgpack.Decoder(AnyMessage)
@@ -244,24 +339,23 @@ def encode(message: Message) -> bytes:
     return _encoder.encode(message)
 
 
-def encode_value(value: Value) -> bytes:
-    return _encoder.encode(check_value(value))
-
-
 def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
     """Decode ``data`` as ``kind`` (a Struct type or union), raising ``ProtocolError`` naming ``where``."""
     if len(data) > MAX_PAYLOAD:
         raise ProtocolError(f"{where or 'payload'}: {len(data)} bytes exceeds the {MAX_PAYLOAD}-byte cap")
     decoder = _any_decoder if kind is AnyMessage else _decoders.get(kind)
     if decoder is None:
-        decoder = _decoders.setdefault(kind, msgspec.msgpack.Decoder(kind))
+        strict = kind | _Untagged if isinstance(kind, type) and issubclass(kind, Message) else kind
+        decoder = _decoders.setdefault(kind, msgspec.msgpack.Decoder(strict))
     try:
         message = decoder.decode(data)
     except (msgspec.DecodeError, msgspec.ValidationError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"{where or 'payload'}: malformed message: {exc}") from None
     except RecursionError:
         raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
-    for field in ("value", "data", "args", "parameters"):
+    if isinstance(message, _Untagged):
+        raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
+    for field in ("value", "data", "parameters"):
         if hasattr(message, field):
             try:
                 check_value(getattr(message, field))

@@ -9,8 +9,10 @@ A ``Mind`` is an ION component that drives the body and perceives it:
   ``on_entity_removed``, ``on_property_changed``, ``on_property_removed``, with the persistent
   flag), remote actions (actions of other agents, raised as ``RemoteAction`` events by any
   component) and raw messages (``.../rq/<mind>/message``);
-* ``sleep`` / ``wake`` (requests ``.../rq/<mind>/sleep`` and ``wake``): an asleep mind perceives
-  nothing and its ``act`` is refused; ``on_sleep`` / ``on_wake`` tell it.
+* ``sleep`` / ``wake`` (requests ``.../rq/<mind>/sleep`` and ``wake``: ``Sleep``, ``Wake``): an
+  asleep mind perceives nothing and its ``act`` is refused; ``on_sleep`` / ``on_wake`` tell it;
+* ``state`` (``MindState``) answers ``state()``; ``message`` (``MindMessage``) hands its data to
+  ``on_message`` (refused while asleep).
 
 The same class runs inside the daemon (named in the architecture config) or in another process
 (``ion.serve``, ``cmion-mesh serve-mind``): there its simulation carries the embodiment's name, so its requests and
@@ -33,14 +35,26 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
-from cmion_mesh.messages import Act, ActionReport, CancelAction, Event, Outcome, Request, StorageChange
+from cmion_mesh.messages import (
+    Act,
+    ActionReport,
+    CancelAction,
+    Code,
+    Event,
+    MindMessage,
+    MindState,
+    Outcome,
+    Sleep,
+    StorageChange,
+    Wake,
+)
 from cmion_mesh.rules import MindAction
 
 log = logging.getLogger(__name__)
 
 
 class Mind(Component):
-    requests = {"sleep": Request, "wake": Request, "message": Request, "state": Request}
+    requests = {"sleep": Sleep, "wake": Wake, "message": MindMessage, "state": MindState}
 
     def __init__(self, name: str = "mind", *, awake: bool = True) -> None:
         super().__init__(name)
@@ -58,19 +72,20 @@ class Mind(Component):
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         for request in batch:
-            if request.name == "sleep":
-                self.sleep()
-                request.accept({"awake": self.awake})
-            elif request.name == "wake":
-                self.wake()
-                request.accept({"awake": self.awake})
-            elif request.name == "state":
-                request.accept(self.state())
-            elif not self.awake:
-                request.reject(f"mind {self.name!r} is asleep")
-            else:
-                self.on_message(request.payload.args)
-                request.accept()
+            match request.payload:
+                case Sleep():
+                    self.sleep()
+                    request.accept({"awake": self.awake})
+                case Wake():
+                    self.wake()
+                    request.accept({"awake": self.awake})
+                case MindState():
+                    request.accept(self.state())
+                case MindMessage() if not self.awake:
+                    request.reject(f"mind {self.name!r} is asleep", Code.BUSY)
+                case MindMessage(data=data):
+                    self.on_message(data)
+                    request.accept()
 
     def sleep(self) -> None:
         if self.awake:
@@ -169,7 +184,3 @@ class Mind(Component):
 
     def restore(self, state: dict[str, Any]) -> None: ...
 
-
-def raise_remote_action(component: Component, name: str, parameters: list[str] | tuple[str, ...] = (), subject: str = "") -> None:
-    """What a perception component calls when it sees another agent act (e.g. the user)."""
-    component.raise_event("RemoteAction", {"name": name, "parameters": list(parameters), "subject": subject})

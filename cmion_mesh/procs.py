@@ -16,10 +16,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Sequence
-from typing import TypeVar
-
-T = TypeVar("T")
+from collections.abc import Sequence
 
 
 def free_port() -> int:
@@ -32,24 +29,6 @@ def free_port() -> int:
 
 def unique_mesh(prefix: str = "t") -> str:
     return f"{prefix}-{uuid.uuid4().hex[:12]}"
-
-
-def wait_for(condition: Callable[[], T], timeout: float, what: str, interval: float = 0.02) -> T:
-    """Return ``condition()``'s first truthy value, or raise ``TimeoutError`` naming ``what``.
-
-    For conditions that cannot be waited on directly (another process's state): bounded in
-    time, and each try is cheap.
-    """
-    deadline = time.monotonic() + timeout
-    tries = 0
-    while True:
-        tries += 1
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            raise TimeoutError(f"{what}: not true after {timeout:g} s ({tries} tries)")
-        threading.Event().wait(interval)
 
 
 class Daemon:

@@ -29,7 +29,7 @@ from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.identity import MAX_DOCUMENT, unpack
-from cmion_mesh.statedir import write_atomic
+from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ class Records:
         for path in self.dir.iterdir():
             name = path.name
             match = _DOCUMENT.match(name)
-            orphan = name.startswith(".") and name.endswith(".tmp")
+            orphan = left_by_a_crash(name)
             if match:
                 record = self._cache.get(match["companion"])
                 orphan = record is None or record.document != match["digest"]

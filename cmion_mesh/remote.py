@@ -30,12 +30,14 @@ from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext, RunResult
 from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
-from cmion_mesh.messages import CancelRun, Event, RunEnded, StartRun, decode
+from cmion_mesh.messages import CancelRun, Code, Event, RunEnded, RunStatus, StartRun, decode
 from cmion_mesh.transport import Closeable, Sample
 
 log = logging.getLogger(__name__)
 
-END_EVENTS = {"RunSucceeded": "succeeded", "RunFailed": "failed", "RunCancelled": "cancelled"}
+#: The event that ends a run, by how it ended.
+END_EVENT: dict[RunStatus, str] = {"succeeded": "RunSucceeded", "failed": "RunFailed", "cancelled": "RunCancelled"}
+END_EVENTS = {event: status for status, event in END_EVENT.items()}
 #: How long a cancelled run waits for the remote side to confirm before giving up on it.
 CANCEL_GRACE = 10.0
 _INTERRUPT = object()
@@ -130,20 +132,21 @@ class CompetencyHost(Component):
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         started = False
         for request in batch:
-            payload = request.payload
-            if isinstance(payload, CancelRun):
-                self.competency.cancel(payload.run_id)
-                request.accept()
-            elif self.competency.busy or started:
-                request.reject(f"{self.competency.name} is busy")
-            else:
-                started = True
-                self.competency.execute(payload.run_id, dict(payload.parameters), self._ended)
-                request.accept()
+            match request.payload:
+                case CancelRun(run_id=run_id):
+                    self.competency.cancel(run_id)
+                    request.accept()
+                case StartRun() if self.competency.busy or started:
+                    request.reject(f"{self.competency.name} is busy", Code.BUSY)
+                case StartRun(run_id=run_id, parameters=parameters):
+                    started = True
+                    self.competency.execute(run_id, dict(parameters), self._ended)
+                    request.accept()
 
     def _ended(self, result: RunResult) -> None:
-        event = {"succeeded": "RunSucceeded", "failed": "RunFailed", "cancelled": "RunCancelled"}[result.status]
+        # On the competency's thread; raise_event hands the event to the loop.
         try:
-            self.sim.raise_event(self.name, event, msgspec.to_builtins(RunEnded(result.run_id, result.status, result.reason)))  # type: ignore[arg-type]
+            self.sim.raise_event(self.name, END_EVENT[result.status],
+                                 msgspec.to_builtins(RunEnded(result.run_id, result.status, result.reason)))
         except MeshError:
             pass  # closing

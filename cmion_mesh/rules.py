@@ -104,6 +104,10 @@ class MindAction:
         if not isinstance(self.parameters, tuple):
             object.__setattr__(self, "parameters", tuple(self.parameters))
 
+    def describe(self) -> str:
+        """The action as one line of text: its name and parameters (as events and reasons show it)."""
+        return " ".join((self.name, *self.parameters))
+
 
 @dataclass(frozen=True, slots=True)
 class Step:
@@ -259,8 +263,7 @@ def parse_rules(tree: etree._ElementTree, path: str) -> RuleSet:
 
 
 def _line(element: etree._Element) -> int:
-    line = element.sourceline
-    return line if isinstance(line, int) and line > 0 else 0
+    return xmlsafe.sourceline(element) or 0
 
 
 def _children(element: etree._Element, tag: str) -> list[etree._Element]:

@@ -53,6 +53,27 @@ class StateLock(Handle):
             os.close(fd)  # releases the lock
 
 
+def left_by_a_crash(name: str) -> bool:
+    """Whether ``name`` is a temporary file of ``write_atomic`` whose writer is gone. A live
+    writer's is not (whoever sweeps the folder: its daemon at start-up, or a tool reading it)."""
+    if not (name.startswith(".") and name.endswith(".tmp")):
+        return False
+    parts = name.split(".")
+    try:
+        pid = int(parts[-3])
+    except (IndexError, ValueError):
+        return True  # not named by write_atomic: nobody is writing it
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False  # alive, another user's
+    return False
+
+
 def write_atomic(path: str | os.PathLike[str], data: bytes) -> None:
     """Replace ``path`` with ``data`` so that a crash leaves the old or the new content, never a mix:
     a temporary file (readable by this user only), fsync, rename, fsync of the folder. Temporary

@@ -24,9 +24,10 @@ properties also belong to the companion: they travel with it when it migrates (s
 Mediation policy (CMION's): within one update, the *first* write to a property (or to a
 sub-container name) wins; later writes to the same name in that update get ``conflict``.
 Writes to a missing container, or that clash with an existing name of the other sort, are
-``rejected`` with the reason. After each applied write the store raises an event
-(``PropertyChanged``, ``PropertyRemoved``, ``SubContainerAdded``, ``SubContainerRemoved``)
-whose data is a ``StorageChange``.
+``rejected`` with the reason and a code (``not_found``, ``exists``, ``invalid``: see
+``messages.Code``). After each applied write the store raises an event (``PropertyChanged``,
+``PropertyRemoved``, ``SubContainerAdded``, ``SubContainerRemoved``) whose data is a
+``StorageChange``.
 """
 
 from __future__ import annotations
@@ -41,19 +42,23 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh import keys
+from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import ConfigError, InvalidName, StorageError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import (
+    STORAGE_WRITES,
     AddContainer,
+    Code,
     Container,
     Property,
     RemoveContainer,
     RemoveProperty,
     SetProperty,
     StorageChange,
+    StorageWrite,
     check_value,
     encode,
+    tag,
 )
 from cmion_mesh.statedir import write_atomic
 from cmion_mesh.transport import IncomingQuery
@@ -102,12 +107,7 @@ def _join(path: Sequence[str]) -> str:
 class Store(Component):
     """A tree of containers of properties, mediated per update and served on its key-space."""
 
-    requests = {
-        "set_property": SetProperty,
-        "remove_property": RemoveProperty,
-        "add_container": AddContainer,
-        "remove_container": RemoveContainer,
-    }
+    requests = {tag(write): write for write in STORAGE_WRITES}
     #: Kinds allowed for the root's sub-containers (None: any).
     root_kinds: frozenset[str] | None = None
     root_kind = "store"
@@ -293,18 +293,18 @@ class Store(Component):
                 try:
                     change = self._apply(request.payload, written)
                 except StorageError as exc:
-                    request.reject(str(exc))
+                    request.reject(str(exc), Code(exc.code))
                 except _Conflict as exc:
                     request.conflict(str(exc))
                 except (InvalidName, ValueError) as exc:
-                    request.reject(f"{self.name}: {exc}")
+                    request.reject(f"{self.name}: {exc}", Code.INVALID)
                 else:
                     request.accept()
                     changes.append(change)
         self._save_persistent()
         self._publish(changes)
 
-    def apply_now(self, write: SetProperty | RemoveProperty | AddContainer | RemoveContainer) -> None:
+    def apply_now(self, write: StorageWrite) -> None:
         """Apply one write outside mediation (loading, restoring); raises ``StorageError``."""
         with self._lock:
             change = self._apply(write, set())
@@ -324,7 +324,7 @@ class Store(Component):
                 transport.publish(key, wire, block=True)
             self.raise_event(EVENT_FOR_OP[op], msgspec.to_builtins(change))
 
-    def _apply(self, write: Any, written: set[tuple[str, ...]]) -> tuple[str, StorageChange, tuple[str, ...], bytes | None]:
+    def _apply(self, write: StorageWrite, written: set[tuple[str, ...]]) -> tuple[str, StorageChange, tuple[str, ...], bytes | None]:
         path = _path(write.container)
         name = keys.check_name(write.name, "property" if isinstance(write, (SetProperty, RemoveProperty)) else "container")
         node = self.node(path)
@@ -332,43 +332,40 @@ class Store(Component):
         where = f"{self.name}/{_join(full)}"
         if full in written:
             raise _Conflict(f"{where}: lost to an earlier write to the same name in this update")
-        if isinstance(write, SetProperty):
-            if name in node.children:
-                raise StorageError(f"{where} is a container, not a property")
-            value = check_value(write.value)
-            wire = encode(Property(value, write.persistent))
-            old = node.properties.get(name)
-            self._persist_dirty |= write.persistent or (old is not None and old.persistent)
-            node.properties[name] = _Prop(value, write.persistent, wire)
-            change = StorageChange("set_property", _join(path), name, value, write.persistent)
-        elif isinstance(write, RemoveProperty):
-            prop = node.properties.pop(name, None)
-            if prop is None:
-                raise StorageError(f"{where}: no such property")
-            self._persist_dirty |= prop.persistent
-            change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
-            wire = None
-        elif isinstance(write, AddContainer):
-            if len(path) >= MAX_CONTAINER_DEPTH:
-                raise StorageError(f"{where}: containers nest at most {MAX_CONTAINER_DEPTH} deep")
-            if name in node.properties or name in node.children:
-                raise StorageError(f"{where} already exists")
-            kind = write.kind
-            if not path and self.root_kinds is not None and kind not in self.root_kinds:
-                raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}")
-            child = Node(kind)
-            node.children[name] = child
-            change = StorageChange("add_container", _join(path), name, kind=kind)
-            wire = child.wire
-        elif isinstance(write, RemoveContainer):
-            if name not in node.children:
-                raise StorageError(f"{where}: no such container")
-            child = node.children.pop(name)
-            self._persist_dirty = True  # it may have held persistent properties
-            change = StorageChange("remove_container", _join(path), name, kind=child.kind)
-            wire = None
-        else:
-            raise StorageError(f"{self.name}: unknown write {type(write).__name__}")
+        wire: bytes | None = None
+        match write:
+            case SetProperty(value=value, persistent=persistent):
+                if name in node.children:
+                    raise StorageError(f"{where} is a container, not a property", code=Code.INVALID)
+                value = check_value(value)
+                wire = encode(Property(value, persistent))
+                old = node.properties.get(name)
+                self._persist_dirty |= persistent or (old is not None and old.persistent)
+                node.properties[name] = _Prop(value, persistent, wire)
+                change = StorageChange("set_property", _join(path), name, value, persistent)
+            case RemoveProperty():
+                prop = node.properties.pop(name, None)
+                if prop is None:
+                    raise StorageError(f"{where}: no such property", code=Code.NOT_FOUND)
+                self._persist_dirty |= prop.persistent
+                change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
+            case AddContainer(kind=kind):
+                if len(path) >= MAX_CONTAINER_DEPTH:
+                    raise StorageError(f"{where}: containers nest at most {MAX_CONTAINER_DEPTH} deep", code=Code.INVALID)
+                if name in node.properties or name in node.children:
+                    raise StorageError(f"{where} already exists", code=Code.EXISTS)
+                if not path and self.root_kinds is not None and kind not in self.root_kinds:
+                    raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}", code=Code.INVALID)
+                child = Node(kind)
+                node.children[name] = child
+                change = StorageChange("add_container", _join(path), name, kind=kind)
+                wire = child.wire
+            case RemoveContainer():
+                if name not in node.children:
+                    raise StorageError(f"{where}: no such container", code=Code.NOT_FOUND)
+                child = node.children.pop(name)
+                self._persist_dirty = True  # it may have held persistent properties
+                change = StorageChange("remove_container", _join(path), name, kind=child.kind)
         written.add(full)
         return change.op, change, full, wire
 
@@ -449,18 +446,11 @@ def _typed(raw: str, kind: str, where: str) -> Any:
     raise ValueError(f"{where}: unknown Type {kind!r}")
 
 
-def _line(element: Any) -> int | None:
-    line = getattr(element, "sourceline", None)
-    return line if isinstance(line, int) else None
-
-
 def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
     """Parse a CMION world-model init file (validated by ``schemas/WorldModel.xsd``).
 
     Values are strings, as in CMION, unless a property says ``Type="int|float|bool|json"``.
     """
-    from cmion_mesh import xmlsafe
-
     tree = xmlsafe.load(path, "WorldModel.xsd")
     entities: list[InitEntity] = []
     seen: dict[str, int] = {}
@@ -468,7 +458,7 @@ def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
         if not isinstance(element.tag, str):
             continue
         name = element.get("Name", "")
-        line = _line(element)
+        line = xmlsafe.sourceline(element)
         try:
             keys.check_name(name, "entity name")
         except InvalidName as exc:
@@ -488,7 +478,7 @@ def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
                     raise ValueError(f"property {pname!r} of {name!r} defined twice")
                 value = _typed(p.get("Value", ""), p.get("Type", "string"), f"property {pname!r}")
             except ValueError as exc:
-                raise ConfigError(str(exc), path=str(path), line=_line(p)) from None
+                raise ConfigError(str(exc), path=str(path), line=xmlsafe.sourceline(p)) from None
             names.add(pname)
             persistent = p.get("Persistent", "false").strip().lower() in _TRUE
             props.append(InitProperty(pname, value, persistent))

@@ -6,6 +6,18 @@ zenoh); ``memory_transport`` implements it in one process for fast unit tests of
 Threading contract: handlers given to ``subscribe``, ``declare_queryable`` and
 ``watch_liveliness`` run on a worker thread owned by the transport (never on a zenoh thread);
 they may call the transport, but they should hand long work on to a queue.
+
+Error contract: every method of a transport, and ``reply``/``reply_err``/``finish`` of an
+``IncomingQuery``, raises only
+
+* ``ClosedError`` once the transport is closed (``close`` itself never raises), and
+* ``TransportError`` when the session refuses or fails the operation: an invalid key
+  expression or selector, a session closed underneath, a failing link; the message names the
+  operation and the key.
+
+Both are ``MeshError``s, so callers catch that (never bare ``Exception``). Opening a session
+raises ``ConfigError`` for settings it cannot take and ``TransportError`` if it cannot open. A
+query that nobody answers is not an error: ``get`` returns no replies (outcome unknown).
 """
 
 from __future__ import annotations
@@ -114,4 +126,8 @@ class Transport(Protocol):
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
         """``handler(key, alive)`` for every token that appears (including present ones) or vanishes."""
 
-    def close(self) -> None: ...
+    def peers(self) -> list[str]:
+        """Ids of the sessions this one is connected to (``router:<id>`` for routers), for diagnostics."""
+
+    def close(self) -> None:
+        """Close every subscription, queryable and token, then the session; idempotent."""

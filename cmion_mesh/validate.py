@@ -14,8 +14,11 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from cmion_mesh import xmlsafe
+from cmion_mesh.architecture import load_architecture
+from cmion_mesh.classes import import_class
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.ion import Component
 from cmion_mesh.resources import data_dir
 from cmion_mesh.rules import RuleSet, load_rules
 from cmion_mesh.storage import load_world_model_init
@@ -49,10 +52,6 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
 
 
 def _architecture(path: str, remote_types: Iterable[str] = ()) -> None:
-    from cmion_mesh.architecture import load_architecture
-    from cmion_mesh.classes import import_class
-    from cmion_mesh.ion import Component
-
     arch = load_architecture(path)
     check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=remote_types)
     for spec in arch.components:

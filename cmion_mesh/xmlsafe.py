@@ -44,6 +44,7 @@ __all__ = [
     "load",
     "loads",
     "schema_path",
+    "sourceline",
     "validate",
 ]
 
@@ -138,7 +139,7 @@ def _line_at(data: bytes, offset: int) -> int:
     return data.count(b"\n", 0, max(offset, 0)) + 1
 
 
-def _sourceline(node: object) -> int | None:
+def sourceline(node: object) -> int | None:
     """``sourceline`` of an lxml node (the stubs type it loosely); ``None`` when libxml2 has none."""
     line = getattr(node, "sourceline", None)
     return line if isinstance(line, int) and line > 0 else None
@@ -292,10 +293,10 @@ def _parse(data: bytes, text: str, name: str, max_depth: int, max_elements: int)
                     raise XmlError(
                         f"elements nested deeper than {max_depth} levels",
                         path=name,
-                        line=_sourceline(element),
+                        line=sourceline(element),
                     )
                 if elements > max_elements:
-                    raise XmlError(f"more than {max_elements} elements", path=name, line=_sourceline(element))
+                    raise XmlError(f"more than {max_elements} elements", path=name, line=sourceline(element))
             else:
                 depth -= 1
 
@@ -344,7 +345,7 @@ def _postcheck(tree: etree._ElementTree, name: str) -> None:
         raise XmlError("internal DTD declarations are not allowed", path=name, line=1)
     for node in tree.getroot().iter(etree.Entity):
         parent = node.getparent()
-        line = _sourceline(node) or _sourceline(parent)
+        line = sourceline(node) or sourceline(parent)
         raise XmlError(f"entity reference {node.text} is not allowed", path=name, line=line)
 
 
@@ -418,7 +419,8 @@ def load(
 # --- schemas -------------------------------------------------------------------------------------
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
-_SCHEMA_DIRS = (_PACKAGE_DIR / "schemas", _PACKAGE_DIR.parent / "schemas")
+#: Where ``schema_path`` looks, in order: the copy packaged in a wheel, then the repository's.
+SCHEMA_DIRS = (_PACKAGE_DIR / "schemas", _PACKAGE_DIR.parent / "schemas")
 
 
 def schema_path(name: str) -> Path:
@@ -428,11 +430,11 @@ def schema_path(name: str) -> Path:
     """
     if not name or Path(name).name != name or name in (".", ".."):
         raise ValueError(f"schema must be a bare file name such as 'WorldModel.xsd', got {name!r}")
-    for directory in _SCHEMA_DIRS:
+    for directory in SCHEMA_DIRS:
         candidate = directory / name
         if candidate.is_file():
             return candidate
-    searched = ", ".join(str(d) for d in _SCHEMA_DIRS)
+    searched = ", ".join(str(d) for d in SCHEMA_DIRS)
     raise FileNotFoundError(f"schema {name!r} not found in {searched}")
 
 

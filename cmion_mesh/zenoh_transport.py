@@ -3,20 +3,26 @@
 Every subscriber and queryable gets a FIFO channel and one worker thread that drains it, so
 zenoh's own threads never run Python and a slow handler cannot stall the session's receive path.
 Workers end when their channel closes (undeclare or session close).
+
+Errors are mapped at this boundary and nowhere else: every call into zenoh runs inside
+``_zenoh_errors``, so what escapes is what ``transport.Transport`` documents - ``ClosedError``
+after ``close()``, ``TransportError`` (naming the operation and key) for whatever zenoh refused,
+``ConfigError`` for a configuration zenoh cannot take - never ``zenoh.ZError``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from cmion_mesh.errors import ConfigError, TransportError
+from cmion_mesh.errors import ClosedError, ConfigError, TransportError
 from cmion_mesh.transport import (
     Closeable,
     Handle,
@@ -35,6 +41,18 @@ log = logging.getLogger(__name__)
 CHANNEL_CAPACITY = 4096
 
 
+@contextlib.contextmanager
+def _zenoh_errors(what: str, closed: Callable[[], bool] = lambda: False) -> Iterator[None]:
+    """The exception map: a ``zenoh.ZError`` raised inside becomes ``ClosedError`` if the
+    transport was closed meanwhile, else ``TransportError`` saying what was asked."""
+    try:
+        yield
+    except zenoh.ZError as exc:
+        if closed():
+            raise ClosedError(f"{what}: the transport is closed") from None
+        raise TransportError(f"{what}: {exc}") from None
+
+
 def build_config(cfg: TransportConfig) -> zenoh.Config:
     if cfg.config_file:
         path = Path(cfg.config_file)
@@ -42,7 +60,7 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
             raise ConfigError("zenoh config file not found", path=str(path))
         try:
             zc = zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh raises ZError with its own text
+        except zenoh.ZError as exc:
             raise ConfigError(f"invalid zenoh config: {exc}", path=str(path)) from None
     else:
         zc = zenoh.Config()
@@ -62,12 +80,12 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
     for key, value in settings:
         try:
             zc.insert_json5(key, json.dumps(value))
-        except Exception as exc:
+        except zenoh.ZError as exc:
             raise ConfigError(f"zenoh setting {key}={value!r} refused: {exc}") from None
     for key, raw in cfg.overrides:
         try:
             zc.insert_json5(key, raw)
-        except Exception as exc:
+        except zenoh.ZError as exc:
             raise ConfigError(f"zenoh setting {key}={raw} refused: {exc}") from None
     return zc
 
@@ -86,15 +104,18 @@ class _Query:
         self.payload = raw.to_bytes() if raw is not None else None
 
     def reply(self, key: str, payload: bytes) -> None:
-        self._query.reply(key, payload)
+        with _zenoh_errors(f"reply {key} to {self.key}"):
+            self._query.reply(key, payload)
 
     def reply_err(self, payload: bytes) -> None:
-        self._query.reply_err(payload)
+        with _zenoh_errors(f"error reply to {self.key}"):
+            self._query.reply_err(payload)
 
     def finish(self) -> None:
         if not self._done:
             self._done = True
-            self._query.drop()  # type: ignore[no-untyped-call]
+            with _zenoh_errors(f"finish {self.key}"):
+                self._query.drop()  # type: ignore[no-untyped-call]
 
 
 class _Entity(Handle):
@@ -113,7 +134,7 @@ class _Entity(Handle):
             self._closed = True
         try:
             self._undeclare()
-        except Exception:  # session already closed: the entity is gone with it
+        except zenoh.ZError:  # session already closed: the entity is gone with it
             pass
         if self._worker is not None and self._worker is not threading.current_thread():
             self._worker.join(5.0)
@@ -142,10 +163,8 @@ class ZenohTransport:
     def __init__(self, config: TransportConfig | None = None) -> None:
         self.config = config or TransportConfig()
         zc = build_config(self.config)
-        try:
+        with _zenoh_errors("cannot open zenoh session"):
             self._session = zenoh.open(zc)
-        except Exception as exc:
-            raise TransportError(f"cannot open zenoh session: {exc}") from None
         self._entities: list[_Entity] = []
         self._lock = threading.Lock()
         self._closed = False
@@ -153,7 +172,8 @@ class ZenohTransport:
 
     @property
     def id(self) -> str:
-        return str(self._session.zid())
+        with _zenoh_errors("session id"):
+            return str(self._session.zid())
 
     def __enter__(self) -> ZenohTransport:
         return self
@@ -161,13 +181,22 @@ class ZenohTransport:
     def __exit__(self, *_: object) -> None:
         self.close()
 
+    def _errors(self, what: str) -> contextlib.AbstractContextManager[None]:
+        """``_zenoh_errors`` for this session, after checking that it is still open."""
+        if self._closed:
+            raise ClosedError(f"{what}: the transport is closed")
+        return _zenoh_errors(what, lambda: self._closed)
+
     def _track(self, entity: _Entity) -> _Entity:
         with self._lock:
             self._entities.append(entity)
         return entity
 
     def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
-        if block:
+        with self._errors(f"publish {key}"):
+            if not block:
+                self._session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP)
+                return
             # A declared publisher per key keeps routing state warm for repeated events.
             pub = self._publishers.get(key)
             if pub is None:
@@ -181,17 +210,17 @@ class ZenohTransport:
                         )
                         self._publishers[key] = pub
             pub.put(payload)
-        else:
-            self._session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP)
 
     def delete(self, key: str) -> None:
-        self._session.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        with self._errors(f"delete {key}"):
+            self._session.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
         origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
-        sub = self._session.declare_subscriber(
-            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), allowed_origin=origin
-        )
+        with self._errors(f"subscribe {selector}"):
+            sub = self._session.declare_subscriber(
+                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), allowed_origin=origin
+            )
         channel = sub.handler
 
         def handle(sample: zenoh.Sample) -> None:
@@ -206,9 +235,10 @@ class ZenohTransport:
         return self._track(_Entity(sub.undeclare, _drain(f"sub:{selector}", channel.recv, handle)))
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
-        queryable = self._session.declare_queryable(
-            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), complete=complete
-        )
+        with self._errors(f"declare queryable {selector}"):
+            queryable = self._session.declare_queryable(
+                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), complete=complete
+            )
         channel = queryable.handler
 
         def handle(query: zenoh.Query) -> None:
@@ -222,7 +252,7 @@ class ZenohTransport:
         return self._track(_Entity(queryable.undeclare, _drain(f"qbl:{selector}", channel.recv, handle)))
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
-        try:
+        with self._errors(f"query {selector}"):
             replies = self._session.get(
                 selector,
                 payload=payload,
@@ -239,25 +269,22 @@ class ZenohTransport:
                     err = reply.err
                     out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
             return out
-        except zenoh.ZError as exc:
-            raise TransportError(f"query {selector}: {exc}") from None
 
     def declare_token(self, key: str) -> Closeable:
-        token = self._session.liveliness().declare_token(key)
+        with self._errors(f"declare token {key}"):
+            token = self._session.liveliness().declare_token(key)
         return self._track(_Entity(token.undeclare, None))
 
     def alive(self, selector: str, *, timeout: float = 2.0) -> list[str]:
-        replies = self._session.liveliness().get(selector, timeout=timeout)
-        keys = []
-        for reply in replies:
-            if reply.ok is not None:
-                keys.append(str(reply.ok.key_expr))
-        return keys
+        with self._errors(f"liveliness query {selector}"):
+            return [str(reply.ok.key_expr) for reply in self._session.liveliness().get(selector, timeout=timeout)
+                    if reply.ok is not None]
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
-        sub = self._session.liveliness().declare_subscriber(
-            selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), history=True
-        )
+        with self._errors(f"watch liveliness {selector}"):
+            sub = self._session.liveliness().declare_subscriber(
+                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), history=True
+            )
         channel = sub.handler
 
         def handle(sample: zenoh.Sample) -> None:
@@ -267,8 +294,9 @@ class ZenohTransport:
 
     def peers(self) -> list[str]:
         """Zenoh ids of the peers and routers this session is connected to (for diagnostics)."""
-        info = self._session.info
-        return [str(z) for z in info.peers_zid()] + [f"router:{z}" for z in info.routers_zid()]
+        with self._errors("list peers"):
+            info = self._session.info
+            return [str(z) for z in info.peers_zid()] + [f"router:{z}" for z in info.routers_zid()]
 
     def close(self) -> None:
         with self._lock:
@@ -280,8 +308,11 @@ class ZenohTransport:
         for pub in publishers:
             try:
                 pub.undeclare()  # type: ignore[no-untyped-call]
-            except Exception:
-                pass
+            except zenoh.ZError:
+                pass  # gone already: closing is all that was asked
         for entity in entities:
             entity.close()
-        self._session.close()  # type: ignore[no-untyped-call]
+        try:
+            self._session.close()  # type: ignore[no-untyped-call]
+        except zenoh.ZError as exc:
+            log.debug("closing the zenoh session: %s", exc)

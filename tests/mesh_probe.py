@@ -14,8 +14,8 @@ inside the namespaces; it runs this probe inside one (``host.popen([sys.executab
   ``E {...}`` per describe that got no answer (why), and ``R {...}`` per command (``id``,
   ``ok``, ``value`` or ``error``).
 * Commands, one JSON line each on the FIFO: ``{"id", "op", ...}`` with ``op`` one of
-  ``request`` (``embodiment``, ``component``, ``name``, ``payload``: a ``Request``'s data or,
-  for ``migration/migrate``, ``{"companion", "target"}``), ``migrate`` (``companion``,
+  ``request`` (``embodiment``, ``component``, ``name``, ``payload``: for ``migration/migrate``
+  ``{"companion", "target"}``, else a ``mind_message``'s data), ``migrate`` (``companion``,
   ``target``, ``timeout``: ``MeshClient.migrate``), ``memory`` (``embodiment``: the Diary mind's
   state), ``inhabitants`` (``names``: each one's inhabitant, as sampled), ``embodiments`` and
   ``quit``.
@@ -34,7 +34,7 @@ import msgspec
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Migrate, Request
+from cmion_mesh.messages import Message, Migrate, MindMessage, MindState
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -72,15 +72,15 @@ def execute(client: MeshClient, command: dict[str, Any]) -> Any:
     op = command["op"]
     if op == "request":
         payload: Any = command.get("payload") or {}
-        message = (Migrate(payload["companion"], payload["target"]) if (command["component"], command["name"]) ==
-                   ("migration", "migrate") else Request(payload))
+        message: Message = (Migrate(payload["companion"], payload["target"]) if (command["component"], command["name"]) ==
+                            ("migration", "migrate") else MindMessage(payload))
         outcome = client.request(command["embodiment"], command["component"], command["name"], message,
                                  timeout=float(command.get("timeout", 5.0)))
         return msgspec.to_builtins(outcome)
     if op == "migrate":
         return client.migrate(command["companion"], command["target"], timeout=float(command.get("timeout", 30.0)))
     if op == "memory":
-        outcome = client.request(command["embodiment"], "mind", "state", timeout=5.0)
+        outcome = client.request(command["embodiment"], "mind", "state", MindState(), timeout=5.0)
         if outcome.status != "accepted" or not isinstance(outcome.value, dict):
             raise MeshError(f"mind state of {command['embodiment']}: {outcome.status} {outcome.reason}")
         return outcome.value

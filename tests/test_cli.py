@@ -14,9 +14,10 @@ import pytest
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
-from cmion_mesh.messages import AddContainer, Event, Request
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, Sleep, Wake
+from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -118,7 +119,7 @@ def test_remote_mind_drives_a_daemon(two: tuple[Daemon, Daemon, str], mesh: str)
         # a raw message makes the mind act; the mind learns the outcome and tells us by an event
         def mind_acted() -> bool:
             try:
-                asked = client.request("alpha", "eager", "message", Request({"action": "TestAction", "parameters": ["test"]}),
+                asked = client.request("alpha", "eager", "message", MindMessage({"action": "TestAction", "parameters": ["test"]}),
                                        timeout=2)
             except OutcomeUnknown:
                 return False  # the mind's queryable is not known to this session yet
@@ -130,11 +131,11 @@ def test_remote_mind_drives_a_daemon(two: tuple[Daemon, Daemon, str], mesh: str)
         client.set_property("alpha", "wm", "Guest", "name", "Ada", persistent=True)
         wait_for(lambda: any(e.name == "MindPerceived" and e.data == {"entity": "Guest", "name": "name", "value": "Ada",
                                                                       "persistent": True} for e in seen), 10, "perception")
-        assert client.request("alpha", "eager", "sleep").value == {"awake": False}
-        refused = client.request("alpha", "eager", "message", Request({"action": "TestAction2"}))
+        assert client.request("alpha", "eager", "sleep", Sleep()).value == {"awake": False}
+        refused = client.request("alpha", "eager", "message", MindMessage({"action": "TestAction2"}))
         assert refused.status == "rejected" and "asleep" in refused.reason
-        assert client.request("alpha", "eager", "wake").value == {"awake": True}
-        assert "TestAction:succeeded" in client.request("alpha", "eager", "state").value["outcomes"]
+        assert client.request("alpha", "eager", "wake", Wake()).value == {"awake": True}
+        assert "TestAction:succeeded" in client.request("alpha", "eager", "state", MindState()).value["outcomes"]
 
 
 def test_sigterm_stops_the_daemon_cleanly(mesh: str) -> None:

@@ -26,8 +26,9 @@ from cmion_mesh.demo import Scenario, start_bodies, stop_bodies
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import MeshError, NotReached, Refused
 from cmion_mesh.ion import send_request
-from cmion_mesh.messages import Request
-from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh, wait_for
+from cmion_mesh.messages import ActionStatus, Describe
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -150,7 +151,7 @@ def test_errors_state_what_is_true(bodies: Scenario) -> None:
         client.join("robot")
         started = time.monotonic()
         with pytest.raises(NotReached, match=r"nobody reached \(after 0\.\d\d s\)"):
-            send_request(client.transport, f"cmion/{bodies.mesh}/robot/rq/nobody/here", Request(), timeout=10)
+            send_request(client.transport, f"cmion/{bodies.mesh}/robot/rq/nobody/here", Describe(), timeout=10)
         assert time.monotonic() - started < 2, "said at once, with the time it really took"
 
 
@@ -171,7 +172,7 @@ def test_act_outcomes_ctrl_c_and_detach(bodies: Scenario) -> None:
     action_id = json.loads(detached.stdout)["action_id"]
     with client_of(bodies) as client:
         client.join("robot")
-        status = client.request("robot", "manager", "status", Request({"action_id": action_id}))
+        status = client.request("robot", "manager", "status", ActionStatus(action_id))
         assert status.value["status"] == "running", "left running"
     cancelled = real_cli("cancel", "robot", action_id, *net(bodies))
     assert cancelled.returncode == 0, cancelled

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import queue
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,8 +16,8 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Event
-from cmion_mesh.procs import wait_for
 from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011
 
@@ -67,9 +68,9 @@ def test_cmion_test_scenario(transport: MemoryTransport, client: MeshClient, mes
             client.act("robot", "TestAction", ["a", "b"])
         for _ in range(50):
             client.act("robot", "TestAction2", timeout=20)
-        pending = wait_for(lambda: robot.sim.call(lambda: None) or True, 1, "loop alive") and \
-            [t for t in robot.sim._timers if t[2].fn is not None]
-        assert not pending, "a finished plan's deadline timer is dropped, not kept until it expires"
+        armed: queue.SimpleQueue[int] = queue.SimpleQueue()
+        robot.sim.call(lambda: armed.put(robot.sim.armed_timers))
+        assert armed.get(timeout=5) == 0, "a finished plan's deadline timer is dropped, not kept until it expires"
         # the background competency (type 6) is running
         wait_for(lambda: robot.blackboard.get("", "TestCompetency6Ticks"), 5, "background ticks")
 

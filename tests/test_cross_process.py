@@ -16,7 +16,7 @@ import msgspec
 import pytest
 import zenoh
 
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011, start_daemon
 
@@ -88,13 +88,13 @@ def test_plain_zenoh_reads_watches_and_writes(session: zenoh.Session, mesh: str)
         wait_for(first_change_seen, 10, "subscriber hears changes")
         accepted = plain_request(session, f"{rq}/set_property",
                                  {"type": "set_property", "container": "", "name": "battery", "value": 0.75, "persistent": True})
-        assert accepted == {"type": "outcome", "status": "accepted", "reason": "", "value": None}
+        assert accepted == {"type": "outcome", "status": "accepted", "reason": "", "value": None, "code": ""}
         key, kind, body = changes.get(timeout=5)
         assert key == f"cmion/{mesh}/robot/bb/battery" and body == {"type": "property", "value": 0.75, "persistent": True}
         rejected = plain_request(session, f"{rq}/set_property", {"type": "set_property", "container": "nowhere", "name": "x", "value": 1})
-        assert rejected["status"] == "rejected" and "no container 'nowhere'" in rejected["reason"]
+        assert rejected["status"] == "rejected" and "no container 'nowhere'" in rejected["reason"] and rejected["code"] == "not_found"
         malformed = plain_request(session, f"{rq}/set_property", {"type": "set_property", "name": 5})
-        assert malformed["status"] == "rejected" and "malformed" in malformed["reason"]
+        assert malformed["status"] == "rejected" and "malformed" in malformed["reason"] and malformed["code"] == "malformed"
         removed = plain_request(session, f"{rq}/remove_property", {"type": "remove_property", "container": "", "name": "battery"})
         assert removed["status"] == "accepted"
         key, kind, body = changes.get(timeout=5)

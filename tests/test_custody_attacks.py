@@ -24,9 +24,21 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.identity import Identity
 from cmion_mesh.ion import send_request
-from cmion_mesh.messages import Act, Migrate, MigrateAbort, MigrateCommit, MigratePrepare, Outcome, Request, decode, encode
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.messages import (
+    Act,
+    ActionStatus,
+    Migrate,
+    MigrateAbort,
+    MigrateCommit,
+    MigratePrepare,
+    MindMessage,
+    Outcome,
+    decode,
+    encode,
+)
+from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.records import Record, Records
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -114,7 +126,7 @@ def test_a_replayed_prepare_never_loses_the_companion(trio: tuple[Node, Node, No
     the companion migrates again, is refused; the migration ends, exactly one host, memory intact."""
     a = trio[0]
     with pair(trio, mesh) as (t, client):
-        client.request("a", "mind", "message", Request({"note": "met Ada"}))
+        client.request("a", "mind", "message", MindMessage({"note": "met Ada"}))
         client.migrate("spirit", "b", timeout=30)
         # a dies right after recording 'incoming' for the attempt back; b resumes; a, restarted, drops it
         assert a.daemon is not None
@@ -123,7 +135,7 @@ def test_a_replayed_prepare_never_loses_the_companion(trio: tuple[Node, Node, No
         capture = Capture(t, mesh)
         try:
             wait_for(lambda: "a" in {d["name"] for d in client.describe_all(timeout=1.0)}, 30, "a back")
-            assert client.request("b", "migration", "migrate", Request()).status == "rejected"  # a typed request only
+            assert client.request("b", "migration", "migrate", MindMessage({})).status == "rejected"  # a typed request only
             started = client.request("b", "migration", "migrate", Migrate("spirit", "a"))
             assert started.status == "accepted"
             assert a.died() == -9
@@ -209,7 +221,7 @@ def test_a_former_host_cannot_take_over_clone_or_wipe_in_secure_mode(pki: Pki, t
             admin = MeshClient(admin_t, mesh)
             names = ("robot", "screen", "phone")
             wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None, "phone": None}, 30, "three secure daemons")
-            admin.request("robot", "mind", "message", Request({"note": "met Ada"}))
+            admin.request("robot", "mind", "message", MindMessage({"note": "met Ada"}))
             admin.migrate("spirit", "screen", timeout=30)
             screen_state = tmp_path / "state-screen"
             kept_key = (screen_state / "spirit.key").read_bytes()  # what a hostile screen would keep
@@ -300,6 +312,9 @@ def test_strangers_cannot_poison_the_pin_fill_the_disk_or_stall_actions(trio: tu
             thread.join(120)
         assert len(outcomes) == 2000 and "unknown" not in outcomes
         assert "rejected" in outcomes, "beyond the running-action limit, the flood is refused busy"
+        # The flood's last accepted actions are still running when the senders stop: they end.
+        wait_for(lambda: client.request("b", "manager", "status", ActionStatus()).value == {"running": []}, 60,
+                 "the flood's accepted actions end")
         report = client.act("b", "TestAction", ["test"], timeout=60)
         assert report.status in ("succeeded", "failed"), report
 
@@ -310,7 +325,7 @@ def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, No
     with ZenohTransport(TransportConfig(connect=(a.endpoint,), multicast=False)) as t:
         client = MeshClient(t, mesh)
         wait_for(lambda: homes(client, ("a",)) == {"a": "spirit"}, 30, "spirit born on a")
-        client.request("a", "mind", "message", Request({"note": "met Ada"}))
+        client.request("a", "mind", "message", MindMessage({"note": "met Ada"}))
         assert a.daemon is not None
         a.daemon.stop()
         record = json.loads((a.state / "spirit.record.json").read_bytes())

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -26,10 +29,14 @@ def test_stopped_cleanly_means_the_process_is_gone(tmp_path: Path, mesh: str) ->
 def test_start_up_removes_what_an_interrupted_write_left(tmp_path: Path) -> None:
     state = tmp_path / "state"
     state.mkdir()
-    leftovers = [state / ".spirit.record.json.123.456.tmp", state / f"spirit.{'0' * 64}.identity.xml", state / "spirit.key"]
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a writer that has died
+    leftovers = [state / f".spirit.record.json.{gone.pid}.456.tmp", state / f"spirit.{'0' * 64}.identity.xml", state / "spirit.key"]
     for path in leftovers:
         path.write_bytes(b"x")
     (state / "notes.txt").write_bytes(b"not ours")
+    # A live writer's temporary file is its own (a tool reading the folder of a running daemon sweeps too).
+    (state / f".spirit.record.json.{os.getpid()}.789.tmp").write_bytes(b"x")
     Records(state)
-    assert sorted(p.name for p in state.iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in state.iterdir()) == [f".spirit.record.json.{os.getpid()}.789.tmp", "notes.txt"]
     assert oct(state.stat().st_mode & 0o777) == "0o700"

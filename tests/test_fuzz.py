@@ -43,34 +43,40 @@ from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import (
     Act,
     ActionReport,
+    ActionStatus,
     AddContainer,
     AnyMessage,
     CancelAction,
     CancelRun,
     Container,
+    Describe,
     Event,
+    ExecutionStatus,
     Message,
     Migrate,
     MigrateAbort,
     MigrateCommit,
     MigratePrepare,
     MigrateStatus,
+    MindMessage,
+    MindState,
     Outcome,
     Property,
     RemoveContainer,
     RemoveProperty,
-    Request,
     RunEnded,
     SetPolicy,
     SetProperty,
+    Sleep,
     StartRun,
     StorageChange,
     StorageWrite,
+    Wake,
     check_value,
     decode,
     encode,
 )
-from cmion_mesh.planner import load_spec, spec_from_data
+from cmion_mesh.planner_spec import load_spec, spec_from_data
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import load_world_model_init
@@ -154,11 +160,17 @@ SAMPLES: list[Message] = [
     RemoveContainer("", "Vase"),
     StorageChange("set_property", "Vase", "broken", True, True, ""),
     Event("robot", "bb", "PropertyChanged", {"op": "set_property", "value": [1, 2]}, 7, 1.5),
-    Request({"action_id": "x", "note": "hello"}, "screen"),
-    Outcome("rejected", "no rule matches", {"action_id": "a-1"}),
+    Outcome("rejected", "no rule matches", {"action_id": "a-1"}, "not_found"),
+    Describe(),
+    ExecutionStatus(),
+    Sleep(),
+    Wake(),
+    MindState(),
+    MindMessage({"goal": {"name": "greet", "facts": [["Guest", "greeted", True]]}}),
     Act("Wave", ["left", "high"], "robot", "a-1", 2.5),
     CancelAction("a-1"),
-    ActionReport("a-1", "Wave", ["left"], "robot", "failed", "jammed", "rules.xml:3"),
+    ActionStatus("a-1"),
+    ActionReport("a-1", "Wave", ["left"], "robot", "failed", "jammed", "rules.xml:3", 2),
     StartRun("r-1", {"speed": 3, "where": ["a", "b"]}),
     CancelRun("r-1"),
     RunEnded("r-1", "succeeded", ""),
@@ -170,7 +182,8 @@ SAMPLES: list[Message] = [
     SetPolicy(["robot", "screen"]),
 ]
 MESSAGE_TYPES = sorted(
-    (c for c in vars(messages).values() if isinstance(c, type) and issubclass(c, Message) and c is not Message),
+    (c for c in vars(messages).values()
+     if isinstance(c, type) and issubclass(c, Message) and c is not Message and not c.__name__.startswith("_")),
     key=lambda c: c.__name__,
 )
 KINDS: list[Any] = [*MESSAGE_TYPES, AnyMessage, StorageWrite, Property | Container]
@@ -291,7 +304,8 @@ def payload_for(draw: st.DrawFn, kind: Any) -> bytes:
     if choice == 1:
         sample = draw(st.sampled_from(samples))
         names = type(sample).__struct_fields__
-        fields = draw(st.dictionaries(st.sampled_from(names), st.sampled_from(VOCABULARY) | WIRE, max_size=len(names)))
+        fields = draw(st.dictionaries(st.sampled_from(names), st.sampled_from(VOCABULARY) | WIRE, max_size=len(names))) \
+            if names else {}
         tag = draw(st.sampled_from([type(sample).__struct_config__.tag, "act", "nope"]))
         return msgspec.msgpack.encode({**msgspec.structs.asdict(sample), **fields, "type": tag})
     return _edit(encode(draw(st.sampled_from(samples))), draw(EDITS))
@@ -309,7 +323,7 @@ def request_targets(embodiment: Embodiment) -> list[tuple[str, Any]]:
                 targets.append((keys.request_key(mesh, name, component.name, request, "robot"), kind))
             else:
                 targets.append((keys.request_key(mesh, name, component.name, request), kind))
-    return [*targets, (keys.request_key(mesh, name, "bb", "nope"), Request), (keys.request_key(mesh, name, "manager", "x"), Request)]
+    return [*targets, (keys.request_key(mesh, name, "bb", "nope"), Describe), (keys.request_key(mesh, name, "manager", "x"), Describe)]
 
 
 @st.composite
@@ -349,7 +363,7 @@ def test_every_request_gets_one_outcome(network: MemoryNetwork, mesh: str, tmp_p
         one()
         # Still answering, and its loop still turning.
         assert outcome_of(key_of("bb", "set_property"), encode(SetProperty("", "after", 1))).status == "accepted"
-        assert outcome_of(key_of("embodiment", "describe"), encode(Request())).status == "accepted"
+        assert outcome_of(key_of("embodiment", "describe"), encode(Describe())).status == "accepted"
         settled(robot)
 
 

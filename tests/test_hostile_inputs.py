@@ -44,24 +44,24 @@ from cmion_mesh.messages import (
     MAX_DEPTH,
     MAX_PAYLOAD,
     Act,
+    ActionStatus,
     AddContainer,
     Event,
     MigratePrepare,
     MigrateStatus,
     Outcome,
-    Request,
     SetProperty,
     StartRun,
     decode,
     encode,
 )
 from cmion_mesh.migration import MigrationManager
-from cmion_mesh.planner import load_spec
-from cmion_mesh.procs import wait_for
+from cmion_mesh.planner_spec import load_spec
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules
 from cmion_mesh.statedir import LOCK_FILE
 from cmion_mesh.storage import WorldModel
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011
 from .custody_helpers import Holder
@@ -209,6 +209,9 @@ STORE_ROWS = [
     StoreRow("oversized", "bb", "set_property", _sp(value="x" * MAX_PAYLOAD), (f"exceeds the {MAX_PAYLOAD}-byte cap",)),
     StoreRow("not a map", "bb", "set_property", msgspec.msgpack.encode([1, 2, 3]), ("malformed message", "Expected `object`")),
     StoreRow("unknown tag", "bb", "set_property", _sp(type="drop_table"), ("malformed message", "drop_table")),
+    StoreRow("no tag, although the key says which message it is", "bb", "set_property", mp(container="", name="p", value=1),
+             ("malformed message", "missing required field `type`")),
+    StoreRow("empty map", "bb", "set_property", mp(), ("malformed message", "missing required field `type`")),
     StoreRow("tag of another request", "bb", "set_property", mp(type="remove_property", container="", name="p"),
              ("malformed message", "remove_property")),
     StoreRow("wrong field type", "bb", "set_property", _sp(name=5), ("malformed message", "$.name")),
@@ -265,7 +268,6 @@ def test_store_refuses_hostile_request(row: StoreRow, robot: Embodiment, attacke
     ("payload", "stored"),
     [
         pytest.param(_sp(extra="ignored", more={"a": 1}), 1, id="unknown fields are ignored (forward compatible)"),
-        pytest.param(mp(container="", name="p", value=1), 1, id="no tag: the key says which message it is"),
         pytest.param(_sp(value=float("inf")), float("inf"), id="inf is plain data"),
         pytest.param(_sp(value=2**64 - 1), 2**64 - 1, id="largest MessagePack int"),
         pytest.param(_sp(value=-(2**63)), -(2**63), id="smallest MessagePack int"),
@@ -361,7 +363,11 @@ MANAGER_ROWS = [
                "Act fields have no cap but the payload's: the manager keeps the last 1024 reports, so 1024 acts "
                "with 16 MiB ids (even refused ones) pin 16 GiB"),
     ManagerRow("cancel of an unknown id", "cancel", mp(type="cancel_action", action_id="nope"), ("no running action with id 'nope'",)),
-    ManagerRow("status with an odd id", "status", mp(type="request", args={"action_id": [1, {"x": None}]}), ("no action with id",)),
+    ManagerRow("status with an odd id", "status", mp(type="action_status", action_id=[1, {"x": None}]),
+               ("malformed message", "$.action_id")),
+    ManagerRow("status of an unknown id", "status", mp(type="action_status", action_id="nope"), ("no action with id 'nope'",)),
+    ManagerRow("status in the old untyped form", "status", mp(type="request", args={"action_id": "nope"}),
+               ("malformed message", "'request'")),
     ManagerRow("non-UTF-8 action name", "act", bad_utf8(type="act", name=_MARK), ("malformed message",), UNICODE_BUG),
 ]
 
@@ -377,7 +383,7 @@ def test_manager_refuses_hostile_request(row: ManagerRow, robot: Embodiment, att
 
 
 def _status(transport: MemoryTransport, mesh: str, action_id: str) -> str:
-    outcome = ask(transport, rq(mesh, "manager", "status"), encode(Request({"action_id": action_id})), timeout=2.0)
+    outcome = ask(transport, rq(mesh, "manager", "status"), encode(ActionStatus(action_id)), timeout=2.0)
     return str(outcome.value.get("status")) if isinstance(outcome.value, dict) else ""
 
 

@@ -13,8 +13,8 @@ import pytest
 from cmion_mesh.errors import ClosedError, MeshError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import Event, Outcome, Request
-from cmion_mesh.procs import wait_for
+from cmion_mesh.messages import Code, Event, Message, Outcome, decode
+from cmion_mesh.testing.wait import wait_for
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -36,29 +36,42 @@ def held(sim: Simulation) -> Iterator[None]:
         release.set()
 
 
-class Recorder(Component):
-    """Accepts the first request per ``slot`` arg in each batch, conflicts the rest."""
+class Claim(Message, frozen=True, tag="claim"):
+    slot: int
+    who: str = ""
 
-    requests = {"claim": Request, "silent": Request, "boom": Request}
+
+class Silent(Message, frozen=True, tag="silent"):
+    pass
+
+
+class Boom(Message, frozen=True, tag="boom"):
+    pass
+
+
+class Recorder(Component):
+    """Accepts the first claim per slot in each batch, conflicts the rest."""
+
+    requests = {"claim": Claim, "silent": Silent, "boom": Boom}
 
     def __init__(self, name: str = "arbiter") -> None:
         super().__init__(name)
         self.batches: list[list[str]] = []
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
-        self.batches.append([r.payload.args.get("who", "") for r in batch])
+        self.batches.append([r.payload.who for r in batch if isinstance(r.payload, Claim)])
         taken: set[Any] = set()
         for r in batch:
-            if r.name == "boom":
-                raise RuntimeError("handler bug")
-            if r.name == "silent":
-                continue
-            slot = r.payload.args.get("slot")
-            if slot in taken:
-                r.conflict(f"slot {slot} taken in this update")
-            else:
-                taken.add(slot)
-                r.accept({"slot": slot})
+            match r.payload:
+                case Boom():
+                    raise RuntimeError("handler bug")
+                case Silent():
+                    continue
+                case Claim(slot=slot) if slot in taken:
+                    r.conflict(f"slot {slot} taken in this update")
+                case Claim(slot=slot):
+                    taken.add(slot)
+                    r.accept({"slot": slot})
 
 
 @pytest.fixture
@@ -67,24 +80,36 @@ def sim(transport: MemoryTransport, mesh: str) -> Iterator[Simulation]:
         yield s
 
 
-def test_requests_in_one_update_are_mediated_together_and_all_answered(sim: Simulation, network: MemoryNetwork) -> None:
-    arbiter = sim.add(Recorder())
+@pytest.fixture
+def stepped(transport: MemoryTransport, mesh: str) -> Iterator[Simulation]:
+    """A simulation that is never started: the test runs each update with ``run_once``."""
+    s = Simulation(transport, mesh=mesh, embodiment="robot")
+    try:
+        yield s
+    finally:
+        s.close()
+
+
+def test_requests_in_one_update_are_mediated_together_and_all_answered(stepped: Simulation, network: MemoryNetwork) -> None:
+    arbiter = stepped.add(Recorder())
+    assert stepped.run_once() == 1, "the update that attaches the component"
     with MemoryTransport(network, "remote") as remote:
         results: dict[str, Outcome] = {}
 
         def ask(who: str, slot: int) -> None:
-            key = f"cmion/{sim.mesh}/robot/rq/arbiter/claim"
-            results[who] = send_request(remote, key, Request({"who": who, "slot": slot}))
+            key = f"cmion/{stepped.mesh}/robot/rq/arbiter/claim"
+            results[who] = send_request(remote, key, Claim(slot, who))
 
-        with held(sim):
-            threads = [threading.Thread(target=ask, args=(w, s)) for w, s in (("a", 1), ("b", 1), ("c", 2))]
-            for t in threads:
-                t.start()
-            # The three queries are in the inbox before the loop is released.
-            wait_for(lambda: sim._inbox.qsize() >= 3, 5, "three requests queued")
+        threads = [threading.Thread(target=ask, args=(w, s)) for w, s in (("a", 1), ("b", 1), ("c", 2))]
+        for t in threads:
+            t.start()
+        # The three queries wait in the inbox until the test runs the update.
+        wait_for(lambda: stepped.queued() >= 3, 5, "three requests queued")
+        assert stepped.run_once() == 3
         for t in threads:
             t.join(10)
-    assert sorted(arbiter.batches[-1]) == ["a", "b", "c"], "all three were handed over together"
+    assert arbiter.batches == [sorted(arbiter.batches[0])] and sorted(arbiter.batches[0]) == ["a", "b", "c"], \
+        "all three were handed over together"
     statuses = {w: o.status for w, o in results.items()}
     assert sorted(statuses.values()) == ["accepted", "accepted", "conflict"]
     loser = next(w for w, s in statuses.items() if s == "conflict")
@@ -94,24 +119,28 @@ def test_requests_in_one_update_are_mediated_together_and_all_answered(sim: Simu
 
 def test_unanswered_and_failing_requests_still_get_definite_answers(sim: Simulation) -> None:
     sim.add(Recorder())
-    silent = sim.request("arbiter", "silent", Request()).result(5)
-    assert silent.status == "rejected" and "gave no answer" in silent.reason
-    boom = sim.request("arbiter", "boom", Request()).result(5)
-    assert boom.status == "rejected"
-    unknown = sim.request("arbiter", "nope", Request()).result(5)
-    assert unknown.status == "rejected" and "'nope'" in unknown.reason
+    silent = sim.request("arbiter", "silent", Silent()).result(5)
+    assert silent.status == "rejected" and "gave no answer" in silent.reason and silent.code == Code.UNANSWERED
+    boom = sim.request("arbiter", "boom", Boom()).result(5)
+    assert boom.status == "rejected" and "RuntimeError: handler bug" in boom.reason and boom.code == Code.HANDLER_FAILED
+    unknown = sim.request("arbiter", "nope", Silent()).result(5)
+    assert unknown.status == "rejected" and "'nope'" in unknown.reason and unknown.code == Code.UNKNOWN_REQUEST
+    mistyped = sim.request("arbiter", "claim", Silent()).result(5)
+    assert mistyped.status == "rejected" and "takes 'claim', not 'silent'" in mistyped.reason and mistyped.code == Code.MALFORMED
 
 
 def test_remote_unknown_and_malformed_requests_are_rejected_with_reason(sim: Simulation, network: MemoryNetwork) -> None:
     sim.add(Recorder())
     with MemoryTransport(network, "remote") as remote:
-        from cmion_mesh.messages import decode
-
         (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/nope", b"")
         assert "has no request 'nope'" in decode(reply.payload, Outcome).reason
         (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/claim", b"\xc1garbage")
         outcome = decode(reply.payload, Outcome)
-        assert outcome.status == "rejected" and "malformed" in outcome.reason
+        assert outcome.status == "rejected" and "malformed" in outcome.reason and outcome.code == Code.MALFORMED
+        for untyped in (b"\x80", b"\x81\xa4slot\x01", b"\x81\xa4type\xa6silent"):  # {}, {slot: 1}, another request's type
+            (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/claim", untyped)
+            outcome = decode(reply.payload, Outcome)
+            assert outcome.status == "rejected" and outcome.code == Code.MALFORMED, untyped
 
 
 class Chain(Component):
@@ -135,16 +164,16 @@ class Chain(Component):
         self.log.append((self.sim.updates, "second", event.data))
 
 
-def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(sim: Simulation, network: MemoryNetwork) -> None:
+def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(stepped: Simulation, network: MemoryNetwork) -> None:
     log: list[tuple[int, str, int]] = []
-    chain = sim.add(Chain(log))
+    chain = stepped.add(Chain(log))
+    stepped.run_once()
     seen: list[int] = []
     with MemoryTransport(network, "observer") as observer:
-        from cmion_mesh.messages import decode
-
-        observer.subscribe(f"cmion/{sim.mesh}/robot/ev/chain/step", lambda s: seen.append(decode(s.payload, Event).data))
-        sim.call(lambda: chain.raise_event("step", 1))
-        wait_for(lambda: len(log) >= 10, 5, "chain of events dispatched")
+        observer.subscribe(f"cmion/{stepped.mesh}/robot/ev/chain/step", lambda s: seen.append(decode(s.payload, Event).data))
+        stepped.call(lambda: chain.raise_event("step", 1))
+        assert stepped.run_once() == 1
+        assert len(log) == 10, "the whole chain ran in that one update"
         wait_for(lambda: len(seen) >= 5, 5, "events published")
     updates = {u for u, _, _ in log}
     assert len(updates) == 1, f"all in one update: {log}"
@@ -155,6 +184,16 @@ def test_events_raised_in_handlers_are_dispatched_in_the_same_update_in_order(si
         ("first", 3), ("second", 3), ("first", 12), ("second", 12),
     ]
     assert seen == [1, 2, 11, 3, 12], "publication order is raise order"
+
+
+def test_a_stepped_simulation_runs_timers_when_due_and_never_waits_unasked(stepped: Simulation) -> None:
+    fired: list[str] = []
+    stepped.run_once()  # from now on this thread is the simulation's loop
+    stepped.call_later(0.05, lambda: fired.append("timer"))
+    assert stepped.run_once() == 0 and fired == [], "not due yet, and timeout 0 waits for nothing"
+    assert stepped.run_once(timeout=5) == 1 and fired == ["timer"], "waits for the timer, not for the timeout"
+    with pytest.raises(MeshError, match="stepped with run_once"):
+        stepped.start()
 
 
 def test_events_from_other_threads_and_processes_are_handled_one_at_a_time(sim: Simulation, network: MemoryNetwork, mesh: str) -> None:
@@ -169,8 +208,14 @@ def test_events_from_other_threads_and_processes_are_handled_one_at_a_time(sim: 
         got.append((event.embodiment, event.data))
         active.pop()
 
-    sim.call(lambda: sim.on_event(handler, embodiment="*", component="sensor"))
-    wait_for(lambda: sim._subscriptions, 5, "subscription")
+    subscribed = threading.Event()
+
+    def subscribe() -> None:
+        sim.on_event(handler, embodiment="*", component="sensor")
+        subscribed.set()
+
+    sim.call(subscribe)
+    assert subscribed.wait(5), "subscription"
     with MemoryTransport(network, "phone") as phone, Simulation(phone, mesh=mesh, embodiment="phone") as other:
         threads = [threading.Thread(target=lambda i=i: sim.raise_event("sensor", "tick", i)) for i in range(20)]
         for t in threads:
@@ -188,7 +233,7 @@ def test_idle_loop_blocks_without_polling(sim: Simulation) -> None:
     sim.add(Recorder())
     wait_for(lambda: sim.updates >= 1, 5, "first update")
     before = sim.updates
-    tid = sim._thread.native_id if sim._thread else 0
+    tid = next(t.native_id for t in threading.enumerate() if t.name == "ion-robot")
     stat = f"/proc/self/task/{tid}/stat"
 
     def cpu_ticks() -> int:
@@ -209,7 +254,7 @@ def test_close_answers_pending_requests_and_is_idempotent(transport: MemoryTrans
     sim.add(Recorder())
     release = threading.Event()
     sim.call(lambda: release.wait(5))
-    pending = [sim.request("arbiter", "claim", Request({"slot": i})) for i in range(3)]
+    pending = [sim.request("arbiter", "claim", Claim(i)) for i in range(3)]
     closer = threading.Thread(target=sim.close)
     closer.start()
     release.set()
@@ -217,7 +262,7 @@ def test_close_answers_pending_requests_and_is_idempotent(transport: MemoryTrans
     outcomes = [f.result(5) for f in pending]
     assert all(o.status in ("accepted", "rejected") for o in outcomes)
     sim.close()
-    assert sim.request("arbiter", "claim").result(1).status == "rejected"
+    assert sim.request("arbiter", "claim", Claim(0)).result(1).status == "rejected"
     with pytest.raises(ClosedError):
         sim.call(lambda: None)
 

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import netns
-from cmion_mesh.netns import Lan
-from cmion_mesh.procs import cli_argv, wait_for
+from cmion_mesh.procs import cli_argv
+from cmion_mesh.testing import netns
+from cmion_mesh.testing.netns import Lan
+from cmion_mesh.testing.wait import wait_for
 
 from .test_router import assert_gone, run_probe
 

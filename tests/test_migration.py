@@ -15,9 +15,9 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome, Request, SetPolicy
-from cmion_mesh.procs import wait_for
+from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
 from cmion_mesh.records import Records
+from cmion_mesh.testing.wait import wait_for
 
 from .custody_helpers import Holder
 from .remote_helpers import Diary
@@ -206,8 +206,8 @@ def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str
         with pytest.raises(RequestRejected, match="does not accept embodiment 'screen'"):
             client.migrate("spirit", "screen", timeout=20)
         assert robot.inhabitant == "spirit"
-        bad = client.request("robot", "migration", "policy", Request({"accepts": "screen"}))
-        assert bad.status == "rejected" and "Invalid value 'request'" in bad.reason
+        bad = client.request("robot", "migration", "policy", MindMessage({"accepts": "screen"}))
+        assert bad.status == "rejected" and "Invalid value 'mind_message'" in bad.reason
         empty = client.request("robot", "migration", "policy", SetPolicy(["a/b"]))
         assert empty.status == "rejected" and "'a/b'" in empty.reason
         client.set_policy("spirit", None)
@@ -218,7 +218,7 @@ def test_admission_policy_and_companion_policy(network: MemoryNetwork, mesh: str
 
 
 def _note(text: str) -> Any:
-    return Request({"note": text})
+    return MindMessage({"note": text})
 
 
 def test_several_companions_and_an_emptied_body_taken_by_another(network: MemoryNetwork, mesh: str, tmp_path: Path,

@@ -18,8 +18,9 @@ import pytest
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.messages import Migrate, Request
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.messages import Migrate, MindMessage, MindState
+from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -91,7 +92,7 @@ def inhabitants(client: MeshClient) -> dict[str, Any]:
 
 
 def memory(client: MeshClient, embodiment: str) -> list[str]:
-    state = client.request(embodiment, "mind", "state", timeout=5).value
+    state = client.request(embodiment, "mind", "state", MindState(), timeout=5).value
     assert isinstance(state, dict)
     return list(state["entries"])
 
@@ -148,7 +149,7 @@ def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at
         wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
         notes = ["met Ada", f"crash at {crash_at}"]
         for note in notes:
-            assert client.request("robot", "mind", "message", Request({"note": note})).status == "accepted"
+            assert client.request("robot", "mind", "message", MindMessage({"note": note})).status == "accepted"
         watcher = Watcher(client)
         try:
             started = client.request("robot", "migration", "migrate", Migrate("spirit", "screen"))
@@ -169,7 +170,7 @@ def test_both_killed_at_once_then_restarted(nodes: tuple[Node, Node], mesh: str)
     with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
         client = MeshClient(t, mesh)
         wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
-        client.request("robot", "mind", "message", Request({"note": "before the storm"}))
+        client.request("robot", "mind", "message", MindMessage({"note": "before the storm"}))
         assert client.request("robot", "migration", "migrate", Migrate("spirit", "screen")).status == "accepted"
         assert robot.died() == -9
         assert screen.daemon is not None

@@ -1,7 +1,7 @@
 """Migration across a real network: links fail in the middle of the handshake, then heal.
 
 Every embodiment is a daemon (``cmion-mesh up``) in a host of its own: a network namespace
-attached to one LAN (``cmion_mesh.netns.Lan``); each keeps its durable records in a state folder
+attached to one LAN (``cmion_mesh.testing.netns.Lan``); each keeps its durable records in a state folder
 the test reads directly (the namespaces share the file system). The test process lives in the
 caller's namespace and cannot join the mesh, so mesh clients are probes (``tests/mesh_probe.py``)
 run inside the hosts, commanded through a FIFO and reporting JSON lines. In the fault test the
@@ -70,10 +70,11 @@ from typing import Any, NamedTuple
 
 import pytest
 
-from cmion_mesh import netns
 from cmion_mesh.messages import Outcome, encode
-from cmion_mesh.netns import Host, Lan
-from cmion_mesh.procs import Daemon, cli_argv, wait_for
+from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.testing import netns
+from cmion_mesh.testing.netns import Host, Lan
+from cmion_mesh.testing.wait import wait_for
 
 from .remote_helpers import diary_embodiment_config
 

@@ -18,19 +18,11 @@ from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import AddContainer, Event, Request, SetProperty
-from cmion_mesh.planner import (
-    Goal,
-    Limits,
-    PlannerMind,
-    find_plan,
-    goals_from_data,
-    load_operators,
-    load_spec,
-    operators_from_data,
-    spec_from_data,
-)
-from cmion_mesh.procs import wait_for
+from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
+from cmion_mesh.planner import PlannerMind
+from cmion_mesh.planner_search import find_plan
+from cmion_mesh.planner_spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
+from cmion_mesh.testing.wait import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -142,9 +134,9 @@ def test_spec_file_loads(tmp_path: Path) -> None:
 
 
 def test_the_documented_spec_example_loads() -> None:
-    import cmion_mesh.planner
+    import cmion_mesh.planner_spec
 
-    doc = cmion_mesh.planner.__doc__ or ""
+    doc = cmion_mesh.planner_spec.__doc__ or ""
     start = doc.index("    {\n")
     spec = spec_from_data(msgspec.json.decode(doc[start:doc.index("\n    }\n", start) + 6]))
     assert [o.name for o in spec.operators] == ["walk", "greet"] and spec.limits == Limits()
@@ -225,7 +217,7 @@ def body(tmp_path: Path, transport: MemoryTransport, mesh: str, mind: PlannerMin
 
 
 def mind_state(client: MeshClient) -> dict[str, Any]:
-    outcome = client.request("robot", "mind", "state")
+    outcome = client.request("robot", "mind", "state", MindState())
     assert outcome.status == "accepted", outcome
     value: dict[str, Any] = outcome.value
     return value
@@ -326,7 +318,7 @@ def test_message_adds_a_goal(tmp_path: Path, transport: MemoryTransport, client:
     mind = PlannerMind(operators=[WALK, GREET])
     with body(tmp_path, transport, mesh, mind, Script()):
         goal = {"name": "visit", "facts": [["Robot", "at", "kitchen"]]}
-        assert client.request("robot", "mind", "message", Request({"goal": goal})).status == "accepted"
+        assert client.request("robot", "mind", "message", MindMessage({"goal": goal})).status == "accepted"
         state = wait_state(client, achieved("visit"), "goal from a message achieved")
     assert kinds(state) == ["message", "goal_added", "action_succeeded", "goal_achieved"]
 
@@ -344,7 +336,7 @@ def test_sleep_stops_acting_and_wake_resumes(tmp_path: Path, transport: MemoryTr
         state = wait_state(client, lambda s: "action_succeeded" in kinds(s), "first step done")
         assert state["in_flight"] is None and [s["action"] for s in state["plan"]["steps"]] == ["Greet"]
         assert script.calls == ["GoTo kitchen"]
-        assert client.request("robot", "mind", "wake").value == {"awake": True}
+        assert client.request("robot", "mind", "wake", Wake()).value == {"awake": True}
         state = wait_state(client, achieved("greet guest"), "goal achieved after waking")
     assert script.calls == ["GoTo kitchen", "Greet Guest"]
 
@@ -459,7 +451,7 @@ def test_replace_beliefs_keeps_persistent_knowledge() -> None:
 def test_goals_from_data_and_priorities() -> None:
     goals = goals_from_data([{"name": "low", "facts": [["A", "b", 1]]}, {"name": "high", "facts": [["A", "c", 1]], "priority": 3}])
     mind = PlannerMind(goals=goals)
-    top = mind._top_goal()
+    top = mind.top_goal()
     assert top is not None and top.name == "high"
     with pytest.raises(ConfigError, match="has no facts"):
         goals_from_data([{"name": "empty", "facts": []}])

@@ -12,7 +12,8 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import Event
-from cmion_mesh.procs import Daemon, cli_argv, wait_for
+from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -79,7 +80,10 @@ def test_remote_competency_runs_reports_progress_cancels_and_vanishes(robot: str
         assert client.cancel("robot", "long").status == "accepted"
         worker.join(30)
         assert result and result[0].status == "cancelled"
-        assert any(e.component == "Arm" and e.name == "RunCancelled" for e in events), "the remote side confirmed"
+        # The daemon ends the action only after the remote side confirmed the cancel, but the two
+        # publish from different processes: nothing orders their arrival here.
+        wait_for(lambda: any(e.component == "Arm" and e.name == "RunCancelled" for e in events), 10,
+                 "the remote side's confirmation of the cancel")
 
         # the process dies mid-run: the action fails, naming the vanished competency
         result.clear()

@@ -17,9 +17,9 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import netns
-from cmion_mesh.netns import Host, RoutedSubnets
 from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.testing import netns
+from cmion_mesh.testing.netns import Host, RoutedSubnets
 
 from .conftest import CMION_2011
 

@@ -25,7 +25,8 @@ from cmion_mesh import certs, cli, keys, security
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, StorageError
 from cmion_mesh.messages import SetProperty
-from cmion_mesh.procs import Daemon, cli_argv, free_port, wait_for
+from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -519,8 +520,8 @@ print(json.dumps({"seen": seen, "peers": peers}))
 def test_secure_daemons_find_each_other_by_multicast(pki: Pki, mesh: str, tmp_path: Path) -> None:
     """No address given anywhere: scouting finds the daemons' TLS locators (LAN addresses, which no
     certificate names), they link over mTLS; a plain peer on the same LAN finds nothing to join."""
-    from cmion_mesh import netns
-    from cmion_mesh.netns import Lan
+    from cmion_mesh.testing import netns
+    from cmion_mesh.testing.netns import Lan
 
     from .test_router import assert_gone
 
@@ -582,6 +583,6 @@ def test_migration_over_mutual_tls(pki: Pki, tmp_path: Path, mesh: str) -> None:
                 return {d["name"]: d.get("inhabitant") for d in client.describe_all(timeout=1.0)}
 
             wait_for(lambda: homes() == {"robot": "spirit", "screen": None}, 30, "both secure daemons, spirit on the robot")
-            result = client.migrate("spirit", "screen", timeout=30)
+            result = migrate_once_seen(client, "spirit", "screen")  # the admin's links say nothing of the robot's
             assert result["target"] == "screen" and result["epoch"] == 2
             wait_for(lambda: homes() == {"robot": None, "screen": "spirit"}, 20, "spirit moved over mutual TLS")

@@ -13,7 +13,7 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected, StorageError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Container, Event, Property, RemoveContainer, RemoveProperty, SetProperty
-from cmion_mesh.procs import wait_for
+from cmion_mesh.testing.wait import wait_for
 
 from .conftest import CMION_2011
 from .test_ion import held
@@ -66,7 +66,7 @@ def test_first_write_in_an_update_wins_and_every_writer_learns(robot: Embodiment
         threads = [threading.Thread(target=write, args=(v,)) for v in ("happy", "sad", "calm")]
         for t in threads:
             t.start()
-        wait_for(lambda: robot.sim._inbox.qsize() >= 3, 5, "writes queued")
+        wait_for(lambda: robot.sim.queued() >= 3, 5, "writes queued")
     for t in threads:
         t.join(10)
     winners = [v for v, s in results if s == "accepted"]

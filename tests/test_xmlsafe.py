@@ -430,8 +430,8 @@ def test_schema_path_prefers_the_packaged_copy(tmp_path: Path, monkeypatch: pyte
     packaged = tmp_path / "cmion_mesh" / "schemas"
     packaged.mkdir(parents=True)
     shutil.copy(xmlsafe.schema_path("WorldModel.xsd"), packaged / "WorldModel.xsd")
-    repo = xmlsafe._SCHEMA_DIRS[-1]
-    monkeypatch.setattr(xmlsafe, "_SCHEMA_DIRS", (packaged, repo))
+    repo = xmlsafe.SCHEMA_DIRS[-1]
+    monkeypatch.setattr(xmlsafe, "SCHEMA_DIRS", (packaged, repo))
     assert xmlsafe.schema_path("WorldModel.xsd") == packaged / "WorldModel.xsd"
     assert xmlsafe.schema_path("CompetencyLibrary.xsd") == repo / "CompetencyLibrary.xsd"
 

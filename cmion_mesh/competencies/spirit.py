@@ -50,7 +50,7 @@ from typing import Any, ClassVar
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError, RequestRejected
-from cmion_mesh.messages import AddContainer, Event, RemoveProperty, SetProperty
+from cmion_mesh.messages import AddContainer, Code, Event, RemoveProperty, SetProperty
 from cmion_mesh.storage import Store
 
 __all__ = [
@@ -144,8 +144,8 @@ def _ensure_container(ctx: RunContext, store: str, path: str, kind: str) -> None
         try:
             ctx.write(store, AddContainer(parent, chunk, kind))
         except RequestRejected as exc:
-            # "already exists": created before; conflict: another writer added it in this update.
-            if exc.status != "conflict" and "already exists" not in exc.reason:
+            # Created before, or by another writer in this same update (a conflict): both fine.
+            if exc.code not in (Code.EXISTS, Code.CONFLICT):
                 raise
         parent = f"{parent}/{chunk}" if parent else chunk
 
@@ -156,7 +156,7 @@ def _set(ctx: RunContext, store: str, container: str, name: str, value: Any, *, 
     try:
         ctx.write(store, write)
     except RequestRejected as exc:
-        if not container or "no container" not in exc.reason:
+        if not container or exc.code != Code.NOT_FOUND:  # a set refers to nothing but its container
             raise
         _ensure_container(ctx, store, container, kind)
         ctx.write(store, write)
@@ -167,7 +167,7 @@ def _remove(ctx: RunContext, store: str, container: str, name: str) -> None:
     try:
         ctx.write(store, RemoveProperty(container, name))
     except RequestRejected as exc:
-        if "no such property" not in exc.reason and "no container" not in exc.reason:
+        if exc.code != Code.NOT_FOUND:
             raise
 
 
