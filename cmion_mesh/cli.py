@@ -276,8 +276,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         name = args.name
     ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
                                              check_types=arch is None or library is not None)
-    if arch is not None and not found.errors:
-        components = arch.build_components(found)
+    if arch is not None:  # built only when all else is right; otherwise only checked, so that every problem is listed
+        components = arch.build_components(found, construct_them=not found.errors)
     for item in found:
         print(render(item), file=sys.stderr, flush=True)
     if found.errors:

@@ -1,14 +1,14 @@
 """Problems found in configuration files, collected rather than raised one at a time.
 
 ``validate`` and ``up`` check many files and want every problem in one run: loaders take a
-``Diagnostics`` and report to it (an error, a warning or an information, each with file and
+``Diagnostics`` and report to it (an error, a warning or a note, each with file and
 line). A loader called without one gets ``Diagnostics.raising()``: the first error raises its
 ``ConfigError`` as before, and warnings go to the log.
 
 * **error**: the file cannot be used as written (``up`` refuses to start);
 * **warning**: it loads, but something does not work as in CMION (a stand-in for a Java class
   with no cmion-mesh equivalent); ``validate --strict`` counts warnings as errors;
-* **info**: worth knowing, nothing to fix (a CMION GUI add-on replaced by a command).
+* **info** (printed as ``note``): worth knowing, nothing to fix (a CMION GUI add-on replaced by a command).
 """
 
 from __future__ import annotations

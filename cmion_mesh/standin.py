@@ -133,7 +133,7 @@ class Resolved:
 def resolve(class_name: str, parameters: Sequence[str], *, path: str | os.PathLike[str], line: int | None,
             diagnostics: Diagnostics) -> Resolved | None:
     """What the class ``class_name`` named at ``path:line`` becomes; None (reported) when nothing is
-    built: an abstract base (error), a GUI add-on whose job a command does (information), a file
+    built: an abstract base (error), a GUI add-on whose job a command does (note), a file
     parameter naming no file (error)."""
     name = os.fspath(path)
     if not portmap.is_java_name(class_name):

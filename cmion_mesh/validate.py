@@ -6,7 +6,7 @@ root element, ``KINDS``; every schema violation is reported), then for meaning: 
 names through the port map), world models (unique names, typed values), architecture
 configurations (the referenced files, the component classes, and that every competency type the
 rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
-a time: errors, warnings (stand-ins for Java classes with no equivalent) and informations, each
+a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
 naming file and line.
 
 An architecture configuration is checked with the files it references: when those files are
