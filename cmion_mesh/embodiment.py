@@ -142,15 +142,15 @@ class Embodiment:
         cls, path: str | os.PathLike[str], *, mesh: str = keys.DEFAULT_MESH, name: str | None = None,
         transport: Transport | None = None, transport_config: TransportConfig | None = None,
         state_dir: str | os.PathLike[str] | None = None, companion: str | None = None,
-        admit: dict[str, bytes | None] | None = None,
+        admit: dict[str, bytes | None] | None = None, remote_types: Iterable[str] = (),
     ) -> Embodiment:
         """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``):
-        the checks of ``up`` (``validate.check_embodiment``), the first error raising; stand-ins
-        for Java classes with no equivalent are logged."""
+        the checks of ``up`` (``validate.check_embodiment``; ``remote_types`` as ``--remote-type``),
+        the first error raising; stand-ins for Java classes with no equivalent are logged."""
         from cmion_mesh.validate import check_embodiment
 
         arch = load_architecture(path, name=name)
-        ruleset, competencies = check_embodiment(arch.rules, arch.library, arch.world_model)
+        ruleset, competencies = check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=remote_types)
         return cls(
             arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
             world_model_init=arch.world_model, rules=ruleset, competencies=competencies, components=arch.build_components(),

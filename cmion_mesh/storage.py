@@ -450,6 +450,7 @@ def load_world_model_init(path: str | os.PathLike[str], problems: list[ConfigErr
     """Parse a CMION world-model init file (validated by ``schemas/WorldModel.xsd``).
 
     Values are strings, as in CMION, unless a property says ``Type="int|float|bool|json"``.
+    Names and values are trimmed of surrounding white space, as CMION's loader trimmed them.
     With ``problems``, an entity at fault is left out and its error appended there (``validate``
     reports every one in a run).
     """
@@ -471,7 +472,7 @@ def load_world_model_init(path: str | os.PathLike[str], problems: list[ConfigErr
 
 
 def _init_entity(element: Any, path: str, seen: dict[str, int]) -> InitEntity:
-    name = element.get("Name", "")
+    name = element.get("Name", "").strip()
     line = xmlsafe.sourceline(element)
     try:
         keys.check_name(name, "entity name")
@@ -485,12 +486,12 @@ def _init_entity(element: Any, path: str, seen: dict[str, int]) -> InitEntity:
     for p in element:
         if not isinstance(p.tag, str):
             continue
-        pname = p.get("Name", "")
+        pname = p.get("Name", "").strip()
         try:
             keys.check_name(pname, "property name")
             if pname in names:
                 raise ValueError(f"property {pname!r} of {name!r} defined twice")
-            value = _typed(p.get("Value", ""), p.get("Type", "string"), f"property {pname!r}")
+            value = _typed(p.get("Value", "").strip(), p.get("Type", "string"), f"property {pname!r}")
         except ValueError as exc:
             raise ConfigError(str(exc), path=path, line=xmlsafe.sourceline(p)) from None
         names.add(pname)

@@ -35,6 +35,7 @@ from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.rules import load_rules
 from cmion_mesh.standin import StandInCompetency, StandInComponent
+from cmion_mesh.storage import load_world_model_init
 from cmion_mesh.validate import KINDS, check_embodiment, validate_paths
 
 from .conftest import DATA
@@ -338,6 +339,13 @@ def test_a_file_parameter_naming_no_file_is_an_error(tmp_path: Path) -> None:
                                     'ConstructorParameters="migrationconfig_elsewhere"/>\n</CompetencyLibrary>')
     with pytest.raises(ConfigError, match=r"l\.xml:2: .*AndroidMigration: parameter 1 'migrationconfig_elsewhere' names no file"):
         load_library(tmp_path / "l.xml")
+
+
+def test_world_model_names_and_values_are_trimmed_as_cmion_trimmed_them(tmp_path: Path) -> None:
+    (tmp_path / "wm.xml").write_text('<WorldModel>\n<Agent Name=" Visitor ">\n<Property Name=" present " Value=" yes "/>\n'
+                                     "</Agent>\n</WorldModel>")
+    [entity] = load_world_model_init(tmp_path / "wm.xml")
+    assert (entity.name, entity.properties[0].name, entity.properties[0].value) == ("Visitor", "present", "yes")
 
 
 def test_parameters_split_as_cmion_split_them() -> None:
