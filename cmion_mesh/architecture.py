@@ -13,8 +13,14 @@ File names are relative to the configuration file. ``ArchitectureComponent`` ent
 components (``package.module:Class``, subclasses of ``cmion_mesh.ion.Component``) built with
 comma-separated string parameters: minds, monitors, extra stores. A parameter starting with
 ``./`` or ``../`` is a path relative to the configuration file. ``Embodiment`` (an extension)
-names the embodiment; without it the configuration's folder name is used. ``Companion`` (an
-extension) names a companion born here on the first start, if this embodiment holds no companion.
+names the embodiment; without it the configuration's folder name is used, which must then be a
+valid embodiment name (else an error asks for ``Embodiment``). ``Companion`` (an extension) names
+a companion born here on the first start, if this embodiment holds no companion.
+
+CMION's own files load unchanged: Java class names go through the port map (``portmap``; a class
+with no equivalent is an inert stand-in component, ``standin``), components and ``AdmitCompanion``
+may come in any order, and a referenced file name without a suffix that is not found as given is
+looked up as ``NAME.xml`` (CMION for Android named raw resources so).
 """
 
 from __future__ import annotations
@@ -24,9 +30,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cmion_mesh import keys, signing, xmlsafe
-from cmion_mesh.classes import construct, split_parameters
+from cmion_mesh.classes import construct, find_file, import_class, split_parameters
+from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.ion import Component
+from cmion_mesh.portmap import DOC
+from cmion_mesh.standin import StandInComponent, resolve, unique, why_standin
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,26 +49,74 @@ class ComponentSpec:
 class Architecture:
     path: Path
     embodiment: str
-    rules: Path
-    library: Path
+    rules: Path | None
+    library: Path | None
     world_model: Path | None
     components: tuple[ComponentSpec, ...]
     line: int | None = None
     companion: str | None = None
     admit: dict[str, bytes | None] | None = None
 
-    def build_components(self) -> list[Component]:
-        built = []
+    def build_components(self, diagnostics: Diagnostics | None = None, *, construct_them: bool = True) -> list[Component]:
+        """The components, built in file order: ported or Python classes, inert stand-ins for Java
+        classes with no equivalent (each warned about). With ``diagnostics`` every problem is
+        reported there and the faulty components left out; without, the first error raises.
+        ``construct_them=False`` (``validate``) imports the classes but builds only the stand-ins."""
+        diag = Diagnostics.raising() if diagnostics is None else diagnostics
+        where = str(self.path)
+        built: list[Component] = []
+        names: set[str] = set()
         for spec in self.components:
             parameters = [str((self.path.parent / p).resolve()) if p.startswith(("./", "../")) else p for p in spec.parameters]
-            built.append(construct(spec.class_name, Component, parameters, path=str(self.path), line=spec.line))
+            resolved = resolve(spec.class_name, parameters, path=where, line=spec.line, diagnostics=diag)
+            if resolved is None:
+                continue
+            if resolved.target is None:
+                try:
+                    standin = StandInComponent(spec.class_name, resolved.port, name=unique(spec.class_name.rpartition(".")[2], names),
+                                               parameters=resolved.parameters, where=f"{where}:{spec.line}")
+                except MeshError as exc:
+                    diag.error(f"{spec.class_name}: {exc}", where, spec.line)
+                    continue
+                diag.warning(f"{why_standin(spec.class_name, resolved.port)}: loaded as an inert stand-in component "
+                             f"{standin.name!r}, reported unavailable; see {DOC}", where, spec.line)
+                built.append(standin)
+                continue
+            try:
+                if construct_them:
+                    component = construct(resolved.target, Component, resolved.parameters, path=where, line=spec.line)
+                    names.add(component.name)
+                    built.append(component)
+                else:
+                    import_class(resolved.target, Component, path=where, line=spec.line)
+            except ConfigError as exc:
+                diag.problem(_ported(exc, resolved.class_name, resolved.target))
         return built
 
 
-def load_architecture(path: str | os.PathLike[str]) -> Architecture:
-    """Read and check a configuration: schema, embodiment name, referenced files exist."""
+def _ported(exc: ConfigError, class_name: str, target: str) -> ConfigError:
+    """Name the configured Java class too when its cmion-mesh equivalent failed."""
+    if class_name == target:
+        return exc
+    return ConfigError(f"{class_name} (ported as {target}): {exc.detail}", path=exc.path, line=exc.line)
+
+
+def load_architecture(path: str | os.PathLike[str], *, name: str | None = None) -> Architecture:
+    """Read and check a configuration: schema, embodiment name, referenced files exist; the first
+    problem raises its ``ConfigError``. ``name`` replaces the configuration's embodiment name."""
+    arch = read_architecture(path, Diagnostics.raising(), name=name)
+    assert arch is not None  # a raising collector raised instead
+    return arch
+
+
+def read_architecture(path: str | os.PathLike[str], diagnostics: Diagnostics, *, name: str | None = None) -> Architecture | None:
+    """``load_architecture`` reporting every problem to ``diagnostics``; None when the file itself
+    is unusable (unreadable, not matching the schema)."""
     config = Path(path).resolve()
-    tree = xmlsafe.load(config, "ArchitectureConfiguration.xsd")
+    where = str(config)
+    tree = load_xml(config, "ArchitectureConfiguration.xsd", diagnostics)
+    if tree is None:
+        return None
     root = tree.getroot()
     line = xmlsafe.sourceline(root)
 
@@ -67,25 +124,32 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
         value = root.get(attribute)
         if value is None or value.strip() == "":
             if required:
-                raise ConfigError(f"{attribute} is required", path=str(config), line=line)
+                diagnostics.error(f"{attribute} is required", where, line)
             return None
-        try:
-            target = (config.parent / value).resolve()
-            found = target.is_file()
-        except OSError as exc:
-            raise ConfigError(f"{attribute} {value[:80]!r}: {exc.strerror or exc}", path=str(config), line=line) from None
-        if not found:
-            raise ConfigError(f"{attribute} {value!r} not found (looked at {target})", path=str(config), line=line)
-        return target
+        found = find_file(config.parent, value)
+        if found is None:
+            shown = value if len(value) <= 80 else value[:80] + "..."
+            looked = config.parent / value[:200]
+            also = "" if Path(value).suffix else f" and {looked}.xml"
+            diagnostics.error(f"{attribute} {shown!r} not found (looked at {looked}{also})", where, line)
+        return found
 
     rules = referenced("CompetencyManagerRulesFile", True)
     library = referenced("CompetencyLibraryConfigurationFile", True)
-    assert rules is not None and library is not None
-    name = root.get("Embodiment") or config.parent.name
+    world_model = referenced("WorldModelInitFile", False)
+    name = name or root.get("Embodiment")
     try:
-        keys.check_name(name, "embodiment")
+        if name:
+            keys.check_name(name, "embodiment")
+        else:
+            name = config.parent.name
+            try:
+                keys.check_name(name, "embodiment")
+            except InvalidName as exc:
+                raise InvalidName(f"no Embodiment attribute, and the folder name cannot be the embodiment's name ({exc}): "
+                                  "add Embodiment=\"NAME\" or start it with --name") from None
     except InvalidName as exc:
-        raise ConfigError(str(exc), path=str(config), line=line) from None
+        diagnostics.error(str(exc), where, line)
     components = tuple(
         ComponentSpec(el.get("ClassName", ""), split_parameters(el.get("ConstructorParameters")), xmlsafe.sourceline(el))
         for el in root if el.tag == "ArchitectureComponent"
@@ -95,7 +159,7 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
         try:
             keys.check_name(companion, "companion")
         except InvalidName as exc:
-            raise ConfigError(str(exc), path=str(config), line=line) from None
+            diagnostics.error(str(exc), where, line)
     admit: dict[str, bytes | None] | None = None
     for el in root:
         if el.tag == "AdmitCompanion":
@@ -104,5 +168,5 @@ def load_architecture(path: str | os.PathLike[str]) -> Architecture:
             try:
                 admit[el.get("Name", "")] = signing.decode_public(key) if key else None
             except MeshError as exc:
-                raise ConfigError(str(exc), path=str(config), line=xmlsafe.sourceline(el)) from None
-    return Architecture(config, name, rules, library, referenced("WorldModelInitFile", False), components, line, companion, admit)
+                diagnostics.error(str(exc), where, xmlsafe.sourceline(el))
+    return Architecture(config, name, rules, library, world_model, components, line, companion, admit)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 from cmion_mesh.errors import ConfigError, MeshError
@@ -53,7 +54,24 @@ def construct(spec: str, base: type[T], parameters: Sequence[str] = (), *, path:
 
 
 def split_parameters(raw: str | None) -> tuple[str, ...]:
-    """CMION's comma-separated constructor parameters; an absent or empty attribute means none."""
-    if raw is None or raw.strip() == "":
+    """CMION's comma-separated constructor parameters, split as CMION split them (a
+    ``StringTokenizer`` on ``,``): each trimmed, empty ones dropped; absent means none."""
+    if raw is None:
         return ()
-    return tuple(p.strip() for p in raw.split(","))
+    return tuple(p.strip() for p in raw.split(",") if p.strip())
+
+
+def find_file(folder: str | Path, value: str) -> Path | None:
+    """The file a configuration names, relative to ``folder``: ``value`` itself, else ``value.xml``
+    when ``value`` has no suffix (CMION for Android named raw resources without ``.xml``:
+    ``compmanagerrules`` is ``compmanagerrules.xml``); None when neither is a file."""
+    candidates = [Path(folder) / value]
+    if not Path(value).suffix:
+        candidates.append(Path(folder) / f"{value}.xml")
+    for candidate in candidates:
+        try:
+            if candidate.is_file():
+                return candidate.resolve()
+        except (OSError, ValueError):  # a name too long for the file system, a NUL
+            continue
+    return None

@@ -242,33 +242,46 @@ def _existing(path: str | None, option: str) -> str | None:
 
 def cmd_up(args: argparse.Namespace) -> int:
     from cmion_mesh import security
+    from cmion_mesh.diagnostics import Diagnostics
     from cmion_mesh.embodiment import Embodiment
     from cmion_mesh.ion import Component
     from cmion_mesh.statedir import default_state_dir
-    from cmion_mesh.validate import check_embodiment
+    from cmion_mesh.validate import check_embodiment, render
 
     stop = Stopper()
     rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
                                    _existing(args.world_model, "--world-model"))
     components: list[Component] = []
     companion, admitted = args.companion, admit(args)
+    # The checks of `validate`, every problem reported: refuse on errors, start with warnings.
+    found = Diagnostics()
+    arch = None
     if args.path:
-        from cmion_mesh.architecture import load_architecture
+        from cmion_mesh.architecture import read_architecture
 
-        arch = load_architecture(resolve_config(args.path))
-        name = args.name or arch.embodiment
+        arch = read_architecture(resolve_config(args.path), found, name=args.name)
+        if arch is None:
+            found.raise_if_errors()
+        assert arch is not None
+        name = arch.embodiment
         # Files given on the command line replace the configuration's own.
-        rules = rules or str(arch.rules)
-        library = library or str(arch.library)
+        rules = rules or (str(arch.rules) if arch.rules else None)
+        library = library or (str(arch.library) if arch.library else None)
         world_model = world_model or (str(arch.world_model) if arch.world_model else None)
-        components = arch.build_components()
         companion = companion or arch.companion
         admitted = arch.admit if admitted is None else {**(arch.admit or {}), **admitted}
     elif not args.name:
         raise ConfigError("give an architecture configuration (PATH) or at least --name")
     else:
         name = args.name
-    ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or ())
+    ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
+                                             check_types=arch is None or library is not None)
+    if arch is not None:  # built only when all else is right; otherwise only checked, so that every problem is listed
+        components = arch.build_components(found, construct_them=not found.errors)
+    for item in found:
+        print(render(item), file=sys.stderr, flush=True)
+    if found.errors:
+        return ExitCode.USAGE
     state = args.state_dir or str(default_state_dir(args.mesh, name))
     embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
                             rules=ruleset, competencies=competencies, components=components, state_dir=state,
@@ -281,6 +294,12 @@ def cmd_up(args: argparse.Namespace) -> int:
         if embodiment.companion_elsewhere:
             print(f"companion {companion!r} already lives on {embodiment.companion_elsewhere!r}: it is not born here",
                   file=sys.stderr, flush=True)
+        standins = embodiment.standins()
+        if standins:
+            print(f"stand-ins, reported unavailable (see docs/portmap.md): {len(standins)}", flush=True)
+            for s in standins:
+                typed = f"; types {', '.join(s['types'])}" if s.get("types") else ""
+                print(f"  {s['class']} ({s['kind']}{typed}) at {s['where']}", flush=True)
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
               f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
               flush=True)
@@ -513,29 +532,45 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from cmion_mesh.validate import expand, validate_file
+    from cmion_mesh.validate import FileReport, expand, render, validate_paths
 
-    results: list[dict[str, Any]] = []
+    reports: list[FileReport] = []
+    paths: list[str] = []
     for given in args.files:
         try:
-            paths = expand(given)
-        except MeshError as exc:
-            results.append({"path": given, "ok": False, "error": str(exc)})
-            continue
-        for path in paths:
-            try:
-                results.append({"path": path, "ok": True, "kind": validate_file(path, remote_types=args.remote_type or ())})
-            except MeshError as exc:
-                results.append({"path": path, "ok": False, "error": str(exc)})
+            paths += expand(given)
+        except ConfigError as exc:
+            failed = FileReport(given)
+            failed.diagnostics.problem(exc)
+            reports.append(failed)
+    reports += validate_paths(paths, remote_types=args.remote_type or ())
+    strict = bool(args.strict)
     if args.json:
-        print(json.dumps(results))
+        out = []
+        for r in reports:
+            entry: dict[str, Any] = {"path": r.path, "ok": r.ok(strict), "kind": r.kind,
+                                     "diagnostics": [d.as_dict() for d in r.diagnostics]}
+            if r.checked_with:
+                entry["checked_with"] = r.checked_with
+            failing = [str(d) for d in r.diagnostics if d.severity == "error" or (strict and d.severity == "warning")]
+            if failing:
+                entry["error"] = "\n".join(failing)
+            out.append(entry)
+        print(json.dumps(out))
     else:
-        for r in results:
-            if r["ok"]:
-                print(f"ok: {r['path']} ({r['kind']})")
-            else:
-                print(f"error: {r['error']}", file=sys.stderr)
-    return ExitCode.OK if all(r["ok"] for r in results) else ExitCode.FAILED
+        for r in reports:
+            if r.ok(strict):
+                counts = [f"{n} {word}{'s' if n > 1 else ''}" for word, n in
+                          (("warning", len(r.diagnostics.warnings)), ("note", len(r.diagnostics.of("info")))) if n]
+                print(f"ok: {r.path} ({r.kind}{', ' if counts else ''}{', '.join(counts)})")
+            for item in r.diagnostics:
+                print(render(item, strict=strict), file=sys.stderr)
+        totals = {s: sum(len(r.diagnostics.of(s)) for r in reports) for s in ("error", "warning", "info")}
+        if totals["error"] or totals["warning"]:
+            failed_files = sum(not r.ok(strict) for r in reports)
+            print(f"{len(reports)} files: {failed_files} failed; {totals['error']} errors, {totals['warning']} warnings"
+                  f"{' (errors with --strict)' if strict and totals['warning'] else ''}", file=sys.stderr)
+    return ExitCode.OK if all(r.ok(strict) for r in reports) else ExitCode.FAILED
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -792,8 +827,11 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.set_defaults(func=cmd_doctor)
 
-    p = sub.add_parser("validate", help="check CMION XML files against their schemas and semantics (what `up` checks too)")
+    p = sub.add_parser("validate", help="check CMION XML files against their schemas and semantics (what `up` checks too)",
+                       description="Check CMION XML files and list every problem of every file: errors (exit code 1), "
+                                   "warnings (stand-ins for CMION classes with no equivalent; exit code 0) and notes.")
     p.add_argument("files", nargs="+", metavar="PATH", help="a file, a folder (its *.xml files) or a shipped embodiment's name")
+    p.add_argument("--strict", action="store_true", help="warnings count as errors (exit code 1)")
     p.add_argument("--remote-type", action="append", metavar="TYPE",
                    help="a competency type served by another process (serve-competency): rules may use it; repeatable")
     _json(p)

@@ -32,6 +32,8 @@ from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import NameClaim, Presence
 from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.standin import StandIn
+from cmion_mesh.standin import summary as standin_summary
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport import Closeable, Transport, TransportConfig
@@ -140,13 +142,18 @@ class Embodiment:
         cls, path: str | os.PathLike[str], *, mesh: str = keys.DEFAULT_MESH, name: str | None = None,
         transport: Transport | None = None, transport_config: TransportConfig | None = None,
         state_dir: str | os.PathLike[str] | None = None, companion: str | None = None,
-        admit: dict[str, bytes | None] | None = None,
+        admit: dict[str, bytes | None] | None = None, remote_types: Iterable[str] = (),
     ) -> Embodiment:
-        """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``)."""
-        arch = load_architecture(path)
+        """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``):
+        the checks of ``up`` (``validate.check_embodiment``; ``remote_types`` as ``--remote-type``),
+        the first error raising; stand-ins for Java classes with no equivalent are logged."""
+        from cmion_mesh.validate import check_embodiment
+
+        arch = load_architecture(path, name=name)
+        ruleset, competencies = check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=remote_types)
         return cls(
-            name or arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
-            world_model_init=arch.world_model, rules=arch.rules, library=arch.library, components=arch.build_components(),
+            arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
+            world_model_init=arch.world_model, rules=ruleset, competencies=competencies, components=arch.build_components(),
             state_dir=state_dir, companion=companion or arch.companion,
             admit=arch.admit if admit is None else {**(arch.admit or {}), **admit},
         )
@@ -222,7 +229,8 @@ class Embodiment:
             "pid": os.getpid(),
             "duplicates": self._claim.duplicates() if self._claim is not None else [],
             "mesh": self.mesh,
-            "competency_types": sorted(self.execution.types()),
+            "competency_types": sorted({c.type for c in self.execution.competencies if not isinstance(c, StandIn)}),
+            "stand_ins": self.standins(),
             "competencies": [c.name for c in self.execution.competencies],
             "actions": self.rules.actions(),
             "minds": [m.name for m in self.minds],
@@ -234,6 +242,10 @@ class Embodiment:
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,
         }
+
+    def standins(self) -> list[dict[str, Any]]:
+        """What stands in for CMION classes with no cmion-mesh equivalent (reported unavailable)."""
+        return standin_summary([*self.sim.components, *self.execution.competencies])
 
     @property
     def inhabitant(self) -> str | None:

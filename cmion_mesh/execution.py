@@ -30,6 +30,7 @@ from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer
 from cmion_mesh.messages import ExecutionStatus, RunStatus
 from cmion_mesh.remote import RemoteCompetency
 from cmion_mesh.rules import MindAction, Plan, Step, substitute_step
+from cmion_mesh.standin import StandIn, unavailable_reason
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -192,8 +193,7 @@ class ExecutionSystem(Component):
                 if announce:
                     self.raise_event("StepWaiting", {"run_id": run.id, "step": step.id, "type": step.type})
                 return
-            why = "; ".join(step_run.reasons) or (
-                f"no competency of type {step.type!r}" if not of_type else f"no available competency of type {step.type!r}")
+            why = "; ".join(step_run.reasons) or _unavailable(step.type, of_type)
             step_run.status = "failed"
             self.raise_event("StepFailed", {"run_id": run.id, "step": step.id, "type": step.type, "reason": why})
             self._fail(run, f"step {step.id} ({step.type}) failed: {why}")
@@ -313,3 +313,17 @@ class ExecutionSystem(Component):
                 ],
             })
 
+
+
+def _unavailable(competency_type: str, of_type: list[Competency]) -> str:
+    """Why no competency can run a step of ``competency_type``, naming the CMION classes that only
+    stand-ins replace (``standin``)."""
+    if not of_type:
+        return f"no competency of type {competency_type!r}"
+    stand_ins = [c for c in of_type if isinstance(c, StandIn)]
+    reasons = unavailable_reason(stand_ins)
+    if len(stand_ins) == len(of_type):
+        return f"competency type {competency_type!r} is provided only by {reasons}"
+    if stand_ins:
+        return f"no available competency of type {competency_type!r} (the others: {reasons})"
+    return f"no available competency of type {competency_type!r}"

@@ -234,32 +234,46 @@ class RuleSet:
         Strict on purpose: a plan that can never run is a configuration mistake to report at
         start-up, even when an alternative plan could still serve the action.
         """
+        problems = self.type_problems(available)
+        if problems:
+            raise problems[0]
+
+    def type_problems(self, available: Collection[str]) -> list[ConfigError]:
+        """Every step (file order) whose type no competency in ``available`` provides, as errors at its line."""
         have = set(available)
+        return [
+            ConfigError(f"rule {rule.describe()!r}, plan {number}: step {s.id} needs competency type {s.type!r}, "
+                        "which no available competency provides", path=self.path, line=s.line)
+            for rule in self.rules for number, plan in enumerate(rule.plans, start=1) for s in plan.steps if s.type not in have
+        ]
+
+    def type_lines(self) -> dict[str, list[int]]:
+        """Each competency type some step uses, with the lines of those steps (file order)."""
+        lines: dict[str, list[int]] = {}
         for rule in self.rules:
-            for number, plan in enumerate(rule.plans, start=1):
+            for plan in rule.plans:
                 for s in plan.steps:
-                    if s.type not in have:
-                        raise ConfigError(
-                            f"rule {rule.describe()!r}, plan {number}: step {s.id} needs competency type {s.type!r}, "
-                            "which no available competency provides",
-                            path=self.path,
-                            line=s.line,
-                        )
+                    lines.setdefault(s.type, []).append(s.line)
+        return lines
 
 
 # --- loading --------------------------------------------------------------------------------------
 
 
-def load_rules(path: str | os.PathLike[str]) -> RuleSet:
-    """Read, schema-check and semantically check a competency manager rules file."""
+def load_rules(path: str | os.PathLike[str], problems: list[ConfigError] | None = None) -> RuleSet:
+    """Read, schema-check and semantically check a competency manager rules file.
+
+    With ``problems``, a rule at fault is left out and its error appended there, so that every
+    faulty rule is reported in one run (the schema was checked by the caller, ``validate``)."""
     name = os.fspath(path)
-    return _parse(xmlsafe.load(name, SCHEMA), name)
+    return _parse(xmlsafe.load(name, SCHEMA), name, problems)
 
 
-def parse_rules(tree: etree._ElementTree, path: str) -> RuleSet:
-    """Check an already parsed rules document (schema, then semantics); ``path`` names it in errors."""
+def parse_rules(tree: etree._ElementTree, path: str, problems: list[ConfigError] | None = None) -> RuleSet:
+    """Check an already parsed rules document (schema, then semantics); ``path`` names it in errors.
+    ``problems``: as for ``load_rules``."""
     xmlsafe.validate(tree, SCHEMA, path)
-    return _parse(tree, path)
+    return _parse(tree, path, problems)
 
 
 def _line(element: etree._Element) -> int:
@@ -286,12 +300,19 @@ def _describe(name: str, parameters: Iterable[str], subject: str | None) -> str:
     return text if subject is None else f"{text} (subject {shown(subject)})"
 
 
-def _parse(tree: etree._ElementTree, path: str) -> RuleSet:
+def _parse(tree: etree._ElementTree, path: str, problems: list[ConfigError] | None = None) -> RuleSet:
     root = tree.getroot()
     if root.tag != "CompetencyManagerRules":
         raise ConfigError(f"root element is <{root.tag}>, expected <CompetencyManagerRules>", path=path, line=_line(root))
-    rules = tuple(_parse_rule(index, element, path) for index, element in enumerate(_children(root, "Rule")))
-    return RuleSet(rules, path)
+    rules: list[Rule] = []
+    for element in _children(root, "Rule"):
+        try:
+            rules.append(_parse_rule(len(rules), element, path))
+        except ConfigError as exc:
+            if problems is None:
+                raise
+            problems.append(exc)
+    return RuleSet(tuple(rules), path)
 
 
 def _parse_rule(index: int, element: etree._Element, path: str) -> Rule:

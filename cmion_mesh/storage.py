@@ -446,10 +446,13 @@ def _typed(raw: str, kind: str, where: str) -> Any:
     raise ValueError(f"{where}: unknown Type {kind!r}")
 
 
-def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
+def load_world_model_init(path: str | os.PathLike[str], problems: list[ConfigError] | None = None) -> list[InitEntity]:
     """Parse a CMION world-model init file (validated by ``schemas/WorldModel.xsd``).
 
     Values are strings, as in CMION, unless a property says ``Type="int|float|bool|json"``.
+    Names and values are trimmed of surrounding white space, as CMION's loader trimmed them.
+    With ``problems``, an entity at fault is left out and its error appended there (``validate``
+    reports every one in a run).
     """
     tree = xmlsafe.load(path, "WorldModel.xsd")
     entities: list[InitEntity] = []
@@ -457,30 +460,41 @@ def load_world_model_init(path: str | os.PathLike[str]) -> list[InitEntity]:
     for element in tree.getroot():
         if not isinstance(element.tag, str):
             continue
-        name = element.get("Name", "")
-        line = xmlsafe.sourceline(element)
         try:
-            keys.check_name(name, "entity name")
-        except InvalidName as exc:
-            raise ConfigError(str(exc), path=str(path), line=line) from None
-        if name in seen:
-            raise ConfigError(f"entity {name!r} already defined at line {seen[name]}", path=str(path), line=line)
-        seen[name] = line or 0
-        props = []
-        names: set[str] = set()
-        for p in element:
-            if not isinstance(p.tag, str):
-                continue
-            pname = p.get("Name", "")
-            try:
-                keys.check_name(pname, "property name")
-                if pname in names:
-                    raise ValueError(f"property {pname!r} of {name!r} defined twice")
-                value = _typed(p.get("Value", ""), p.get("Type", "string"), f"property {pname!r}")
-            except ValueError as exc:
-                raise ConfigError(str(exc), path=str(path), line=xmlsafe.sourceline(p)) from None
-            names.add(pname)
-            persistent = p.get("Persistent", "false").strip().lower() in _TRUE
-            props.append(InitProperty(pname, value, persistent))
-        entities.append(InitEntity(name, element.tag.lower(), tuple(props)))
+            entity = _init_entity(element, str(path), seen)
+        except ConfigError as exc:
+            if problems is None:
+                raise
+            problems.append(exc)
+            continue
+        entities.append(entity)
     return entities
+
+
+def _init_entity(element: Any, path: str, seen: dict[str, int]) -> InitEntity:
+    name = element.get("Name", "").strip()
+    line = xmlsafe.sourceline(element)
+    try:
+        keys.check_name(name, "entity name")
+    except InvalidName as exc:
+        raise ConfigError(str(exc), path=path, line=line) from None
+    if name in seen:
+        raise ConfigError(f"entity {name!r} already defined at line {seen[name]}", path=path, line=line)
+    seen[name] = line or 0
+    props = []
+    names: set[str] = set()
+    for p in element:
+        if not isinstance(p.tag, str):
+            continue
+        pname = p.get("Name", "").strip()
+        try:
+            keys.check_name(pname, "property name")
+            if pname in names:
+                raise ValueError(f"property {pname!r} of {name!r} defined twice")
+            value = _typed(p.get("Value", "").strip(), p.get("Type", "string"), f"property {pname!r}")
+        except ValueError as exc:
+            raise ConfigError(str(exc), path=path, line=xmlsafe.sourceline(p)) from None
+        names.add(pname)
+        persistent = p.get("Persistent", "false").strip().lower() in _TRUE
+        props.append(InitProperty(pname, value, persistent))
+    return InitEntity(name, str(element.tag).lower(), tuple(props))

@@ -1,82 +1,269 @@
-"""``cmion-mesh validate``: schema and semantic checks for every CMION XML file kind.
+"""``cmion-mesh validate``: schema and semantic checks for every CMION XML file kind, every problem at once.
 
-Each file is read through ``xmlsafe`` (safe parsing, XSD validation by its root element), then
-checked for meaning: rules (dependency graphs, parameters), libraries (every class imports and
-is a competency), world models (unique names, typed values), architecture configurations (the
-referenced files, the component classes, and that every competency type the rules use is
-provided by the library). Errors name file and line.
+Each file is read through ``xmlsafe`` (safe parsing), checked against the XSD of its kind (its
+root element, ``KINDS``; every schema violation is reported), then for meaning: rules
+(dependency graphs, parameters), libraries (every class imports and is a competency, CMION Java
+names through the port map), world models (unique names, typed values), architecture
+configurations (the referenced files, the component classes, and that every competency type the
+rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
+a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
+naming file and line.
+
+An architecture configuration is checked with the files it references: when those files are
+validated in the same run they are not checked again alone, and its problems are reported under
+the file they are in.
+
+A new file kind is one ``KINDS`` entry: its root element -> ``Kind(schema, check)``, where
+``check(path, diagnostics, options)`` reports every problem of the (schema-valid) file.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmion_mesh import xmlsafe
-from cmion_mesh.architecture import load_architecture
-from cmion_mesh.classes import import_class
+from cmion_mesh.architecture import read_architecture
 from cmion_mesh.competency import Competency, load_library
-from cmion_mesh.errors import ConfigError
-from cmion_mesh.ion import Component
+from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
+from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.portmap import DOC
 from cmion_mesh.resources import data_dir
-from cmion_mesh.rules import RuleSet, load_rules
+from cmion_mesh.rules import SCHEMA as RULES_SCHEMA
+from cmion_mesh.rules import RuleSet, parse_rules
+from cmion_mesh.standin import StandInCompetency, why_standin
 from cmion_mesh.storage import load_world_model_init
 
 
-def _world_model(path: str, remote_types: Iterable[str] = ()) -> None:
-    load_world_model_init(path)
+@dataclass(frozen=True, slots=True)
+class Options:
+    #: Competency types served by other processes (``serve-competency``): provided, though not in the library.
+    remote_types: frozenset[str] = frozenset()
 
 
-def _rules(path: str, remote_types: Iterable[str] = ()) -> None:
-    load_rules(path)
+@dataclass(frozen=True, slots=True)
+class Kind:
+    schema: str
+    check: Callable[[str, Diagnostics, Options], None]
 
 
-def _library(path: str, remote_types: Iterable[str] = ()) -> None:
-    load_library(path)
+def _collected(diagnostics: Diagnostics, load: Callable[[list[ConfigError]], object]) -> object:
+    """Run a loader that appends per-item problems to a list; every problem reported."""
+    problems: list[ConfigError] = []
+    try:
+        result = load(problems)
+    except ConfigError as exc:
+        problems.append(exc)
+        result = None
+    for problem in problems:
+        diagnostics.problem(problem)
+    return result
+
+
+def _world_model(path: str, diagnostics: Diagnostics, options: Options) -> None:
+    _collected(diagnostics, lambda problems: load_world_model_init(path, problems))
+
+
+def _rules(path: str, diagnostics: Diagnostics, options: Options) -> None:
+    _load_rules(path, diagnostics)
+
+
+def _library(path: str, diagnostics: Diagnostics, options: Options) -> None:
+    _report_standins(load_library(path, diagnostics), None, diagnostics)
+
+
+def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None:
+    arch = read_architecture(path, diagnostics)
+    if arch is None:
+        return
+    check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=options.remote_types, diagnostics=diagnostics,
+                     check_types=arch.library is not None)
+    arch.build_components(diagnostics, construct_them=False)
+
+
+#: Root element -> the schema and the semantic check run after the schema passed.
+KINDS: dict[str, Kind] = {
+    "WorldModel": Kind("WorldModel.xsd", _world_model),
+    "CompetencyLibrary": Kind("CompetencyLibrary.xsd", _library),
+    "CompetencyManagerRules": Kind("CompetencyManagerRules.xsd", _rules),
+    "ArchitectureConfiguration": Kind("ArchitectureConfiguration.xsd", _architecture),
+}
+
+
+# --- one embodiment's files -------------------------------------------------------------------------------
+
+
+def _load_rules(path: str | os.PathLike[str], diagnostics: Diagnostics) -> RuleSet | None:
+    name = os.fspath(path)
+    tree = load_xml(name, RULES_SCHEMA, diagnostics)
+    if tree is None:
+        return None
+    ruleset = _collected(diagnostics, lambda problems: parse_rules(tree, name, problems))
+    return ruleset if isinstance(ruleset, RuleSet) else None
 
 
 def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.PathLike[str] | None,
                      world_model: str | os.PathLike[str] | None = None, *,
-                     remote_types: Iterable[str] = ()) -> tuple[RuleSet | None, list[Competency]]:
+                     remote_types: Iterable[str] = (), diagnostics: Diagnostics | None = None,
+                     check_types: bool = True) -> tuple[RuleSet | None, list[Competency]]:
     """The checks ``validate`` and ``up`` both make on an embodiment's files: each file loads, and
     every competency type the rules use is provided by the library or named in ``remote_types``
-    (served by another process, ``serve-competency``). Returns the rules and the competencies."""
-    ruleset = load_rules(rules) if rules is not None else None
-    competencies = load_library(library) if library is not None else []
-    if world_model is not None:
-        load_world_model_init(world_model)
-    if ruleset is not None:
-        ruleset.check_types({c.type for c in competencies} | set(remote_types))
+    (served by another process, ``serve-competency``). Returns the rules and the competencies.
+
+    Stand-ins: a type the rules use that no competency of the library provides is attributed to
+    the library's stand-ins, if it has any (one of them provided it in CMION): each then also
+    stands under that type, and the rules needing it fail naming the classes; without stand-ins
+    it is an error. Each stand-in is warned about with the rule types depending on it.
+    Without ``diagnostics`` the first error raises its ``ConfigError`` (warnings are logged)."""
+    diag = Diagnostics.raising() if diagnostics is None else diagnostics
+    ruleset = _load_rules(rules, diag) if rules is not None else None
+    competencies = load_library(library, diag) if library is not None else []
+    if world_model is not None and load_xml(world_model, "WorldModel.xsd", diag) is not None:
+        _collected(diag, lambda problems: load_world_model_init(world_model, problems))
+    if ruleset is not None and check_types:
+        provided = {c.type for c in competencies} | set(remote_types)
+        missing = ruleset.type_problems(provided)
+        standins = [c for c in competencies if isinstance(c, StandInCompetency)]
+        if standins and missing:
+            competencies += _attribute(ruleset, provided, standins, os.fspath(library or ""), diag)
+        else:
+            for problem in missing:
+                diag.problem(problem)
+    _report_standins(competencies, ruleset, diag)
     return ruleset, competencies
 
 
-def _architecture(path: str, remote_types: Iterable[str] = ()) -> None:
-    arch = load_architecture(path)
-    check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=remote_types)
-    for spec in arch.components:
-        import_class(spec.class_name, Component, path=str(arch.path), line=spec.line)
+def _attribute(ruleset: RuleSet, provided: set[str], standins: list[StandInCompetency], library: str,
+               diagnostics: Diagnostics) -> list[Competency]:
+    """Stand-ins entered under the rule types nothing provides (one per stand-in class and type)."""
+    from cmion_mesh.standin import unique
+
+    added: list[Competency] = []
+    names = {c.name for c in standins}
+    classes = {s.java: s for s in standins}
+    for competency_type, lines in ruleset.type_lines().items():
+        if competency_type in provided:
+            continue
+        try:
+            for java, first in classes.items():
+                added.append(StandInCompetency(java, first.port, name=unique(f"{first.name}-{competency_type}", names),
+                                               type=competency_type, parameters=first.constructor_parameters, where=first.where,
+                                               samgar_port=first.samgar_port, attributed=True))
+        except MeshError as exc:  # an invalid type name: the rule's problem
+            diagnostics.error(f"competency type {competency_type!r} cannot be a competency's type: {exc}", ruleset.path, lines[0])
+            continue
+        diagnostics.warning(f"competency type {competency_type!r} is provided by no competency of {os.path.basename(library)}: "
+                            f"attributed to its stand-ins ({', '.join(classes)}), so actions needing it fail naming them",
+                            ruleset.path, lines[0])
+    return added
 
 
-#: Root element -> (schema, semantic check run after the schema passed).
-KINDS: dict[str, tuple[str, Callable[[str, Iterable[str]], None]]] = {
-    "WorldModel": ("WorldModel.xsd", _world_model),
-    "CompetencyLibrary": ("CompetencyLibrary.xsd", _library),
-    "CompetencyManagerRules": ("CompetencyManagerRules.xsd", _rules),
-    "ArchitectureConfiguration": ("ArchitectureConfiguration.xsd", _architecture),
-}
+def _report_standins(competencies: list[Competency], ruleset: RuleSet | None, diagnostics: Diagnostics) -> None:
+    """One warning per stand-in entry of a library, at its line, with the rule types that depend on it."""
+    by_entry: dict[str, list[StandInCompetency]] = {}
+    for competency in competencies:
+        if isinstance(competency, StandInCompetency):
+            by_entry.setdefault(competency.where, []).append(competency)
+    lines = ruleset.type_lines() if ruleset is not None else {}
+    for where, standins in by_entry.items():
+        first = standins[0]
+        path, _, line = where.rpartition(":")
+        samgar = f" (a SamgarCompetency on port {first.samgar_port!r}: cmion-mesh has no SAMGAR)" if first.samgar_port is not None else ""
+        types = [s.type for s in standins]
+        if ruleset is None:
+            depends = f"its types: {', '.join(types)} (no rules checked with it)"
+        else:
+            used = [f"{t} ({os.path.basename(ruleset.path)}:{', '.join(str(n) for n in lines[t])})" for t in types if t in lines]
+            depends = f"rule types depending on it: {'; '.join(used)}" if used else f"no rule uses its types ({', '.join(types)})"
+        diagnostics.warning(f"{why_standin(first.java, first.port)}{samgar}: loaded as a stand-in competency, reported "
+                            f"unavailable; {depends}; see {DOC}", path, int(line) if line.isdigit() else None)
+
+
+# --- files ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FileReport:
+    """The outcome of one file: its kind (root element; None if unreadable) and its problems."""
+
+    path: str
+    kind: str | None = None
+    diagnostics: Diagnostics = field(default_factory=Diagnostics)
+    #: The architecture configuration this file was checked with, if any.
+    checked_with: str | None = None
+
+    def ok(self, strict: bool = False) -> bool:
+        return not self.diagnostics.errors and not (strict and self.diagnostics.warnings)
+
+
+def _kind(path: str, diagnostics: Diagnostics) -> str | None:
+    try:
+        root = xmlsafe.load(path, None).getroot().tag
+    except ConfigError as exc:
+        diagnostics.problem(exc)
+        return None
+    if not isinstance(root, str) or root not in KINDS:
+        diagnostics.error(f"unknown document kind <{root}>; expected one of {', '.join(sorted(KINDS))}", path, 1)
+        return None
+    return root
+
+
+def check_file(path: str | os.PathLike[str], diagnostics: Diagnostics, options: Options = Options()) -> str | None:
+    """Check one file, reporting every problem; its kind (root element), or None if unreadable."""
+    name = os.fspath(path)
+    kind = _kind(name, diagnostics)
+    if kind is None:
+        return None
+    if load_xml(name, KINDS[kind].schema, diagnostics) is not None:
+        KINDS[kind].check(name, diagnostics, options)
+    return kind
 
 
 def validate_file(path: str | os.PathLike[str], *, remote_types: Iterable[str] = ()) -> str:
-    """Check one file; returns its kind (root element) or raises ``ConfigError`` naming file and line."""
-    name = os.fspath(path)
-    root = xmlsafe.load(name, None).getroot().tag
-    if not isinstance(root, str) or root not in KINDS:
-        raise ConfigError(f"unknown document kind <{root}>; expected one of {', '.join(sorted(KINDS))}", path=name, line=1)
-    schema, check = KINDS[root]
-    xmlsafe.load(name, schema)
-    check(name, remote_types)
-    return root
+    """Check one file; returns its kind (root element) or raises ``ConfigError`` naming file and
+    line (every error of the file in its text)."""
+    diagnostics = Diagnostics()
+    kind = check_file(path, diagnostics, Options(frozenset(remote_types)))
+    diagnostics.raise_if_errors()
+    assert kind is not None
+    return kind
+
+
+def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) -> list[FileReport]:
+    """Check files, architecture configurations first (with the files they reference); one report
+    per file, in the order given, each holding the problems found in that file."""
+    options = Options(frozenset(remote_types))
+    reports = [FileReport(p) for p in paths]
+    by_real = {os.path.realpath(r.path): r for r in reports}
+    for report in reports:
+        report.kind = _kind(report.path, report.diagnostics)
+    for report in reports:
+        if report.kind != "ArchitectureConfiguration":
+            continue
+        found = Diagnostics()
+        check_file(report.path, found, options)
+        arch = read_architecture(report.path, Diagnostics())
+        for referenced in (arch.rules, arch.library, arch.world_model) if arch is not None else ():
+            other = by_real.get(os.path.realpath(referenced)) if referenced is not None else None
+            if other is not None and other is not report and other.kind is not None:
+                other.checked_with = report.path
+        _distribute(found, report, by_real)
+    for report in reports:
+        if report.kind is not None and report.kind != "ArchitectureConfiguration" and report.checked_with is None:
+            found = Diagnostics()
+            if load_xml(report.path, KINDS[report.kind].schema, found) is not None:
+                KINDS[report.kind].check(report.path, found, options)
+            _distribute(found, report, by_real)
+    return reports
+
+
+def _distribute(found: Diagnostics, owner: FileReport, by_real: dict[str, FileReport]) -> None:
+    """Each problem goes to the report of the file it is in, if that file is being validated."""
+    for item in found:
+        target = by_real.get(os.path.realpath(item.path)) if item.path is not None else None
+        (target or owner).diagnostics.add(item)
 
 
 def expand(path: str) -> list[str]:
@@ -91,3 +278,10 @@ def expand(path: str) -> list[str]:
             raise ConfigError("no *.xml file in this folder", path=str(candidate))
         return found
     return [path]
+
+
+def render(diagnostic: Diagnostic, *, strict: bool = False) -> str:
+    """A diagnostic as the command line prints it: ``error: file:line: message``."""
+    if strict and diagnostic.severity == "warning":
+        return f"error: {diagnostic} (a warning, an error with --strict)"
+    return f"{'note' if diagnostic.severity == 'info' else diagnostic.severity}: {diagnostic}"

@@ -44,6 +44,7 @@ __all__ = [
     "load",
     "loads",
     "schema_path",
+    "schema_problems",
     "sourceline",
     "validate",
 ]
@@ -472,16 +473,20 @@ def validate(tree: etree._ElementTree, schema: str, name: str) -> None:
 
     ``name`` is the document's file name (or label) for the message.
     """
+    problems = schema_problems(tree, schema, name)
+    if problems:
+        raise problems[0]
+
+
+def schema_problems(tree: etree._ElementTree, schema: str, name: str) -> list[XmlError]:
+    """Every violation of ``schema`` that libxml2 reports for ``tree``, in document order (empty
+    when it matches); each an ``XmlError`` naming ``name`` and the line."""
     compiled = _compiled(schema)
     with compiled.lock:
         if compiled.schema.validate(tree):
-            return
+            return []
         errors: list[Any] = list(compiled.schema.error_log)  # type: ignore[call-overload]
     if not errors:  # pragma: no cover - libxml2 always logs why
-        raise XmlError(f"does not match schema {schema}", path=name)
-    first = errors[0]
-    raise XmlError(
-        f"does not match schema {schema}: {first.message}",
-        path=name,
-        line=first.line if first.line else None,
-    )
+        return [XmlError(f"does not match schema {schema}", path=name)]
+    return [XmlError(f"does not match schema {schema}: {error.message}", path=name, line=error.line if error.line else None)
+            for error in errors]

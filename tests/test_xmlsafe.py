@@ -154,12 +154,12 @@ def test_schema_extensions_validate(tmp_path: Path) -> None:
             2,
             "Port",
         ),
-        (  # the DTD's order: every Competency before any SamgarCompetency
+        (  # any order (as CMION's loader read them), but only these two elements
             "CompetencyLibrary.xsd",
             b"<CompetencyLibrary>\n<SamgarCompetency ClassName='x' Port='p'/>\n<Competency ClassName='y'/>\n"
-            b"</CompetencyLibrary>",
-            3,
-            "Competency",
+            b"<Competence ClassName='z'/>\n</CompetencyLibrary>",
+            4,
+            "Competence",
         ),
         (
             "CompetencyManagerRules.xsd",
@@ -170,9 +170,9 @@ def test_schema_extensions_validate(tmp_path: Path) -> None:
         ),
         (
             "CompetencyManagerRules.xsd",
-            b"<CompetencyManagerRules>\n<Rule>\n<MindAction Name='a'/>\n</Rule>\n</CompetencyManagerRules>",
-            2,
-            "CompetencyExecutionPlan",
+            b"<CompetencyManagerRules>\n<Rule>\n<MindAction Name='a'/>\n<ExecutionPlan/>\n</Rule>\n</CompetencyManagerRules>",
+            4,
+            "ExecutionPlan",
         ),
         # libxml2 puts an element on the line where its start tag ends
         (
