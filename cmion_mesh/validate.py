@@ -58,12 +58,19 @@ def _architecture(path: str, remote_types: Iterable[str] = ()) -> None:
         import_class(spec.class_name, Component, path=str(arch.path), line=spec.line)
 
 
+def _migrationconfig(path: str, remote_types: Iterable[str] = ()) -> None:
+    from cmion_mesh.devices import load_device_table
+
+    load_device_table(path)
+
+
 #: Root element -> (schema, semantic check run after the schema passed).
 KINDS: dict[str, tuple[str, Callable[[str, Iterable[str]], None]]] = {
     "WorldModel": ("WorldModel.xsd", _world_model),
     "CompetencyLibrary": ("CompetencyLibrary.xsd", _library),
     "CompetencyManagerRules": ("CompetencyManagerRules.xsd", _rules),
     "ArchitectureConfiguration": ("ArchitectureConfiguration.xsd", _architecture),
+    "migrationconfig": ("MigrationConfig.xsd", _migrationconfig),
 }
 
 
