@@ -132,7 +132,7 @@ def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
     agent = config.find("agent")
     assert listen is not None and agent is not None
     devicename = config.find("devicename")
-    embodiment = (devicename.get("value") or "").strip() if devicename is not None else ""
+    embodiment = devicename.get("value", "") if devicename is not None else ""
     if embodiment:
         _check(embodiment, "devicename", name, xmlsafe.sourceline(devicename))
     invite = config.find("inviteport")
