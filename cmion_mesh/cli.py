@@ -727,7 +727,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")
-    p.add_argument("--name", help="embodiment name (default: from the configuration)")
+    p.add_argument("--name", help="embodiment name (default: the device table's devicename, else the configuration's)")
     p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file (replaces the configuration's)")
     p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file (replaces the configuration's)")
     p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file (replaces the configuration's)")
@@ -737,7 +737,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--state-dir", help="durable state: migration records, persistent properties "
                                        "(default: ~/.local/state/cmion-mesh/<mesh>/<name>); one daemon per folder")
     p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none "
-                                       "and no live embodiment of the mesh hosts it")
+                                       "and no live embodiment of the mesh hosts it (default: the device table's "
+                                       "agent active gives birth to the configuration's Companion, or 'companion')")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
     _common(p, json_output=False)
