@@ -153,22 +153,21 @@ def test_precedence_explicit_settings_win_over_the_table(tmp_path: Path) -> None
         devices.embodiment_name(table, load_architecture(arch_path))
 
 
-def python_named_copy(source: Path, target: Path, ports: dict[int, int] | None = None) -> Path:
-    """A copy of a test configuration folder with our class names for CMION's (and other ports)."""
+def configuration_copy(source: Path, target: Path, values: dict[str, str] | None = None, *, java_names: bool = False) -> Path:
+    """A copy of a test configuration folder with other attribute ``values`` (ports, names) and,
+    unless ``java_names``, our class names for CMION's."""
     target.mkdir(parents=True)
     for path in source.iterdir():
         text = path.read_text()
-        for java, ours in OURS.items():
-            text = text.replace(f'"{java}"', f'"{ours}"')
-        for old, new in (ports or {}).items():
+        for old, new in {**({} if java_names else OURS), **(values or {})}.items():
             text = text.replace(f'"{old}"', f'"{new}"')
         (target / path.name).write_text(text)
     return target
 
 
 def test_an_embodiment_built_from_a_configuration_with_a_table(network: MemoryNetwork, tmp_path: Path, mesh: str) -> None:
-    send = python_named_copy(INVITE / "send", tmp_path / "send")
-    receive = python_named_copy(INVITE / "receive", tmp_path / "receive")
+    send = configuration_copy(INVITE / "send", tmp_path / "send")
+    receive = configuration_copy(INVITE / "receive", tmp_path / "receive")
     config = "ArchitectureConfiguration.xml"
     a = Embodiment.from_architecture(send / config, mesh=mesh, transport=MemoryTransport(network, "a"), state_dir=tmp_path / "A")
     b = Embodiment.from_architecture(receive / config, mesh=mesh, transport=MemoryTransport(network, "b"), state_dir=tmp_path / "B")

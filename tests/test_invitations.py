@@ -30,7 +30,7 @@ from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 from .conftest import DATA
-from .test_devices import python_named_copy
+from .test_devices import configuration_copy
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -211,8 +211,14 @@ def cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
 @dataclass
 class Pair:
     mesh: str
-    endpoint: str  # A's listen endpoint, for tools
+    ports: dict[str, int]  # embodiment -> its listen port
     daemons: dict[str, Daemon]
+    tmp: Path
+
+    @property
+    def endpoint(self) -> str:
+        """A's endpoint, for tools."""
+        return f"tcp/127.0.0.1:{self.ports['A']}"
 
     def net(self) -> list[str]:
         return ["--mesh", self.mesh, "--connect", self.endpoint, "--no-multicast"]
@@ -222,36 +228,29 @@ class Pair:
         assert result.returncode == 0, result.stderr
         return {p["name"]: p.get("inhabitant") for p in json.loads(result.stdout)}
 
+    def up(self, name: str, *args: str) -> Daemon:
+        daemon = Daemon(cli_argv("up", *args, "--mesh", self.mesh, "--no-multicast", "--state-dir", str(self.tmp / f"state-{name}")),
+                        name=name)
+        self.daemons[name] = daemon
+        return daemon
+
 
 def start_pair(tmp: Path, mesh: str, *, java_names: bool) -> Pair:
     """A and B from the MigrationByInvite configurations, on free loopback ports, and a stranger C."""
-    ports = {34871: free_port(), 34873: free_port()}
-    if java_names:
-        folders = {side: tmp / side for side in ("send", "receive")}
-        for side, folder in folders.items():
-            folder.mkdir()
-            for path in (INVITE_DATA / side).iterdir():
-                text = path.read_text()
-                for old, new in ports.items():
-                    text = text.replace(f'"{old}"', f'"{new}"')
-                (folder / path.name).write_text(text)
-    else:
-        folders = {side: python_named_copy(INVITE_DATA / side, tmp / side, ports) for side in ("send", "receive")}
-    daemons: dict[str, Daemon] = {}
+    ports = {"A": free_port(), "B": free_port()}
+    values = {"34871": str(ports["A"]), "34873": str(ports["B"])}
+    pair = Pair(mesh, ports, {}, tmp)
     try:
         for name, side in (("A", "send"), ("B", "receive")):
-            daemons[name] = Daemon(cli_argv("up", str(folders[side]), "--mesh", mesh, "--no-multicast",
-                                            "--state-dir", str(tmp / f"state-{name}")), name=name)
-        endpoint = f"tcp/127.0.0.1:{ports[34871]}"
-        daemons["C"] = Daemon(cli_argv("up", "--name", "C", "--mesh", mesh, "--no-multicast", "--connect", endpoint,
-                                       "--state-dir", str(tmp / "state-C")), name="C")
-        for daemon in daemons.values():
+            pair.up(name, str(configuration_copy(INVITE_DATA / side, tmp / side, values, java_names=java_names)))
+        pair.up("C", "--name", "C", "--connect", pair.endpoint)
+        for daemon in pair.daemons.values():
             daemon.wait_line("up in mesh", 30)
     except BaseException:
-        for daemon in daemons.values():
+        for daemon in pair.daemons.values():
             daemon.kill()
         raise
-    return Pair(mesh, endpoint, daemons)
+    return pair
 
 
 @pytest.fixture(scope="module")
@@ -271,6 +270,14 @@ def test_device_tables_name_connect_and_give_birth(pair: Pair) -> None:
     # B found A only through the endpoints of the tables (no multicast)
     assert wait_for(lambda: (found := pair.inhabitants()) and len(found) == 3 and found, 20, "A, B and C in one mesh") == \
         {"A": devices.DEFAULT_COMPANION, "B": None, "C": None}
+    # a second table whose agent is active: the companion lives on A already, so it is not born again
+    second = configuration_copy(INVITE_DATA / "send", pair.tmp / "second", {"A": "D", "34871": str(free_port()),
+                                                                          "34873": str(pair.ports["B"])})
+    with pair.up("D", str(second)) as d:
+        d.wait_line("up in mesh", 30)
+        assert "companion 'companion' already lives on 'A': it is not born here" in "\n".join(d.lines)
+        assert pair.inhabitants() == {"A": devices.DEFAULT_COMPANION, "B": None, "C": None, "D": None}
+    del pair.daemons["D"]
 
 
 def test_an_invitation_from_the_empty_embodiment_moves_the_companion(pair: Pair) -> None:
