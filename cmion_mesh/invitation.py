@@ -41,6 +41,7 @@ from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import Code, Event, Invite, Outcome, SendInvitations
 from cmion_mesh.migration import MigrationManager, TokenBucket
 from cmion_mesh.mind import Mind
+from cmion_mesh.presence import Presence
 from cmion_mesh.transport import Closeable
 
 log = logging.getLogger(__name__)
@@ -74,36 +75,28 @@ class Invitations(Component):
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
-        self._alive: set[str] = set()  # embodiments whose liveliness token is present (transport worker)
-        self._watches: list[Closeable] = []
+        self._presence: Presence | None = None
+        self._watch: Closeable | None = None
 
     # --- life cycle (loop) ----------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
-        self._watches = [sim.transport.watch_liveliness(f"{keys.mesh_prefix(sim.mesh)}/{keys.ALIVE}/*", self._on_token),
-                         sim.on_event(self._on_invite_event, event=INVITE_EVENT)]
+        self._presence = Presence(sim.transport, sim.mesh)
+        self._watch = sim.on_event(self._on_invite_event, event=INVITE_EVENT)
 
     def detach(self) -> None:
-        for watch in self._watches:
-            watch.close()
-        self._watches = []
+        for handle in (self._watch, self._presence):
+            if handle is not None:
+                handle.close()
         self._stop.set()
         with self._lock:
             threads, self._threads = self._threads, []
         for thread in threads:
             thread.join(self.request_timeout + 5.0)
 
-    def _on_token(self, key: str, alive: bool) -> None:
-        name = key.rsplit("/", 1)[-1]
-        with self._lock:
-            if alive:
-                self._alive.add(name)
-            else:
-                self._alive.discard(name)
-
     def alive(self) -> set[str]:
-        with self._lock:
-            return set(self._alive)
+        """The embodiments alive in the mesh, as this one sees them."""
+        return self._presence.alive() if self._presence is not None else set()
 
     # --- requests (loop) ------------------------------------------------------------------------
 

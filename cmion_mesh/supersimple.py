@@ -24,14 +24,12 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-import msgspec
-
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError
 from cmion_mesh.invitation import INVITATION_ACTION, INVITE_EVENT
 from cmion_mesh.ion import Simulation
-from cmion_mesh.messages import ActionReport, Event, StorageChange
-from cmion_mesh.mind import Mind
+from cmion_mesh.messages import ActionReport, Event
+from cmion_mesh.mind import Mind, storage_change
 from cmion_mesh.rules import MindAction
 
 log = logging.getLogger(__name__)
@@ -153,13 +151,8 @@ class SuperSimpleMigratingByInviteMind(_SimpleMind):
         sim.on_event(self._entity_seen, component=keys.WORLD_MODEL)
 
     def _entity_seen(self, event: Event) -> None:
-        if self.awake:
-            return
-        try:
-            change = msgspec.convert(event.data, StorageChange)
-        except msgspec.ValidationError:
-            return
-        if change.op == "add_container" and change.container == "":
+        change = None if self.awake else storage_change(event)
+        if change is not None and change.op == "add_container" and change.container == "":
             log.info("mind %s: entity %r added while the companion is elsewhere: inviting it", self.name, change.name)
             self.raise_event(INVITE_EVENT, {"entity": change.name})
 
