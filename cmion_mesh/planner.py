@@ -232,7 +232,7 @@ class PlannerMind(Mind):
 
     def _consider_invitation(self, inviter: str) -> None:
         """Follow a migration invitation as the spec's ``invitations`` policy says: only when idle."""
-        reason = self._invitation_refusal(inviter)
+        reason = self.invitation_refusal(inviter)
         action_id = None
         if not reason:
             try:
@@ -248,7 +248,7 @@ class PlannerMind(Mind):
         self._remember("invitation_followed", {"inviter": inviter, "action_id": action_id})
         self._decide("invitation_followed", inviter=inviter, action=self.invitations.action, action_id=action_id)
 
-    def _invitation_refusal(self, inviter: str) -> str:
+    def invitation_refusal(self, inviter: str) -> str:
         """Why the policy declines an invitation from ``inviter`` now ("" if it follows it)."""
         policy = self.invitations
         if not policy.follow:

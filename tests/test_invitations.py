@@ -154,10 +154,10 @@ def test_the_planner_follows_invitations_as_its_spec_says(bodies: Bodies, client
 def test_a_planner_without_the_policy_declines() -> None:
     mind = PlannerMind("mind")
     assert not mind.invitations.follow
-    assert mind._invitation_refusal("B") == "the spec does not follow invitations"
+    assert mind.invitation_refusal("B") == "the spec does not follow invitations"
     spirit = PlannerMind("mind", str(data_dir("embodiments") / "spirit.json"))
     assert spirit.invitations.follow and spirit.invitations.accept_from == ("robot", "screen", "phone")
-    assert spirit._invitation_refusal("robot") == ""
+    assert spirit.invitation_refusal("robot") == ""
 
 
 class CountingMind(supersimple.SuperSimpleMind):
@@ -165,9 +165,9 @@ class CountingMind(supersimple.SuperSimpleMind):
         super().__init__()
         self.sent: list[str] = []
 
-    def _send(self, action: str, *parameters: str) -> None:
-        self.sent.append(" ".join((action, *parameters)))
-        super()._send(action, *parameters)
+    def act(self, name: str, parameters: list[str] | tuple[str, ...] = (), subject: str = "", *, deadline: float = 0.0) -> str:
+        self.sent.append(" ".join((name, *parameters)))
+        return super().act(name, parameters, subject, deadline=deadline)
 
 
 def test_the_supersimple_minds(bodies: Bodies, monkeypatch: pytest.MonkeyPatch) -> None:
