@@ -444,8 +444,14 @@ class MigrationManager(Component):
         return out
 
     def contribute(self, component: str, data: Any) -> None:
-        """Add ``component``'s section to the migration being packed. Thread-safe."""
-        self._post(self._contribute, component, data)
+        """Add ``component``'s section to the migration being packed. Thread-safe.
+
+        On the loop (a ``MigrationStarting`` handler) it applies at once: posted, it would queue
+        behind the packing that the same update already scheduled, and miss the document."""
+        if self.sim.on_loop():
+            self._contribute(component, data)
+        else:
+            self._post(self._contribute, component, data)
 
     def _contribute(self, component: str, data: Any) -> None:
         out = self._outgoing

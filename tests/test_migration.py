@@ -14,8 +14,10 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
+from cmion_mesh.messages import Event, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
+from cmion_mesh.migration import MigrationManager
 from cmion_mesh.records import Records
 from cmion_mesh.testing.wait import wait_for
 
@@ -65,6 +67,41 @@ def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, me
         assert report.status == "succeeded", report
         wait_for(lambda: robot.inhabitant == "spirit", 5, "back on the robot")
         assert robot_mind.entries == ["met Ada", "at the entrance"] and robot_mind.awake
+    finally:
+        close(robot, screen)
+
+
+class Badge(Component):
+    """A component that gives its section straight from the ``MigrationStarting`` handler."""
+
+    def __init__(self) -> None:
+        super().__init__("badge")
+        self.received: list[Any] = []
+
+    def attach(self, sim: Simulation) -> None:
+        sim.on_event(self._on_migration, component="migration")
+
+    def _on_migration(self, event: Event) -> None:
+        migration = self.sim.component("migration")
+        assert isinstance(migration, MigrationManager)
+        if event.name == "MigrationStarting":
+            migration.contribute(self.name, {"visits": 1 + len(self.received)})
+        elif event.name == "MigrationOccurred":
+            self.received.append(migration.section(self.name))
+
+
+def test_a_section_contributed_from_the_starting_handler_travels(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                                 client: MeshClient) -> None:
+    robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
+                       companion="spirit", components=[Badge()]).start()
+    screen_badge = Badge()
+    screen = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=tmp_path / "screen",
+                        components=[screen_badge]).start()
+    try:
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        client.migrate("spirit", "screen", timeout=20)
+        wait_for(lambda: screen_badge.received, 5, "the badge's section at the screen")
+        assert screen_badge.received == [{"visits": 1}]
     finally:
         close(robot, screen)
 
