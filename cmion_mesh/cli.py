@@ -241,7 +241,7 @@ def _existing(path: str | None, option: str) -> str | None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from cmion_mesh import security
+    from cmion_mesh import devices, security
     from cmion_mesh.diagnostics import Diagnostics
     from cmion_mesh.embodiment import Embodiment
     from cmion_mesh.ion import Component
@@ -256,6 +256,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     # The checks of `validate`, every problem reported: refuse on errors, start with warnings.
     found = Diagnostics()
     arch = None
+    # The device table (devices.py) is read before the session opens: it names the embodiment,
+    # its endpoints and the companion's birth; options given on the command line win over it.
     if args.path:
         from cmion_mesh.architecture import read_architecture
 
@@ -263,17 +265,24 @@ def cmd_up(args: argparse.Namespace) -> int:
         if arch is None:
             found.raise_if_errors()
         assert arch is not None
-        name = arch.embodiment
         # Files given on the command line replace the configuration's own.
         rules = rules or (str(arch.rules) if arch.rules else None)
         library = library or (str(arch.library) if arch.library else None)
         world_model = world_model or (str(arch.world_model) if arch.world_model else None)
-        companion = companion or arch.companion
+        table = devices.table_for_library(library) if library else None
+        name = args.name or devices.embodiment_name(table, arch)
+        companion = companion or devices.birth(table, arch.companion)
         admitted = arch.admit if admitted is None else {**(arch.admit or {}), **admitted}
-    elif not args.name:
-        raise ConfigError("give an architecture configuration (PATH) or at least --name")
     else:
-        name = args.name
+        table = devices.table_for_library(library) if library else None
+        name = args.name or (table.name if table is not None else None)
+        if not name:
+            raise ConfigError("give an architecture configuration (PATH) or at least --name")
+        companion = companion or devices.birth(table, None)
+    if table is not None:
+        filled = devices.with_table_endpoints(TransportConfig(connect=tuple(args.connect or ()), listen=tuple(args.listen or ()),
+                                                              config_file=args.config), table)
+        args.connect, args.listen = list(filled.connect), list(filled.listen)
     ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
                                              check_types=arch is None or library is not None)
     if arch is not None:  # built only when all else is right; otherwise only checked, so that every problem is listed
@@ -285,12 +294,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     state = args.state_dir or str(default_state_dir(args.mesh, name))
     embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
                             rules=ruleset, competencies=competencies, components=components, state_dir=state,
-                            companion=companion, admit=admitted, join=join_window(args))
+                            companion=companion, admit=admitted, join=join_window(args), devices=table)
     with embodiment:
         mode = security.describe(certs_dir=args.certs, identity=args.identity, name=embodiment.name)
         print(mode, file=sys.stderr if mode.startswith("plain") else sys.stdout, flush=True)
         if args.no_multicast and not args.connect and not args.listen:
             print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
+        if table is not None:
+            print(f"device table {table.path}: embodiment {name!r}, knows {', '.join(table.names) or 'no device'}; "
+                  f"listen {', '.join(args.listen) or '-'}; connect {', '.join(args.connect) or '-'}"
+                  + (f"; companion {companion!r} born here" if companion and table.born_here else ""), flush=True)
         if embodiment.companion_elsewhere:
             print(f"companion {companion!r} already lives on {embodiment.companion_elsewhere!r}: it is not born here",
                   file=sys.stderr, flush=True)
@@ -525,6 +538,18 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def cmd_invite(args: argparse.Namespace) -> int:
+    with session(args) as client, Spinner(f"{args.embodiment} invites the companion", enabled=not args.json):
+        result = client.invite(args.embodiment, args.to or (), timeout=args.timeout)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        hosts = ", ".join(result["accepted_by"])
+        print(f"invitation from {args.embodiment} accepted by {hosts}: the companion's mind got "
+              f"MigrationInvitation {args.embodiment} (`cmion-mesh peers` shows whether it comes)")
+    return ExitCode.OK
+
+
 def cmd_doctor(args: argparse.Namespace) -> int:
     from cmion_mesh.doctor import run_doctor
 
@@ -737,7 +762,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")
-    p.add_argument("--name", help="embodiment name (default: from the configuration)")
+    p.add_argument("--name", help="embodiment name (default: the device table's devicename, else the configuration's)")
     p.add_argument("--world-model", metavar="FILE", help="CMION WorldModel init file (replaces the configuration's)")
     p.add_argument("--rules", metavar="FILE", help="CMION CompetencyManagerRules file (replaces the configuration's)")
     p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file (replaces the configuration's)")
@@ -747,7 +772,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--state-dir", help="durable state: migration records, persistent properties "
                                        "(default: ~/.local/state/cmion-mesh/<mesh>/<name>); one daemon per folder")
     p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none "
-                                       "and no live embodiment of the mesh hosts it")
+                                       "and no live embodiment of the mesh hosts it (default: the device table's "
+                                       "agent active gives birth to the configuration's Companion, or 'companion')")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
     _common(p, json_output=False)
@@ -813,6 +839,18 @@ def build_parser() -> argparse.ArgumentParser:
     _timeout(p, 60.0, "seconds to wait for the handshake's end")
     _common(p)
     p.set_defaults(func=cmd_migrate)
+
+    p = sub.add_parser("invite", help="have an empty embodiment invite the companion (CMION's migration invitation)",
+                       description="EMBODIMENT (which must host no companion) invites the companion: every embodiment of "
+                                   "its device table, or without a table every live one, is asked; the one hosting the "
+                                   "companion passes MigrationInvitation EMBODIMENT to its mind, which may migrate. Exit 0 "
+                                   "when a host accepted the invitation, 1 when nobody did (each answer is listed).")
+    p.add_argument("embodiment", help="the inviting embodiment (empty)")
+    p.add_argument("--to", action="append", metavar="EMBODIMENT",
+                   help="invite only this embodiment; repeatable (default: the device table's, or every live one)")
+    _timeout(p, 30.0, "seconds to wait for every answer")
+    _common(p)
+    p.set_defaults(func=cmd_invite)
 
     p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh (no --mesh: it routes every mesh)")
     _router_parser(p)

@@ -38,6 +38,7 @@ from cmion_mesh.messages import (
     ActionReport,
     ActionStatus,
     CancelAction,
+    Code,
     Container,
     Describe,
     Event,
@@ -45,6 +46,7 @@ from cmion_mesh.messages import (
     Migrate,
     Outcome,
     Property,
+    SendInvitations,
     SetPolicy,
     SetProperty,
     StorageWrite,
@@ -356,6 +358,53 @@ class MeshClient:
                                   reason=str(data.get("reason")))
         data["source"] = source
         return data
+
+    def invite(self, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0) -> dict[str, Any]:
+        """Have the empty embodiment ``inviter`` invite the companion (``invitation``): to ``to``, or
+        to its device table's embodiments, or without a table to every live one. Returns the
+        round's ``InvitationsDone`` data (``round``, ``accepted_by``, ``answers``) when some
+        embodiment accepted it (its mind got ``MigrationInvitation <inviter>``).
+
+        Raises ``NotAlive`` if ``inviter`` is not alive, ``RequestRejected`` if it cannot invite
+        (inhabited, nobody to invite) or nobody accepted (the reason lists every answer),
+        ``OutcomeUnknown`` if no answer was definite (``Vanished`` if the inviter left the mesh).
+        """
+        started_at = time.monotonic()
+        self.join(inviter, timeout=min(timeout, 5.0))
+        ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
+
+        def on_event(event: Event) -> None:
+            if event.name == "InvitationsDone" and isinstance(event.data, dict):
+                ended.put(event)
+
+        def on_presence(name: str, alive: bool) -> None:
+            if not alive and name == inviter:
+                ended.put(name)
+
+        key = keys.request_key(self.mesh, inviter, "invitation", "send")
+        with self.events(on_event, embodiment=inviter, component="invitation", event="InvitationsDone"), \
+                self.presence.listen(on_presence):
+            started = self._send(inviter, key, SendInvitations(list(to)), timeout=timeout)
+            round_id = require_accepted(started, key)["round"]
+            for _ in range(10_000):  # bounded: each round ends on an event, a departure or the deadline
+                try:
+                    end = ended.get(timeout=max(0.0, timeout - (time.monotonic() - started_at)))
+                except queue.Empty:
+                    raise OutcomeUnknown(f"invitations from {inviter}: no end heard in {timeout:g} s", key=key) from None
+                if isinstance(end, str):
+                    raise Vanished(f"invitations from {inviter}: {inviter} left the mesh; outcome unknown", key=key)
+                if end.data.get("round") == round_id:
+                    break
+            else:
+                raise OutcomeUnknown(f"invitations from {inviter}: round {round_id} never ended", key=key)
+        data: dict[str, Any] = dict(end.data)
+        if data.get("accepted_by"):
+            return data
+        answers: dict[str, dict[str, Any]] = data.get("answers") or {}
+        reasons = "; ".join(f"{t}: {a.get('reason')}" for t, a in sorted(answers.items()))
+        if answers and all(a.get("code") == Code.OUTCOME_UNKNOWN for a in answers.values()):
+            raise OutcomeUnknown(f"invitations from {inviter}: no definite answer ({reasons})", key=key)
+        raise RequestRejected(f"invitations from {inviter}: nobody accepted ({reasons})", key=key, reason=reasons)
 
     def set_policy(self, companion: str, accepts: Sequence[str] | None) -> None:
         """Say which embodiments ``companion`` accepts (None: any); it travels with the companion."""

@@ -23,8 +23,10 @@ from cmion_mesh import __version__, keys
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, load_library
+from cmion_mesh.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
+from cmion_mesh.invitation import Invitations
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Describe, Event
@@ -62,10 +64,13 @@ class Embodiment:
         companion: str | None = None,
         admit: dict[str, bytes | None] | None = None,
         join: float | None = None,
+        devices: DeviceTable | None = None,
     ) -> None:
         """``join``: claim the name in the mesh first, looking that many seconds for the rest of the
         mesh when nobody answers at once (0 when this session cannot find anyone by itself);
-        ``Refused`` if the name is taken or ``state_dir`` is held by another daemon."""
+        ``Refused`` if the name is taken or ``state_dir`` is held by another daemon. ``devices``: the
+        device table (``devices``) whose embodiments this one takes invitations from and sends its
+        own to; its name, endpoints and birth are the caller's to apply (``from_architecture`` does)."""
         self.name = keys.check_name(name, "embodiment")
         self.version = __version__
         self.mesh = keys.check_name(mesh, "mesh")
@@ -73,6 +78,7 @@ class Embodiment:
         self.state_dir = None if state_dir is None else os.fspath(state_dir)
         #: Where the companion this embodiment would have given birth to lives instead (not born here).
         self.companion_elsewhere: str | None = None
+        self.devices = devices
         self._owns_transport = transport is None
         self._token: Closeable | None = None
         self._claim: NameClaim | None = None
@@ -116,6 +122,7 @@ class Embodiment:
             self.sim.add(self.describer)
             extra = list(components)
             self.migration: MigrationManager | None = None
+            self.invitations: Invitations | None = None
             if state_dir is not None:
                 # Minds start asleep: the migration manager wakes them if a companion lives here.
                 for component in extra:
@@ -133,6 +140,8 @@ class Embodiment:
                 self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
                 self.sim.on_event(self._carry_persistent, component=self.migration.name)
+                self.invitations = Invitations(self.migration, devices)
+                self.sim.add(self.invitations)
         except BaseException:
             self.close()
             raise
@@ -146,16 +155,23 @@ class Embodiment:
     ) -> Embodiment:
         """Build an embodiment from a CMION ``ArchitectureConfiguration`` file (see ``architecture``):
         the checks of ``up`` (``validate.check_embodiment``; ``remote_types`` as ``--remote-type``),
-        the first error raising; stand-ins for Java classes with no equivalent are logged."""
+        the first error raising; stand-ins for Java classes with no equivalent are logged.
+
+        A device table named by the library's Migration competency (``devices``) gives the name,
+        the companion's birth and, where ``transport_config`` leaves them empty, the endpoints;
+        the arguments given here win over it."""
         from cmion_mesh.validate import check_embodiment
 
         arch = load_architecture(path, name=name)
+        table = table_for_library(arch.library) if arch.library is not None else None
         ruleset, competencies = check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=remote_types)
+        if transport_config is not None or transport is None:
+            transport_config = with_table_endpoints(transport_config or TransportConfig(), table)
         return cls(
-            arch.embodiment, mesh=mesh, transport=transport, transport_config=transport_config,
+            name or embodiment_name(table, arch), mesh=mesh, transport=transport, transport_config=transport_config,
             world_model_init=arch.world_model, rules=ruleset, competencies=competencies, components=arch.build_components(),
-            state_dir=state_dir, companion=companion or arch.companion,
-            admit=arch.admit if admit is None else {**(arch.admit or {}), **admit},
+            state_dir=state_dir, companion=companion or birth(table, arch.companion),
+            admit=arch.admit if admit is None else {**(arch.admit or {}), **admit}, devices=table,
         )
 
     def add(self, component: Component) -> Component:
@@ -238,6 +254,7 @@ class Embodiment:
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
             "damaged": dict(self.migration.damaged) if self.migration is not None else {},
+            "devices": self.devices.names if self.devices is not None else None,
             "version": self.version,
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,

@@ -316,11 +316,30 @@ class MigrateStatus(Message, frozen=True, tag="migrate_status"):
     of: Literal["source", "target"] = "source"
 
 
+# --- invitations -------------------------------------------------------------------------------------
+
+
+class Invite(Message, frozen=True, tag="invite"):
+    """An uninhabited embodiment invites the companion (``.../rq/invitation/invite/<inviter>`` on
+    the embodiment asked). Accepted: the companion's mind got ``MigrationInvitation <inviter>``;
+    rejected: not inhabited here, inviter unknown to this embodiment's device table, or busy."""
+
+    inviter: str
+
+
+class SendInvitations(Message, frozen=True, tag="send_invitations"):
+    """Ask an embodiment to invite (``.../rq/invitation/send``): it sends ``Invite`` to each of
+    ``to`` (empty: its device table's devices, or without a table every live embodiment). The
+    answer's value is ``{"round", "targets"}``; the end is the ``InvitationsDone`` event."""
+
+    to: list[str] = []
+
+
 AnyMessage = (
     Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Outcome
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
-    | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy
+    | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
 )
 
 

@@ -98,16 +98,18 @@ class WaitToken:
     component: str
 
 
-class _Bucket:
+class TokenBucket:
     """A token bucket: ``take()`` is False once a sender has used its burst faster than the rate."""
 
-    def __init__(self) -> None:
-        self.tokens = float(PREPARE_BURST)
+    def __init__(self, burst: int = PREPARE_BURST, rate: float = PREPARE_RATE) -> None:
+        self.burst = burst
+        self.rate = rate
+        self.tokens = float(burst)
         self.at = time.monotonic()
 
     def take(self) -> bool:
         now = time.monotonic()
-        self.tokens = min(PREPARE_BURST, self.tokens + (now - self.at) * PREPARE_RATE)
+        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
         self.at = now
         if self.tokens < 1:
             return False
@@ -141,7 +143,7 @@ class MigrationManager(Component):
         self.contested_by: str | None = None  # the embodiment that keeps the companion by the conflict rule (loop)
         self._outgoing: _Outgoing | None = None  # loop
         self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
-        self._buckets: dict[str, _Bucket] = {}  # sender -> prepare budget (loop)
+        self._buckets: dict[str, TokenBucket] = {}  # sender -> prepare budget (loop)
         self._token: Closeable | None = None  # this embodiment's custody claim (loop)
         self._stop = threading.Event()
         self._threads_lock = threading.Lock()
@@ -172,6 +174,12 @@ class MigrationManager(Component):
     def section(self, component: str) -> Any:
         """The section ``component`` contributed to the identity living here (None if absent)."""
         return None if self.identity is None else self.identity.sections.get(component)
+
+    @property
+    def migrating_to(self) -> str | None:
+        """The target of the migration under way from here, if any."""
+        out = self._outgoing
+        return out.target if out is not None else None
 
     def holders(self, companion: str) -> dict[str, int]:
         """The embodiments that say, in the mesh, that they hold ``companion`` (name -> epoch)."""
@@ -678,7 +686,7 @@ class MigrationManager(Component):
         request.accept(identity.sections.get(POLICY_SECTION))
 
     def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
-        bucket = self._buckets.setdefault(msg.source, _Bucket())
+        bucket = self._buckets.setdefault(msg.source, TokenBucket())
         if len(self._buckets) > 1024:
             self._buckets = {msg.source: bucket}  # bounded: forget strangers, keep the one asking
         record = self.records.get(msg.companion)
@@ -779,17 +787,34 @@ class _AnswerFuture(Future[Outcome]):
 class MigrationCompetency(Competency):
     """Migration as a competency (type ``Migration``): a rule maps ``Migrate <target>`` to it.
 
-    Parameter ``target``. Succeeds once the target has committed; cannot be cancelled once the
-    handshake has started (the companion must end up in exactly one place).
+    Run parameter ``target``, or ``DeviceName`` as CMION's rules name it (``Migration *`` ->
+    ``Migration`` with ``DeviceName=$parameter1``). Succeeds once the target has committed; cannot
+    be cancelled once the handshake has started (the companion must end up in exactly one place).
+
+    The constructor takes CMION's one parameter, the device table's file name (``devices``): the
+    daemon reads that table before its session opens (``devices.table_for_library``), so here it
+    is only kept, as ``device_table``.
     """
 
     type = "Migration"
 
+    def __init__(self, device_table: str = "", *, name: str | None = None) -> None:
+        super().__init__(*((device_table,) if device_table else ()), name=name)
+        self.device_table = device_table
+
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
         manager = self.sim.component("migration")
         assert isinstance(manager, MigrationManager)
-        target = str(parameters.get("target", ""))
-        outcome = manager.start(target).result(timeout=None)
+        target = str(parameters.get("target") or parameters.get("DeviceName") or "")
+        future = manager.start(target)
+        while True:  # ends with the handshake (every attempt resolves its future) or with the embodiment
+            try:
+                outcome = future.result(timeout=0.1)
+                break
+            except TimeoutError:
+                if self._stopping.is_set() or self.sim.closed:
+                    # The records settle the attempt at the next start; this run's outcome is unknown.
+                    return ctx.fail(f"embodiment {self.sim.embodiment!r} stopped before the migration to {target!r} ended")
         if outcome.status != "accepted":
             return ctx.fail(outcome.reason)
         return True

@@ -137,11 +137,8 @@ class Mind(Component):
             self.on_action_cancelled(report)
 
     def _world_event(self, event: Event) -> None:
-        if not self.awake:
-            return
-        try:
-            change = msgspec.convert(event.data, StorageChange)
-        except msgspec.ValidationError:
+        change = storage_change(event) if self.awake else None
+        if change is None:
             return
         if change.op == "add_container" and change.container == "":
             self.on_entity_added(change.name, change.kind)
@@ -184,3 +181,10 @@ class Mind(Component):
 
     def restore(self, state: dict[str, Any]) -> None: ...
 
+
+def storage_change(event: Event) -> StorageChange | None:
+    """The change a store's event reports, or None when its data is not one."""
+    try:
+        return msgspec.convert(event.data, StorageChange)
+    except msgspec.ValidationError:
+        return None

@@ -29,6 +29,7 @@ import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.invitation import INVITATION_ACTION
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.mind import Mind
 from cmion_mesh.planner_search import (
@@ -47,6 +48,7 @@ from cmion_mesh.planner_spec import (
     EmotionConfig,
     Fact,
     Goal,
+    InvitationPolicy,
     Limits,
     Operator,
     PlannerSpec,
@@ -91,6 +93,7 @@ class PlannerMind(Mind):
         triggers: Sequence[Trigger | Mapping[str, Any]] = (),
         emotion: EmotionConfig | None = None,
         limits: Limits | None = None,
+        invitations: InvitationPolicy | None = None,
         awake: bool = True,
         seed_beliefs: bool = True,
     ) -> None:
@@ -122,6 +125,7 @@ class PlannerMind(Mind):
         self.triggers: tuple[Trigger, ...] = (*spec.triggers, *spec_from_data({"triggers": list(triggers)}).triggers)
         self.emotion_config: EmotionConfig = emotion or spec.emotion or EmotionConfig()
         self.limits: Limits = limits or spec.limits or Limits()
+        self.invitations: InvitationPolicy = invitations or spec.invitations or InvitationPolicy()
         self.seed_beliefs = seed_beliefs
 
         self.beliefs: Beliefs = {}
@@ -223,6 +227,40 @@ class PlannerMind(Mind):
 
     def on_remote_action(self, action: MindAction) -> None:
         self._remember("remote_action", {"name": action.name, "parameters": list(action.parameters), "subject": action.subject})
+        if action.name == INVITATION_ACTION:
+            self._consider_invitation(action.subject or (action.parameters[0] if action.parameters else ""))
+
+    def _consider_invitation(self, inviter: str) -> None:
+        """Follow a migration invitation as the spec's ``invitations`` policy says: only when idle."""
+        reason = self.invitation_refusal(inviter)
+        action_id = None
+        if not reason:
+            try:
+                action_id = self.act(self.invitations.action, [inviter])
+            except MeshError as exc:
+                reason = str(exc)
+        if action_id is None:
+            self._remember("invitation_declined", {"inviter": inviter, "reason": reason})
+            self._decide("invitation_declined", inviter=inviter, reason=reason)
+            return
+        self.in_flight = action_id
+        self.plan, self.plan_goal = [], None
+        self._remember("invitation_followed", {"inviter": inviter, "action_id": action_id})
+        self._decide("invitation_followed", inviter=inviter, action=self.invitations.action, action_id=action_id)
+
+    def invitation_refusal(self, inviter: str) -> str:
+        """Why the policy declines an invitation from ``inviter`` now ("" if it follows it)."""
+        policy = self.invitations
+        if not policy.follow:
+            return "the spec does not follow invitations"
+        if not inviter:
+            return "no inviter named"
+        if policy.accept_from is not None and inviter not in policy.accept_from:
+            return f"{inviter!r} is not among {list(policy.accept_from)}"
+        if self.in_flight is not None:
+            return f"busy: action {self.in_flight} in flight"
+        unmet = [g.name for g in self.pending_goals if g.name not in self.satisfied]
+        return f"busy: goal {unmet[0]!r} is not achieved" if unmet else ""
 
     def on_message(self, data: dict[str, Any]) -> None:
         """``{"goal": {...}}`` or ``{"goals": [...]}`` adds goals; ``{"drop_goal": name}`` drops one."""
@@ -547,7 +585,7 @@ class PlannerMind(Mind):
     def state(self) -> dict[str, Any]:
         """Everything the mind is, as one JSON-serialisable dict (``restore`` takes it back).
 
-        Keys: ``version``; ``spec`` (operators, triggers, emotion and limits settings); ``goals``
+        Keys: ``version``; ``spec`` (operators, triggers, emotion, limits and invitations settings); ``goals``
         (``pending`` - goal maps plus ``satisfied`` for persistent goals - ``achieved`` and
         ``abandoned``, each with ``time`` and maybe ``reason``); ``plan`` (``goal`` and ``steps``:
         operator, bindings, action, parameters, subject - the first is the one in flight);
@@ -563,6 +601,7 @@ class PlannerMind(Mind):
                 "triggers": [to_plain(t) for t in self.triggers],
                 "emotion": to_plain(self.emotion_config),
                 "limits": to_plain(self.limits),
+                "invitations": to_plain(self.invitations),
             },
             "goals": {
                 "pending": [{**to_plain(g), "satisfied": g.name in self.satisfied} for g in self.pending_goals],
@@ -598,6 +637,7 @@ class PlannerMind(Mind):
         triggers = spec_from_data({"triggers": spec["triggers"]}).triggers
         emotion = msgspec.convert(spec["emotion"], EmotionConfig)
         limits = msgspec.convert(spec["limits"], Limits)
+        invitations = msgspec.convert(spec["invitations"], InvitationPolicy) if "invitations" in spec else self.invitations
         pending = [dict(g) for g in state["goals"]["pending"]]
         satisfied = {str(g["name"]) for g in pending if g.pop("satisfied", False)}
         goals = goals_from_data(pending)
@@ -607,6 +647,7 @@ class PlannerMind(Mind):
         if self.in_flight is not None:
             self.pending.pop(self.in_flight, None)
         self.operators, self.triggers, self.emotion_config, self.limits = tuple(operators), triggers, emotion, limits
+        self.invitations = invitations
         self.pending_goals, self.satisfied = goals, satisfied
         self.achieved = copy.deepcopy(list(state["goals"]["achieved"]))
         self.abandoned = copy.deepcopy(list(state["goals"]["abandoned"]))

@@ -33,7 +33,8 @@ world-model fact is set. The spec (JSON, or the same structure as Python data)::
                     "goal": {"name": "greet ?who", "facts": [["?who", "greeted", true]], "priority": 5}}],
       "emotion": {"decay": 0.9, "appraisals": {"action_failed": {"valence": -0.2, "arousal": 0.2}}},
       "limits": {"max_depth": 8, "max_expanded": 5000, "max_generated": 200000, "max_failures": 3,
-                 "ban_attempts": 3, "max_actions": 50, "memory": 500, "retry_delay": 1.0}
+                 "ban_attempts": 3, "max_actions": 50, "memory": 500, "retry_delay": 1.0},
+      "invitations": {"follow": true, "accept_from": ["screen", "phone"], "action": "Migrate"}
     }
 
 Each part is one frozen msgspec Struct: the same object is read from the file, checked (a check
@@ -61,6 +62,7 @@ __all__ = [
     "EmotionConfig",
     "Fact",
     "Goal",
+    "InvitationPolicy",
     "Limits",
     "Operator",
     "PlannerSpec",
@@ -235,6 +237,22 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
                 raise ValueError(f"limit {name} must be at least {least}, not {value}")
 
 
+class InvitationPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Whether the mind takes up migration invitations (the remote action ``MigrationInvitation
+    <embodiment>``, see ``invitation``): with ``follow``, from the embodiments in ``accept_from``
+    (null: any), by sending ``action <embodiment>`` (the built-in ``Migrate`` rule), but only when
+    idle: no action in flight and no goal left to achieve. Otherwise it is declined (remembered,
+    and a ``MindDecision``)."""
+
+    follow: bool = False
+    accept_from: tuple[str, ...] | None = None
+    action: str = "Migrate"
+
+    def __post_init__(self) -> None:
+        if not self.action:
+            raise ValueError("invitations: action must not be empty")
+
+
 def _unique(operators: Sequence[Operator]) -> None:
     seen: set[str] = set()
     for op in operators:
@@ -249,6 +267,7 @@ class PlannerSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     triggers: tuple[Trigger, ...] = ()
     emotion: EmotionConfig | None = None
     limits: Limits | None = None
+    invitations: InvitationPolicy | None = None
     description: str = ""
 
     def __post_init__(self) -> None:

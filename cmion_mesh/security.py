@@ -20,6 +20,7 @@ What a trusted **embodiment** ``X`` may do (checked by every member on its links
     subscribe to others' public keys                cmion/<mesh>/*/{bb,wm,ev}/**
     query others' public keys                       cmion/<mesh>/*/{bb,wm}/**, cmion/<mesh>/*/rq/embodiment/describe
     migration handshake, as sender X only           cmion/<mesh>/*/rq/migration/*/X
+    migration invitations, as inviter X only        cmion/<mesh>/*/rq/invitation/invite/X
     liveliness queries and subscriptions            cmion/<mesh>/@alive/**, cmion/<mesh>/@competency/**,
                                                     cmion/<mesh>/@custody/**, cmion/<mesh>/@claim/**
 
@@ -141,6 +142,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
             continue
         own = f"{m}/{name}/**"
         handshakes = f"{m}/*/{keys.REQUESTS}/migration/*/{name}"
+        invitations = f"{m}/*/{keys.REQUESTS}/invitation/invite/{name}"
         mine = [
             _rule(f"{name}:own", ["ingress"],
                   ["put", "delete", "declare_queryable", "reply", "declare_subscriber", "query"], [own]),
@@ -149,6 +151,8 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
             _rule(f"{name}:handshakes", ["ingress"], ["query"], [handshakes]),
             _rule(f"{name}:send-own", ["egress"], ["put", "delete", "query", "reply"], [own]),
             _rule(f"{name}:send-handshake-replies", ["egress"], ["reply"], [handshakes]),
+            _rule(f"{name}:invitations", ["ingress"], ["query"], [invitations]),
+            _rule(f"{name}:send-invitation-replies", ["egress"], ["reply"], [invitations]),
         ]
         rules.extend(mine)
         policies.append({"id": f"embodiment:{name}", "rules": shared + [r["id"] for r in mine], "subjects": [subject]})

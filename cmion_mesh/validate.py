@@ -81,6 +81,22 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
     check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=options.remote_types, diagnostics=diagnostics,
                      check_types=arch.library is not None)
     arch.build_components(diagnostics, construct_them=False)
+    if arch.library is not None:
+        from cmion_mesh.devices import embodiment_name, table_for_library
+
+        try:  # the device table its Migration competency names: what ``up`` will read
+            embodiment_name(table_for_library(arch.library), arch)
+        except ConfigError as exc:
+            diagnostics.problem(exc)
+
+
+def _migrationconfig(path: str, diagnostics: Diagnostics, options: Options) -> None:
+    from cmion_mesh.devices import load_device_table
+
+    try:
+        load_device_table(path)
+    except ConfigError as exc:
+        diagnostics.problem(exc)
 
 
 #: Root element -> the schema and the semantic check run after the schema passed.
@@ -89,6 +105,7 @@ KINDS: dict[str, Kind] = {
     "CompetencyLibrary": Kind("CompetencyLibrary.xsd", _library),
     "CompetencyManagerRules": Kind("CompetencyManagerRules.xsd", _rules),
     "ArchitectureConfiguration": Kind("ArchitectureConfiguration.xsd", _architecture),
+    "migrationconfig": Kind("MigrationConfig.xsd", _migrationconfig),
 }
 
 

@@ -52,6 +52,7 @@ from cmion_mesh.messages import (
     Describe,
     Event,
     ExecutionStatus,
+    Invite,
     Message,
     Migrate,
     MigrateAbort,
@@ -65,6 +66,7 @@ from cmion_mesh.messages import (
     RemoveContainer,
     RemoveProperty,
     RunEnded,
+    SendInvitations,
     SetPolicy,
     SetProperty,
     Sleep,
@@ -180,6 +182,8 @@ SAMPLES: list[Message] = [
     MigrateAbort("spirit", 3, "a1b2"),
     MigrateStatus("spirit", "a1b2", 3, "target"),
     SetPolicy(["robot", "screen"]),
+    Invite("screen"),
+    SendInvitations(["robot"]),
 ]
 MESSAGE_TYPES = sorted(
     (c for c in vars(messages).values()

@@ -385,6 +385,11 @@ def test_acl_generator(pki: Pki) -> None:
     assert may("robot", "reply", "cmion/m/robot/rq/migration/prepare/phone")
     assert may("phone", "reply", "cmion/m/robot/rq/migration/prepare/phone", flow="egress")  # the answer goes back to phone
     assert not may("screen", "reply", "cmion/m/robot/rq/migration/prepare/phone", flow="egress")
+    # invitations: per inviter, like the handshake
+    assert may("phone", "query", "cmion/m/robot/rq/invitation/invite/phone")
+    assert not may("phone", "query", "cmion/m/robot/rq/invitation/invite/screen")
+    assert not may("phone", "query", "cmion/m/robot/rq/invitation/send")
+    assert may("phone", "reply", "cmion/m/robot/rq/invitation/invite/phone", flow="egress")
     # what members are sent: public data, their own keys
     assert may("screen", "put", "cmion/m/robot/ev/bb/PropertyChanged", flow="egress")
     assert not may("screen", "query", "cmion/m/robot/rq/bb/set_property", flow="egress")

@@ -1,0 +1,228 @@
+"""Device tables: CMION's ``migrationconfig`` files, read as who this embodiment is and whom it knows.
+
+::
+
+    <migrationconfig>
+      <configuration>
+        <devicename value="A"/>          <!-- this embodiment's name -->
+        <listenport value="34871"/>      <!-- a zenoh listen endpoint -->
+        <inviteport value="34872"/>      <!-- read, not used: invitations travel on the mesh -->
+        <agent active="true"/>           <!-- the companion is born here -->
+      </configuration>
+      <devices>
+        <device name="B" host="localhost" port="34873" inviteport="34874"/>
+      </devices>
+    </migrationconfig>
+
+CMION found the file through the Migration competency's ``ConstructorParameters`` in the
+competency library (``table_for_library``); the name is relative to the library's folder, and an
+Android raw-resource name without ``.xml`` (``migrationconfig``) means ``<name>.xml``.
+
+What each part becomes (``docs/invitations.md`` says it for users):
+
+* ``devicename`` is the embodiment's name;
+* each device's ``host:port`` is a zenoh **connect** endpoint ``tcp/<host>:<port>``; discovery
+  (multicast scouting, unless turned off) still finds embodiments the table does not list;
+* ``listenport`` is a **listen** endpoint: on loopback (``tcp/127.0.0.1:<port>``) when every
+  device the table lists is on loopback (a one-machine setup, as CMION's own sample files), else
+  on all interfaces (``tcp/0.0.0.0:<port>``), as CMION's server socket listened;
+* ``agent active="true"``: the companion is born here on the first start (if no live embodiment
+  of the mesh hosts it already);
+* the devices are the embodiments this one accepts invitations from (``invitation``) and sends
+  its own to.
+
+Options given on the command line win over the table (``--name``, ``--connect``, ``--listen``,
+``--companion``).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from cmion_mesh import keys, xmlsafe
+from cmion_mesh.architecture import Architecture
+from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.transport import TransportConfig
+
+SCHEMA = "MigrationConfig.xsd"
+#: Competency classes whose first constructor parameter names a device table: CMION's Java
+#: names and our own class. (A port map may map more Java names to our class; these are the ones
+#: that, named in a library, make its first parameter a device table.)
+MIGRATION_CLASSES = frozenset({
+    "cmion.level2.competencies.Migration",
+    "cmion.level2.competencies.AndroidMigration",
+    "cmion_mesh.migration:MigrationCompetency",
+    "cmion_mesh.migration.MigrationCompetency",
+})
+#: Android's migration competency named its table as a raw resource: no folder, no ``.xml``.
+ANDROID_MIGRATION = "cmion.level2.competencies.AndroidMigration"
+#: The companion an active ``agent`` gives birth to, when the configuration names none (CMION had one
+#: agent per device table and no name for it; every table of one deployment must agree on it).
+DEFAULT_COMPANION = "companion"
+LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback"})
+
+
+@dataclass(frozen=True, slots=True)
+class Device:
+    """An embodiment the table knows."""
+
+    name: str
+    host: str
+    port: int
+    invite_port: int | None
+    line: int | None
+
+    @property
+    def endpoint(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host and not self.host.startswith("[") else self.host
+        return f"tcp/{host}:{self.port}"
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceTable:
+    path: Path
+    name: str | None  # devicename (None when absent or empty)
+    listen_port: int
+    invite_port: int | None
+    born_here: bool  # agent active="true"
+    devices: tuple[Device, ...]
+
+    def knows(self, embodiment: str) -> bool:
+        return any(d.name == embodiment for d in self.devices)
+
+    @property
+    def names(self) -> list[str]:
+        return [d.name for d in self.devices]
+
+    def connect_endpoints(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(d.endpoint for d in self.devices))
+
+    def listen_endpoints(self) -> tuple[str, ...]:
+        local = bool(self.devices) and all(is_loopback(d.host) for d in self.devices)
+        return (f"tcp/{'127.0.0.1' if local else '0.0.0.0'}:{self.listen_port}",)
+
+
+def is_loopback(host: str) -> bool:
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _int(value: str | None) -> int | None:
+    """A port the schema already checked; ``None`` when absent or CMION's ``-1`` (none)."""
+    if value is None:
+        return None
+    number = int(value)
+    return number if number > 0 else None
+
+
+def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
+    """Read and check a ``migrationconfig`` file; ``ConfigError`` naming file and line otherwise."""
+    name = os.fspath(path)
+    root = xmlsafe.load(name, SCHEMA).getroot()
+    config = root.find("configuration")
+    assert config is not None  # the schema requires it
+    listen = config.find("listenport")
+    agent = config.find("agent")
+    assert listen is not None and agent is not None
+    devicename = config.find("devicename")
+    embodiment = devicename.get("value", "") if devicename is not None else ""
+    if embodiment:
+        _check(embodiment, "devicename", name, xmlsafe.sourceline(devicename))
+    invite = config.find("inviteport")
+    devices: list[Device] = []
+    seen: dict[str, int | None] = {}
+    devices_el = root.find("devices")
+    assert devices_el is not None
+    for el in devices_el.iter("device"):
+        line = xmlsafe.sourceline(el)
+        device = _check(el.get("name", ""), "device name", name, line)
+        if device in seen:
+            raise ConfigError(f"device {device!r} is listed twice (first at line {seen[device]})", path=name, line=line)
+        if device == embodiment:
+            raise ConfigError(f"device {device!r} is this embodiment's own devicename", path=name, line=line)
+        seen[device] = line
+        port = _int(el.get("port"))
+        assert port is not None
+        devices.append(Device(device, el.get("host", "").strip(), port, _int(el.get("inviteport")), line))
+    listen_port = _int(listen.get("value"))
+    assert listen_port is not None
+    return DeviceTable(Path(name), embodiment or None, listen_port, _int(invite.get("value")) if invite is not None else None,
+                       agent.get("active", "").lower() == "true", tuple(devices))
+
+
+def _check(value: str, what: str, path: str, line: int | None) -> str:
+    try:
+        return keys.check_name(value, what)
+    except InvalidName as exc:
+        raise ConfigError(str(exc), path=path, line=line) from None
+
+
+def is_migration_class(class_name: str) -> bool:
+    return class_name.strip() in MIGRATION_CLASSES
+
+
+def resolve_table(library: str | os.PathLike[str], parameter: str, class_name: str = "") -> Path:
+    """Where a Migration competency's parameter points: relative to the library's folder; an
+    Android raw-resource name (no suffix) is ``<name>.xml``."""
+    base = Path(library).resolve().parent
+    candidate = base / parameter
+    if not candidate.suffix and (class_name.strip() == ANDROID_MIGRATION or not candidate.exists()):
+        candidate = candidate.with_name(candidate.name + ".xml")
+    return candidate
+
+
+def table_for_library(library: str | os.PathLike[str]) -> DeviceTable | None:
+    """The device table the library's Migration competency names, or None when it names none.
+    ``ConfigError`` at the library's line if the table is missing or invalid, or if two
+    Migration competencies name different tables."""
+    from cmion_mesh.competency import read_library  # competency imports the mesh client: keep this module light
+
+    lib = os.fspath(library)
+    found: tuple[Path, int | None] | None = None
+    for entry in read_library(lib):
+        if not is_migration_class(entry.class_name) or not entry.parameters or not entry.parameters[0]:
+            continue
+        path = resolve_table(lib, entry.parameters[0], entry.class_name)
+        if found is not None and found[0] != path:
+            raise ConfigError(f"two Migration competencies name different device tables ({found[0].name} at line "
+                              f"{found[1]}, {path.name})", path=lib, line=entry.line)
+        if not path.is_file():
+            raise ConfigError(f"device table {entry.parameters[0]!r} not found (looked at {path})", path=lib, line=entry.line)
+        found = (path, entry.line)
+    return load_device_table(found[0]) if found is not None else None
+
+
+def embodiment_name(table: DeviceTable | None, arch: Architecture) -> str:
+    """The table's devicename, else the configuration's name. A configuration that names its
+    embodiment (``Embodiment="..."``, not just its folder's name) differently from the table is a
+    ``ConfigError``: the command line's ``--name`` settles it."""
+    if table is None or table.name is None:
+        return arch.embodiment
+    explicit = arch.embodiment != arch.path.parent.name
+    if explicit and arch.embodiment != table.name:
+        raise ConfigError(f"Embodiment={arch.embodiment!r} but its device table {table.path.name} names this embodiment "
+                          f"{table.name!r} (give --name to choose)", path=str(arch.path), line=arch.line)
+    return table.name
+
+
+def birth(table: DeviceTable | None, configured: str | None) -> str | None:
+    """The companion born here: with a table, ``DEFAULT_COMPANION`` (or the configuration's
+    ``Companion``) when its agent is active, else none; without one, the configuration's."""
+    if table is None:
+        return configured
+    return (configured or DEFAULT_COMPANION) if table.born_here else None
+
+
+def with_table_endpoints(config: TransportConfig, table: DeviceTable | None) -> TransportConfig:
+    """``config`` with the table's connect and listen endpoints where it has none of its own:
+    endpoints given explicitly, or a zenoh configuration file, win over the table's."""
+    if table is None or config.config_file is not None:
+        return config
+    return replace(config, connect=config.connect or table.connect_endpoints(), listen=config.listen or table.listen_endpoints())
