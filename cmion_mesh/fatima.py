@@ -122,7 +122,7 @@ def parse_options(parameters: Sequence[str]) -> Options:
         key = key.lower()
         if not sep:
             if key not in _FLAGS:
-                raise MeshError(f"FAtiMAConnector: unknown option {word!r} (known: {', '.join(_FLAGS)}, port:N, host:ADDR, "
+                raise MeshError(f"unknown option {word!r} of the FAtiMA connector (known: {', '.join(_FLAGS)}, port:N, host:ADDR, "
                                 "name:N, stop-wait:S, state-timeout:S)")
             flags.add(key)
             continue
@@ -146,7 +146,7 @@ def parse_options(parameters: Sequence[str]) -> Options:
             else:
                 raise ValueError("unknown option")
         except ValueError as exc:
-            raise MeshError(f"FAtiMAConnector: option {word!r}: {exc}") from None
+            raise MeshError(f"option {word!r} of the FAtiMA connector: {exc}") from None
     return Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
 
 
@@ -364,7 +364,7 @@ class Link:
                 buffer += chunk
                 while True:
                     end = buffer.find(b"\n", searched)
-                    if end < 0:
+                    if end < 0 or end > MAX_LINE:
                         searched = len(buffer)
                         break
                     raw = bytes(buffer[:end])
@@ -373,7 +373,7 @@ class Link:
                     if raw.endswith(b"\r"):
                         raw = raw[:-1]
                     self._on_line(self, raw.decode("utf-8", errors="replace"))
-                if len(buffer) > MAX_LINE:
+                if len(buffer) > MAX_LINE and buffer.find(b"\n", 0, MAX_LINE + 1) < 0:
                     why = f"sent a line longer than {MAX_LINE} bytes"
                     log.error("FAtiMA mind at %s %s: connection closed", self.peer, why)
                     break
