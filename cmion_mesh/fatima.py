@@ -497,6 +497,7 @@ class FAtiMAConnector(Mind):
         self._accepted: Link | None = None  # the link the listener holds (accept thread, under the lock)
         self._running: dict[str, _Running] = {}
         self._outgoing: _Outgoing | None = None
+        self._given: tuple[Link, str] | None = None  # the mind that gave its state to a migration, and the state
         self._arrival: _Arrival | None = None
         self._held_timers: dict[ActionKey, Timer] = {}
         self._counts = {"actions": 0, "failures": 0, "connections": 0}
@@ -584,6 +585,8 @@ class FAtiMAConnector(Mind):
             timer.cancel()
         self._held_timers.clear()
         self.gate.clear()
+        if self._outgoing is not None and self._outgoing.link is link:
+            self._state_overdue(self._outgoing, f"disconnected ({why}) while its state was asked for")
         if self._arrival is not None and self._arrival.link is link:
             self._unwait_arrival()
             self._arrival.link = None  # kept: set in the next mind that connects
@@ -850,12 +853,14 @@ class FAtiMAConnector(Mind):
             outgoing.asked = True
             outgoing.link.send("CMD GET-STATE")
 
-    def _state_overdue(self, outgoing: _Outgoing) -> None:
+    def _state_overdue(self, outgoing: _Outgoing, why: str = "") -> None:
         if self._outgoing is not outgoing:
             return
         self._outgoing = None
-        reason = (f"the FAtiMA mind {outgoing.link.agent} at {outgoing.link.peer} did not answer GET-STATE within "
-                  f"{self.options.state_timeout:g} s")
+        if outgoing.timer is not None:
+            outgoing.timer.cancel()
+        reason = (f"the FAtiMA mind {outgoing.link.agent} at {outgoing.link.peer} "
+                  f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
         log.error("%s: the migration is abandoned", reason)
         manager = self._migration()
         if manager is not None:
@@ -866,13 +871,18 @@ class FAtiMAConnector(Mind):
         if outgoing is None or outgoing.link is not link:
             log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for: ignored", link.agent, link.peer)
             return
+        if not hex_state or any(c.isspace() for c in hex_state):
+            self._state_overdue(outgoing, "answered GET-STATE with no state (or more than one token)")
+            return
         self._outgoing = None
         if outgoing.timer is not None:
             outgoing.timer.cancel()
+        self._given = (link, hex_state)
         finished = [f"ACTION-FINISHED {link.agent} {action_text(*r.key)}" for r in self._running.values() if r.link is link]
         manager = self._migration()
         if manager is not None:
-            manager.resolve(outgoing.token, {"state": hex_state, "agent": link.agent, "finished": finished})
+            manager.resolve(outgoing.token, {"state": hex_state, "agent": link.agent, "finished": finished,
+                                             "from": self.sim.embodiment})
 
     def state(self) -> dict[str, Any]:
         """A state that arrived and is not yet set in a mind (carried on if the companion leaves first)."""
@@ -881,6 +891,13 @@ class FAtiMAConnector(Mind):
     def restore(self, state: dict[str, Any]) -> None:
         if not self.options.migrating or not isinstance(state.get("state"), str):
             return
+        if state.get("from") == self.sim.embodiment:
+            # Resumed here after a migration failed past its packing: the document holds the state
+            # this embodiment's mind gave, and its Migrate action did not succeed.
+            given = self._given
+            if given is not None and given[0] is self._ready() and given[1] == state["state"]:
+                return  # the mind that gave it is still here, holding it
+            state = {**state, "finished": []}
         self._unwait_arrival()
         self._arrival = _Arrival(dict(state))
         link = self._ready()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -229,3 +230,59 @@ def test_held_retries_are_counted(body: tuple[Embodiment, FAtiMAConnector], monk
     assert link["failures"] == 1 and link["held_retries"] >= 4, link
     value = embodiment.sim.request("manager", "status", ActionStatus("")).result(5).value
     assert value == {"running": []}
+
+
+# --- migrations that fail, on in-memory embodiments --------------------------------------------------
+
+
+@pytest.fixture
+def two(tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
+    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else."""
+    network = MemoryNetwork()
+    mind = FAtiMAConnector("modular migrating port:0 stop-wait:0 state-timeout:2")
+    robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
+                       companion="spirit", components=[mind])
+    kiosk = Embodiment("kiosk", mesh=mesh, transport=MemoryTransport(network, "kiosk"), state_dir=tmp_path / "kiosk",
+                       admit={"someone-else": None})
+    failures: list[Any] = []
+    try:
+        robot.start()
+        kiosk.start()
+        robot.sim.on_event(lambda e: failures.append(e.data), component="migration", event="MigrationFailed")
+        wait_for(lambda: robot.inhabitant == "spirit" and mind.listener is not None and mind.awake, 5, "spirit awake on the robot")
+        yield robot, mind, failures
+    finally:
+        for e in (robot, kiosk):
+            e.close()
+            e.transport.close()
+
+
+def test_a_refused_migration_leaves_the_mind_its_state(two: tuple[Embodiment, FAtiMAConnector, list[Any]]) -> None:
+    robot, mind, failures = two
+    with _peer(mind, state="cafe0123") as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        wait_for(lambda: robot.migration is not None and robot.migration._is_alive("kiosk"), 5, "the robot sees the kiosk")
+        peer.act("Migrate kiosk")
+        peer.wait_for(lambda line: line == "ACTION-FAILED Spirit Migrate kiosk")
+        peer.drop("Migrate kiosk")
+        received = peer.received
+        assert received.index("CMD Stop") < received.index("CMD GET-STATE") < received.index("CMD Start")
+        assert not any(line.startswith("CMD SET-STATE") for line in received), "the mind kept its own state"
+        assert "ACTION-FINISHED Spirit Migrate kiosk" not in received
+        assert failures and "may not enter 'kiosk'" in str(failures[0])
+    assert robot.inhabitant == "spirit" and mind.awake
+
+
+def test_a_mind_leaving_while_asked_for_its_state_ends_the_migration(two: tuple[Embodiment, FAtiMAConnector, list[Any]]) -> None:
+    robot, mind, failures = two
+    with _peer(mind, answer_state=False) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        wait_for(lambda: robot.migration is not None and robot.migration._is_alive("kiosk"), 5, "the robot sees the kiosk")
+        assert robot.migration is not None
+        robot.migration.start("kiosk")
+        peer.wait_for(lambda line: line == "CMD GET-STATE")
+        peer.disconnect()
+        wait_for(lambda: failures, 1.5, "the migration abandoned before the state timeout")
+    assert "disconnected" in str(failures[0]) and robot.inhabitant == "spirit"

@@ -59,6 +59,7 @@ class Peer:
         self._sock: socket.socket | None = None
         self._reader: threading.Thread | None = None
         self._retrying: set[str] = set()
+        self._held_back: set[str] = set()  # retries due while the body had the mind stopped
         self._due: list[tuple[float, int, str]] = []
         self._seq = itertools.count()
         self._closed = False
@@ -170,9 +171,10 @@ class Peer:
             self.running = False
         elif line == "CMD Start":
             self.running = True
-            with self._lock:
-                for action in self._retrying:
+            with self._lock:  # retries that fell due while stopped
+                for action in self._held_back & self._retrying:
                     self._schedule(action, 0.0)
+                self._held_back.clear()
         elif line == "CMD GET-PROPERTIES":
             items = "".join(f"<Property persistent=\"true\" name={quoteattr(f'SELF({k})')} value={quoteattr(v)}/>"
                             for k, _, v in (p.partition(":") for p in self.properties))
@@ -203,7 +205,9 @@ class Peer:
                     self._lock.wait(left)
                     continue
                 heapq.heappop(self._due)
-                if action in self._retrying and self.running and self._sock is not None:
+                if action in self._retrying and not self.running:
+                    self._held_back.add(action)
+                elif action in self._retrying and self._sock is not None:
                     self._lock.release()
                     try:
                         self.send(action)
