@@ -33,6 +33,9 @@ within its hold window does not run the rules again; it is answered ``ACTION-FAI
 counted (``held_retries`` in ``connection()``). The window starts at ``HOLD_FIRST`` seconds and
 doubles with every failed rerun up to ``HOLD_MOST``; a success forgets it.
 
+**Raw messages** (``{"line": ...}`` to ``.../rq/<name>/message``) go to the mind as they are; as the
+daemon stops the mind is sent ``CMD Save`` (FAtiMA compares with ``Save``; CMION's ``SAVE`` was ignored).
+
 **Remote actions** (``RemoteAction`` events, e.g. ``MigrationInvitation <embodiment>``) reach the
 mind as CMION's connector sent them before its last revision: ``ACTION-FINISHED <subject> <action>
 [params]``, FAtiMA's perception of another agent's action (subject ``World`` when the event names
@@ -50,7 +53,6 @@ carried on, should the companion leave first) and set in the next mind that conn
 from __future__ import annotations
 
 import functools
-import itertools
 import logging
 import queue
 import selectors
@@ -86,6 +88,8 @@ HELD_ANSWER_DELAY = 1.0
 #: First and longest hold window of a failed action (seconds): retries within it do not run the rules.
 HOLD_FIRST = 2.0
 HOLD_MOST = 30.0
+#: Sent as the body stops: FAtiMA compares the command with "Save" (CMION sent "SAVE", which it ignored).
+SAVE_COMMAND = "CMD Save"
 #: Failed actions remembered by the gate (the oldest is forgotten beyond).
 MAX_HELD = 1024
 #: Subjects in the semantic memory that CMION did not copy into the world model.
@@ -392,11 +396,14 @@ class Link:
                 self._report(f"cannot write to it: {exc}")
                 return
 
-    def close(self) -> None:
+    def close(self, *, drain: float = 0.0) -> None:
+        """Close; with ``drain``, first give the writer that many seconds to send what is queued."""
         if self._closed.is_set():
             return
         self._closed.set()
         self._out.put(None)
+        if drain and self._writer.ident is not None and self._writer is not threading.current_thread():
+            self._writer.join(drain)
         try:
             self.sock.shutdown(socket.SHUT_RDWR)
         except OSError:
@@ -502,11 +509,14 @@ class FAtiMAConnector(Mind):
         self._held_timers: dict[ActionKey, Timer] = {}
         self._counts = {"actions": 0, "failures": 0, "connections": 0}
         self._closing = False
-        self._connections = itertools.count(1)
+        self._properties_due = False
 
     # --- life cycle (loop) --------------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
+        if not isinstance(sim.components_by_name().get(keys.WORLD_MODEL), Store):
+            log.warning("FAtiMA connector %r runs without the embodiment's world model (outside its daemon?): look-at "
+                        "answers name no properties and the mind does not migrate", self.name)
         sim.on_event(self._migration_event, component="migration")
         self._blackboard(AddContainer("", self.name, "mind"))
         try:
@@ -526,7 +536,9 @@ class FAtiMAConnector(Mind):
         with self._links_lock:
             link, self._accepted = self._accepted, None
         if link is not None:
-            link.close()
+            if link.handshaken and link.open:
+                link.send(SAVE_COMMAND)  # the body stops: the mind keeps what it learnt in its files
+            link.close(drain=2.0)
         self.link = None
 
     def connection(self) -> dict[str, Any]:
@@ -806,6 +818,23 @@ class FAtiMAConnector(Mind):
         link = self._ready()
         if link is not None:
             link.send("CMD Start")
+            self._properties_due = True  # unless on_arrived, which follows a wake on arrival, asks first
+            self.sim.call(functools.partial(self._ask_properties, link))
+
+    def _ask_properties(self, link: Link) -> None:
+        if self._properties_due and link is self._ready():
+            link.send("CMD GET-PROPERTIES")
+        self._properties_due = False
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        """A raw message ``{"line": "..."}`` is sent to the mind as it is (CMION's raw messages)."""
+        line = data.get("line")
+        link = self._ready()
+        if not isinstance(line, str) or "\n" in line or "\r" in line:
+            raise MeshError(f"mind {self.name!r} takes a raw message {{'line': 'one line of text'}}, not {str(data)[:80]}")
+        if link is None:
+            raise MeshError(f"no FAtiMA mind is connected to {self.name!r}")
+        link.send(line)
 
     def on_arrived(self, world_model: dict[str, Any]) -> None:
         arrival = self._arrival
@@ -820,6 +849,7 @@ class FAtiMAConnector(Mind):
         for entity in self._entities(tree):
             self._send_look_at(link, entity, tree)
         link.send("CMD GET-PROPERTIES")
+        self._properties_due = False
 
     def _migration_event(self, event: Event) -> None:
         if event.name == "MigrationStarting":

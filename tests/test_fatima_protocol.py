@@ -28,7 +28,7 @@ from cmion_mesh.fatima import (
     property_changed_line,
 )
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import ActionStatus, AddContainer, SetProperty
+from cmion_mesh.messages import ActionStatus, AddContainer, MindMessage, SetProperty
 from cmion_mesh.rules import load_rules
 from cmion_mesh.testing.fatima_peer import Peer
 from cmion_mesh.testing.wait import wait_for
@@ -175,6 +175,27 @@ def test_port_zero_cancel_remote_action_and_old_form(body: tuple[Embodiment, FAt
         peer.wait_for(lambda line: line == "ACTION-FINISHED screen MigrationInvitation screen")
         assert not any(line.startswith("ACTION-FINISHED Spirit GoTo") for line in peer.received)
         assert embodiment.describe()["mind_connections"]["fatima"]["connected"] is True
+        # CMION's raw messages: a line handed to the mind as it is
+        outcome = embodiment.sim.request("fatima", "message", MindMessage({"line": "CMD Save"})).result(5)
+        assert outcome.status == "accepted", outcome
+        peer.wait_for(lambda line: line == "CMD Save")
+        bad = embodiment.sim.request("fatima", "message", MindMessage({"line": "two\nlines"})).result(5)
+        assert bad.status == "rejected" and "one line of text" in bad.reason
+
+
+def test_the_mind_is_asked_to_save_as_the_body_stops() -> None:
+    mind = FAtiMAConnector("port:0")
+    with MemoryTransport(MemoryNetwork(), "local") as transport:
+        embodiment = Embodiment("robot", transport=transport, components=[mind]).start()
+        try:
+            wait_for(lambda: mind.listener is not None, 5, "listening")
+            with _peer(mind) as peer:
+                peer.connect()
+                peer.wait_for(lambda line: line == "OK")
+                embodiment.close()
+                peer.wait_for(lambda line: line == "CMD Save")
+        finally:
+            embodiment.close()
 
 
 def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture) -> None:
