@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from contextlib import ExitStack
 from pathlib import Path
 
+from bench.actions import _TimedOnce as TimedOnce
 from bench.core import RawGet, open_session
 from bench.daemons import LIBRARY, RULES, Node, stop_and_report
 from bench.harness import StopSignal, interleaved, loopback_config, loopback_endpoint, start_child, stop_child
@@ -76,7 +77,7 @@ class LineSocket:
         self.sock.close()
 
 
-class Echo:
+class Echo(TimedOnce):
     metric = "raw_tcp_echo"
 
     def __init__(self, port: int) -> None:
@@ -86,17 +87,6 @@ class Echo:
         self.line.send("One")
         if self.line.read() != "One":
             raise MeshError("the echo answered something else")
-
-    def contact(self) -> None:
-        self.once()
-
-    def measure(self, count: int) -> list[float]:
-        out = []
-        for _ in range(count):
-            t0 = time.perf_counter()
-            self.once()
-            out.append(time.perf_counter() - t0)
-        return out
 
 
 class Mind(Echo):
