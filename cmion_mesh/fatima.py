@@ -61,7 +61,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -481,7 +481,6 @@ class _Outgoing:
     token: Any
     link: Link
     timer: Timer | None = None
-    asked: bool = False
 
 
 @dataclass
@@ -493,7 +492,6 @@ class _Arrival:
     timer: Timer | None = None
     awake: bool = False
     world: dict[str, Any] | None = None
-    extra: list[str] = field(default_factory=list)
 
 
 class FAtiMAConnector(Mind):
@@ -578,6 +576,9 @@ class FAtiMAConnector(Mind):
             link.close()
 
     def _connected(self, link: Link) -> None:
+        old = self.link
+        if old is not None and old is not link:  # its end was seen by the listener before its report came here
+            self._disconnected(old, "connection lost")
         self.link = link
         self._counts["connections"] += 1
 
@@ -611,7 +612,7 @@ class FAtiMAConnector(Mind):
     # --- lines from the mind (loop) -----------------------------------------------------------------
 
     def _on_line(self, link: Link, line: str) -> None:
-        if link is not self.link or not link.open:
+        if link is not self.link:  # lines read before the mind left are still its lines
             return
         if not link.handshaken:
             self._handshake(link, line)
@@ -885,7 +886,6 @@ class FAtiMAConnector(Mind):
 
     def _ask_state(self, outgoing: _Outgoing) -> None:
         if self._outgoing is outgoing and outgoing.link.open:
-            outgoing.asked = True
             outgoing.link.send("CMD GET-STATE")
 
     def _state_overdue(self, outgoing: _Outgoing, why: str = "") -> None:
