@@ -283,7 +283,7 @@ def test_a_refused_migration_leaves_the_mind_its_state(two: tuple[Embodiment, FA
     with _peer(mind, state="cafe0123") as peer:
         peer.connect()
         peer.wait_for(lambda line: line == "OK")
-        wait_for(lambda: robot.migration is not None and robot.migration._is_alive("kiosk"), 5, "the robot sees the kiosk")
+        wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
         peer.act("Migrate kiosk")
         peer.wait_for(lambda line: line == "ACTION-FAILED Spirit Migrate kiosk")
         peer.drop("Migrate kiosk")
@@ -300,10 +300,20 @@ def test_a_mind_leaving_while_asked_for_its_state_ends_the_migration(two: tuple[
     with _peer(mind, answer_state=False) as peer:
         peer.connect()
         peer.wait_for(lambda line: line == "OK")
-        wait_for(lambda: robot.migration is not None and robot.migration._is_alive("kiosk"), 5, "the robot sees the kiosk")
+        wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
         assert robot.migration is not None
         robot.migration.start("kiosk")
         peer.wait_for(lambda line: line == "CMD GET-STATE")
         peer.disconnect()
         wait_for(lambda: failures, 1.5, "the migration abandoned before the state timeout")
     assert "disconnected" in str(failures[0]) and robot.inhabitant == "spirit"
+
+
+def test_the_stand_in_reads_its_options() -> None:
+    from cmion_mesh.testing import fatima_peer
+
+    args = fatima_peer.parse_args(["--port", "5", "--prop", "a:1", "--prop", "b:2", "--mute-state", "--retry-interval", "0.5"])
+    assert (args.port, args.prop, args.mute_state, args.retry_interval, args.host) == (5, ["a:1", "b:2"], True, 0.5, "127.0.0.1")
+    for bad in (["--port"], ["--port", "x"], ["--colour", "red"], ["stray"]):
+        with pytest.raises(SystemExit, match=r"usage|not a number"):
+            fatima_peer.parse_args(bad)

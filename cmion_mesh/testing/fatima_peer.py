@@ -23,7 +23,6 @@ connection, and takes commands on standard input, one a line:
 
 from __future__ import annotations
 
-import argparse
 import heapq
 import itertools
 import socket
@@ -32,6 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
 RETRY_INTERVAL = 0.25
@@ -240,19 +240,63 @@ def _print(text: str) -> None:
     sys.stdout.flush()
 
 
+USAGE = """usage: python -m cmion_mesh.testing.fatima_peer [--host H] [--port N] [--agent NAME] [--role ROLE]
+       [--display NAME] [--prop K:V]... [--state-file FILE] [--mute-state] [--retry-interval S] [--connect-timeout S]
+
+--host, --port       where the body listens (default 127.0.0.1, 46874)
+--agent, --role, --display   the handshake's names (default Spirit, TestAgent, Spirit)
+--prop K:V           a property of the handshake; repeatable (default role:TestAgent isTestMind:True)
+--state-file FILE    a file holding the hex state to answer CMD GET-STATE with
+--mute-state         never answer CMD GET-STATE
+--retry-interval S   seconds between retries of a failed action (default 0.25)
+--connect-timeout S  how long to try connecting (default 10)"""
+
+
+@dataclass
+class PeerArgs:
+    host: str = "127.0.0.1"
+    port: int = 46874
+    agent: str = "Spirit"
+    role: str = "TestAgent"
+    display: str = "Spirit"
+    prop: list[str] | None = None
+    state_file: str = ""
+    mute_state: bool = False
+    retry_interval: float = RETRY_INTERVAL
+    connect_timeout: float = 10.0
+
+
+def parse_args(argv: Sequence[str]) -> PeerArgs:
+    """The few options of the stand-in (a standalone program: no command-line library of the package)."""
+    args = PeerArgs()
+    words = list(argv)
+    while words:
+        option = words.pop(0)
+        name = option.removeprefix("--").replace("-", "_")
+        if option in ("-h", "--help"):
+            raise SystemExit(USAGE)
+        if name == "mute_state":
+            args.mute_state = True
+            continue
+        if not option.startswith("--") or name not in PeerArgs.__dataclass_fields__ or not words:
+            raise SystemExit(f"bad option {option!r}\n{USAGE}")
+        value = words.pop(0)
+        try:
+            if name == "prop":
+                args.prop = [*(args.prop or []), value]
+            elif name == "port":
+                args.port = int(value)
+            elif name in ("retry_interval", "connect_timeout"):
+                setattr(args, name, float(value))
+            else:
+                setattr(args, name, value)
+        except ValueError:
+            raise SystemExit(f"{option}: not a number: {value!r}") from None
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m cmion_mesh.testing.fatima_peer", description=__doc__.split("\n")[0])
-    parser.add_argument("--host", default="127.0.0.1", help="where the body listens (default: %(default)s)")
-    parser.add_argument("--port", type=int, default=46874, help="its port (default: %(default)s)")
-    parser.add_argument("--agent", default="Spirit", help="the agent's name (default: %(default)s)")
-    parser.add_argument("--role", default="TestAgent", help="its role (default: %(default)s)")
-    parser.add_argument("--display", default="Spirit", help="its display name (default: %(default)s)")
-    parser.add_argument("--prop", action="append", default=None, metavar="K:V", help="a property of the handshake; repeatable")
-    parser.add_argument("--state-file", help="a file holding the hex state to answer CMD GET-STATE with")
-    parser.add_argument("--mute-state", action="store_true", help="never answer CMD GET-STATE")
-    parser.add_argument("--retry-interval", type=float, default=RETRY_INTERVAL, help="seconds between retries (default: %(default)s)")
-    parser.add_argument("--connect-timeout", type=float, default=10.0, help="how long to try connecting (default: %(default)s s)")
-    args = parser.parse_args(argv)
+    args = parse_args(sys.argv[1:] if argv is None else argv)
     state = ""
     if args.state_file:
         with open(args.state_file, encoding="ascii") as f:
