@@ -136,6 +136,12 @@ BENCHMARKS: list[Benchmark] = [
         "mind action -> succeeded, one-step and four-step plans, in the daemon and from another process",
     ),
     Benchmark(
+        "mindproto",
+        "bench.mindproto:run",
+        ("mindproto",),
+        "FAtiMA line protocol: action line -> ACTION-FINISHED (one-step plan) vs a raw TCP echo, beside CMION's ~200 ms",
+    ),
+    Benchmark(
         "discovery",
         "bench.discovery:run",
         ("discovery",),

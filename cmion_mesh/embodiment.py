@@ -250,6 +250,7 @@ class Embodiment:
             "competencies": [c.name for c in self.execution.competencies],
             "actions": self.rules.actions(),
             "minds": [m.name for m in self.minds],
+            "mind_connections": {m.name: link for m in self.minds if (link := m.connection()) is not None},
             "inhabitant": self.inhabitant,
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,

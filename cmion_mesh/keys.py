@@ -52,6 +52,11 @@ def check_name(name: str, what: str = "name") -> str:
     return _refuse(name, what)
 
 
+def is_name(name: str) -> bool:
+    """Whether ``check_name`` accepts ``name`` (for input that is skipped, not refused, when invalid)."""
+    return isinstance(name, str) and _VALID_NAME.fullmatch(name) is not None
+
+
 def _refuse(name: str, what: str) -> str:
     """The slow path of ``check_name``: raise ``InvalidName`` saying what is wrong with ``name``."""
     if not isinstance(name, str):

@@ -477,6 +477,16 @@ class MigrationManager(Component):
         if out is not None and out.attempt == token.attempt:
             self._contribute(token.component, data)
 
+    def refuse(self, token: WaitToken, reason: str) -> None:
+        """End a wait by abandoning the migration: the component cannot give its section (its
+        reason is the migration's). Thread-safe. Sooner and clearer than the section deadline."""
+        self._post(self._refuse, token, reason)
+
+    def _refuse(self, token: WaitToken, reason: str) -> None:
+        out = self._outgoing
+        if out is not None and out.attempt == token.attempt and not out.packed:
+            self._abandon(out, f"{token.component}: {reason}")
+
     def _section_deadline(self, out: _Outgoing) -> None:
         if self._outgoing is out and not out.packed:
             self._abandon(out, f"components {sorted(out.waits)} did not give their sections within {self.section_deadline:g} s")

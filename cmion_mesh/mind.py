@@ -175,6 +175,11 @@ class Mind(Component):
         """The companion (re)started on this embodiment, its state restored and the mind awake:
         replace embodiment-specific knowledge with this world model (``Store.tree()`` form)."""
 
+    def connection(self) -> dict[str, Any] | None:
+        """How a mind outside this process is linked to its connector (a socket's peer...), for the
+        embodiment's description; None for a mind that is its own component."""
+        return None
+
     def state(self) -> dict[str, Any]:
         """Plain data that migration carries; minds with memory override this and ``restore``."""
         return {}

@@ -1,0 +1,1003 @@
+"""CMION's agent-mind line protocol: the original LIREC mind (FAtiMA, Java) as a companion's mind.
+
+``FAtiMAConnector`` is a ``Mind`` that listens on TCP (CMION's port 46874 by default, on loopback
+unless told otherwise) for one FAtiMA connection and translates between FAtiMA's lines and the
+embodiment: FAtiMA's actions go to the competency manager's rules, the world model's changes go to
+FAtiMA, and around a migration FAtiMA's whole state (an opaque hex string) travels in the
+companion's identity document. Name it in an ArchitectureConfiguration as CMION did::
+
+    <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector"
+                           ConstructorParameters="modular persistent migrating"/>
+
+**Options** (words of the constructor parameters, separated by spaces or commas, any order):
+CMION's ``modular`` (FAtiMA-Modular: ``PROPERTY-CHANGED * e(p) v``; without it the old
+``PROPERTY-CHANGED e(p) v``), ``persistent`` (``PROPERTY-CHANGED-PERSISTENT``/``-NONPERSISTENT``
+with ``modular``, and ``P:``/``NP:`` pairs in ``LOOK-AT``), ``migrating`` (the mind's state
+migrates) and ``sleeping`` (accepted; the migration manager decides when the mind sleeps). Our
+extensions: ``port:N`` (default 46874; ``port:0`` takes a free port, written to the blackboard as
+``<name>/port``), ``host:ADDR`` (default 127.0.0.1; ``host:0.0.0.0`` for every interface),
+``name:N`` (the component's name, default ``fatima``), ``stop-wait:S`` (seconds between ``CMD Stop``
+and ``CMD GET-STATE``, default 0.5; CMION waited 2) and ``state-timeout:S`` (how long FAtiMA may
+take to answer ``GET-STATE``/``SET-STATE``, default 4). An unknown word is a configuration error.
+
+**Connections.** One mind at a time: while one is connected, another connection is refused
+(closed at once, with a warning naming both peers); when the connected mind's socket closes, the
+next connection is accepted. Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at most
+``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer). Sockets are
+read and written by threads of their own: the update loop never waits for the mind.
+
+**No storm on failure.** FAtiMA retries a failed action about every 250 ms, forever. An action
+that failed is held (``FailureGate``): a retry of the identical action (same name and parameters)
+within its hold window does not run the rules again; it is answered ``ACTION-FAILED`` after
+``HELD_ANSWER_DELAY`` seconds (so the mind retries about once a second, not four times), and
+counted (``held_retries`` in ``connection()``). The window starts at ``HOLD_FIRST`` seconds and
+doubles with every failed rerun up to ``HOLD_MOST``; a success forgets it.
+
+**Raw messages** (``{"line": ...}`` to ``.../rq/<name>/message``) go to the mind as they are; as the
+daemon stops the mind is sent ``CMD Save`` (FAtiMA compares with ``Save``; CMION's ``SAVE`` was ignored).
+
+**Remote actions** (``RemoteAction`` events, e.g. ``MigrationInvitation <embodiment>``) reach the
+mind as CMION's connector sent them before its last revision: ``ACTION-FINISHED <subject> <action>
+[params]``, FAtiMA's perception of another agent's action (subject ``World`` when the event names
+none). CMION's last revision sent ``CMD GET-PROPERTIES`` instead, so the mind never heard of them.
+
+**Migration** (option ``migrating``): see ``docs/fatima.md``. The source stops the mind, asks for
+its state and puts the hex into the mind's section unchanged; if the mind does not answer within
+``state-timeout`` the migration is abandoned (the mind is woken: ``CMD Start``). The target sends
+``CMD SET-STATE``, waits for ``STATE-SET``, then ``CMD Start``, ``ACTION-FINISHED`` for the actions
+that were running when the companion left (as CMION's ``successMsg``), a ``LOOK-AT`` per entity and
+``CMD GET-PROPERTIES``. With no mind connected when the companion arrives, the state is kept (and
+carried on, should the companion leave first) and set in the next mind that connects.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import queue
+import selectors
+import socket
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from cmion_mesh import keys, xmlsafe
+from cmion_mesh.errors import MeshError, ProtocolError, XmlError
+from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
+from cmion_mesh.migration import MigrationManager
+from cmion_mesh.mind import Mind
+from cmion_mesh.rules import MindAction
+from cmion_mesh.storage import Store
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 46874
+DEFAULT_HOST = "127.0.0.1"
+#: Longest line accepted from the mind (a STATE line of CMION's minds is 34-46 k characters).
+MAX_LINE = 16 * 1024 * 1024
+#: A write the mind does not take within this many seconds closes the connection.
+SEND_TIMEOUT = 30.0
+#: Seconds before a held retry of a failed action is answered ``ACTION-FAILED``.
+HELD_ANSWER_DELAY = 1.0
+#: First and longest hold window of a failed action (seconds): retries within it do not run the rules.
+HOLD_FIRST = 2.0
+HOLD_MOST = 30.0
+#: Sent as the body stops: FAtiMA compares the command with "Save" (CMION sent "SAVE", which it ignored).
+SAVE_COMMAND = "CMD Save"
+#: Failed actions remembered by the gate (the oldest is forgotten beyond).
+MAX_HELD = 1024
+#: Subjects in the semantic memory that CMION did not copy into the world model.
+_NOT_ENTITIES = frozenset({"ProbBias", "IOS", "IOF", "ActionContext", ""})
+_READ_CHUNK = 256 * 1024
+
+ActionKey = tuple[str, tuple[str, ...]]
+
+
+# --- options ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Options:
+    modular: bool = False
+    persistent: bool = False
+    migrating: bool = False
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    name: str = "fatima"
+    stop_wait: float = 0.5
+    state_timeout: float = 4.0
+
+
+_FLAGS = ("modular", "persistent", "migrating", "sleeping")
+
+
+def parse_options(parameters: Sequence[str]) -> Options:
+    """CMION's option words plus our ``key:value`` extensions; ``MeshError`` naming a bad word."""
+    flags: set[str] = set()
+    values: dict[str, Any] = {}
+    for word in " ".join(parameters).replace(",", " ").split():
+        key, sep, raw = word.partition(":")
+        key = key.lower()
+        if not sep:
+            if key not in _FLAGS:
+                raise MeshError(f"unknown option {word!r} of the FAtiMA connector (known: {', '.join(_FLAGS)}, port:N, host:ADDR, "
+                                "name:N, stop-wait:S, state-timeout:S)")
+            flags.add(key)
+            continue
+        try:
+            if key == "port":
+                port = int(raw)
+                if not 0 <= port <= 65535:
+                    raise ValueError("not a TCP port")
+                values["port"] = port
+            elif key == "host":
+                if not raw:
+                    raise ValueError("empty")
+                values["host"] = raw
+            elif key == "name":
+                values["name"] = keys.check_name(raw, "component")
+            elif key in ("stop-wait", "state-timeout"):
+                seconds = float(raw)
+                if not 0.0 <= seconds <= 600.0:
+                    raise ValueError("not a number of seconds from 0 to 600")
+                values[key.replace("-", "_")] = seconds
+            else:
+                raise ValueError("unknown option")
+        except ValueError as exc:
+            raise MeshError(f"option {word!r} of the FAtiMA connector: {exc}") from None
+    return Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
+
+
+# --- the protocol's lines (pure functions) ---------------------------------------------------------
+
+
+def format_value(value: Any) -> str:
+    """A world-model value as CMION wrote it: ``True``/``False`` for booleans, JSON for structures;
+    never a line break (a value must not end the line)."""
+    if isinstance(value, bool):
+        text = "True" if value else "False"
+    elif value is None:
+        text = "null"
+    elif isinstance(value, str):
+        text = value
+    elif isinstance(value, (int, float)):
+        text = repr(value)
+    else:
+        text = msgspec.json.encode(value).decode()
+    return text.replace("\r", " ").replace("\n", " ") if ("\n" in text or "\r" in text) else text
+
+
+def _token(text: str) -> str:
+    """One space-free token (``LOOK-AT`` pairs are split on spaces by the mind)."""
+    return "_".join(text.split()) if any(c.isspace() for c in text) else text
+
+
+def action_text(name: str, parameters: Iterable[str]) -> str:
+    return " ".join((name, *parameters))
+
+
+def property_changed_line(entity: str, name: str, value: Any, persistent: bool, options: Options) -> str:
+    if not options.modular:
+        return f"PROPERTY-CHANGED {entity}({name}) {format_value(value)}"
+    command = "PROPERTY-CHANGED"
+    if options.persistent:
+        command += "-PERSISTENT" if persistent else "-NONPERSISTENT"
+    return f"{command} * {entity}({name}) {format_value(value)}"
+
+
+def look_at_line(entity: str, properties: Mapping[str, Any], persistent_pairs: bool) -> str:
+    """``LOOK-AT e p:v ...`` from a ``Store.tree`` node's ``properties`` ({name: {value, persistent}})."""
+    parts = [f"LOOK-AT {entity}"]
+    for name, prop in properties.items():
+        value = prop.get("value") if isinstance(prop, Mapping) else prop
+        mark = ("P:" if isinstance(prop, Mapping) and prop.get("persistent") else "NP:") if persistent_pairs else ""
+        parts.append(f"{mark}{_token(name)}:{_token(format_value(value))}")
+    return " ".join(parts)
+
+
+@dataclass(frozen=True)
+class Handshake:
+    agent: str
+    role: str
+    display_name: str
+    properties: dict[str, str]
+
+
+def parse_handshake(line: str) -> Handshake:
+    """``<agentName> <role> <displayName> k:v ...``; ``ProtocolError`` if it is not one."""
+    tokens = line.split()
+    if len(tokens) < 3:
+        raise ProtocolError(f"the first line must be '<agentName> <role> <displayName> k:v ...', got {line[:120]!r}")
+    properties: dict[str, str] = {}
+    for pair in tokens[3:]:
+        name, sep, value = pair.partition(":")
+        if sep and name:
+            properties[name] = value
+    return Handshake(tokens[0], tokens[1], tokens[2], properties)
+
+
+def parse_emotional_state(line: str, where: str) -> dict[str, Any]:
+    """``{"mood": float or text, "emotions": [attributes of each Emotion element]}``; ``XmlError``."""
+    root = xmlsafe.loads(line.encode("utf-8"), None, name=where, max_bytes=MAX_LINE).getroot()
+    mood_text = root.findtext("Mood")
+    mood: Any = None
+    if mood_text is not None:
+        try:
+            mood = float(mood_text)
+        except ValueError:
+            mood = mood_text.strip()
+    emotions = [dict(el.attrib) for el in root.iter("Emotion")]
+    return {"mood": mood, "emotions": emotions}
+
+
+def parse_semantic_memory(line: str, agent: str, where: str) -> list[tuple[str, str, str, bool]]:
+    """``(entity, property, value, persistent)`` of each ``<Property name="E(p)" .../>``, ``SELF``
+    read as ``agent``, FAtiMA's own bookkeeping (``ProbBias``, ``IOS``, ``IOF``, ``ActionContext``)
+    left out, as CMION did; ``XmlError`` if the line is not XML."""
+    root = xmlsafe.loads(line.encode("utf-8"), None, name=where, max_bytes=MAX_LINE).getroot()
+    found = []
+    for el in root.iter("Property"):
+        full = el.get("name", "")
+        owner, sep, rest = full.partition("(")
+        if not sep or not rest.endswith(")") or owner in _NOT_ENTITIES:
+            continue
+        found.append((agent if owner == "SELF" else owner, rest[:-1], el.get("value", ""),
+                      el.get("persistent", "false").strip().lower() == "true"))
+    return found
+
+
+# --- the back-off of failed actions ------------------------------------------------------------------
+
+
+@dataclass
+class HeldFailure:
+    reason: str
+    failed_at: float
+    hold: float
+    retries: int = 0  # retries answered from the hold since the last run
+    answering: bool = False  # a held answer is scheduled
+
+
+class FailureGate:
+    """Which failed actions are held, and for how long (see the module's docstring)."""
+
+    def __init__(self, first: float = HOLD_FIRST, most: float = HOLD_MOST, clock: Callable[[], float] = time.monotonic) -> None:
+        self.first = first
+        self.most = most
+        self.clock = clock
+        self._held: OrderedDict[ActionKey, HeldFailure] = OrderedDict()
+        self.held_retries = 0  # in total
+
+    def held(self, key: ActionKey) -> HeldFailure | None:
+        """The failure to answer from, if ``key`` failed within its hold window (counts the retry)."""
+        failure = self._held.get(key)
+        if failure is None or self.clock() - failure.failed_at >= failure.hold:
+            return None
+        failure.retries += 1
+        self.held_retries += 1
+        return failure
+
+    def failed(self, key: ActionKey, reason: str) -> HeldFailure:
+        previous = self._held.pop(key, None)
+        hold = self.first if previous is None else min(self.most, previous.hold * 2)
+        failure = HeldFailure(reason, self.clock(), hold)
+        self._held[key] = failure
+        while len(self._held) > MAX_HELD:
+            self._held.popitem(last=False)
+        return failure
+
+    def get(self, key: ActionKey) -> HeldFailure | None:
+        return self._held.get(key)
+
+    def succeeded(self, key: ActionKey) -> None:
+        self._held.pop(key, None)
+
+    def clear(self) -> None:
+        self._held.clear()
+
+
+# --- sockets -----------------------------------------------------------------------------------------
+
+
+def _peer_name(address: Any) -> str:
+    if isinstance(address, tuple) and len(address) >= 2:
+        return f"{address[0]}:{address[1]}"
+    return str(address)
+
+
+class Link:
+    """One mind connection: a reader thread handing lines on, a writer thread sending queued lines."""
+
+    def __init__(self, sock: socket.socket, peer: str, on_line: Callable[[Link, str], None],
+                 on_closed: Callable[[Link, str], None]) -> None:
+        self.sock = sock
+        self.peer = peer
+        self.agent = ""
+        self.handshaken = False
+        self.connected_at = time.time()
+        self._on_line = on_line
+        self._on_closed = on_closed
+        self._out: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        self._closed = threading.Event()
+        self._dead = threading.Event()  # the reader or writer found the connection gone
+        self._reported = threading.Lock()
+        self._told = False
+        sock.settimeout(SEND_TIMEOUT)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        # A mind whose host froze or vanished is noticed in about 25 s (not the system's 2 hours),
+        # so that the next connection is not refused for long.
+        for option, value in (("TCP_KEEPIDLE", 10), ("TCP_KEEPINTVL", 5), ("TCP_KEEPCNT", 3)):
+            if hasattr(socket, option):
+                sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, option), value)
+        self._reader = threading.Thread(target=self._read, name=f"fatima-read-{peer}", daemon=True)
+        self._writer = threading.Thread(target=self._write, name=f"fatima-write-{peer}", daemon=True)
+
+    def start(self) -> None:
+        self._reader.start()
+        self._writer.start()
+
+    @property
+    def open(self) -> bool:
+        return not (self._closed.is_set() or self._dead.is_set())
+
+    def send(self, line: str) -> None:
+        if not self._closed.is_set():
+            self._out.put(line.encode("utf-8") + b"\n")
+
+    def _report(self, why: str) -> None:
+        self._dead.set()
+        with self._reported:
+            if self._told:
+                return
+            self._told = True
+        self._on_closed(self, why)
+
+    def _read(self) -> None:
+        buffer = bytearray()
+        searched = 0
+        why = "closed by the mind"
+        try:
+            while not self._closed.is_set():
+                try:
+                    chunk = self.sock.recv(_READ_CHUNK)
+                except TimeoutError:
+                    continue  # the timeout is there for sends; a quiet mind is no fault
+                if not chunk:
+                    break
+                buffer += chunk
+                while True:
+                    end = buffer.find(b"\n", searched)
+                    if end < 0 or end > MAX_LINE:
+                        searched = len(buffer)
+                        break
+                    raw = bytes(buffer[:end])
+                    del buffer[: end + 1]
+                    searched = 0
+                    if raw.endswith(b"\r"):
+                        raw = raw[:-1]
+                    self._on_line(self, raw.decode("utf-8", errors="replace"))
+                if len(buffer) > MAX_LINE and buffer.find(b"\n", 0, MAX_LINE + 1) < 0:
+                    why = f"sent a line longer than {MAX_LINE} bytes"
+                    log.error("FAtiMA mind at %s %s: connection closed", self.peer, why)
+                    break
+        except OSError as exc:
+            why = f"connection lost: {exc}"
+        self._report(why)
+
+    def _write(self) -> None:
+        while True:
+            data = self._out.get()
+            if data is None:
+                return
+            try:
+                self.sock.sendall(data)
+            except OSError as exc:
+                self._report(f"cannot write to it: {exc}")
+                return
+
+    def close(self, *, drain: float = 0.0) -> None:
+        """Close; with ``drain``, first give the writer that many seconds to send what is queued."""
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        self._out.put(None)
+        if drain and self._writer.ident is not None and self._writer is not threading.current_thread():
+            self._writer.join(drain)
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass  # already disconnected
+        for thread in (self._reader, self._writer):
+            if thread.ident is not None and thread is not threading.current_thread():
+                thread.join(SEND_TIMEOUT)
+        self.sock.close()
+
+
+class Listener:
+    """The TCP server: a thread accepting connections and handing each socket on."""
+
+    def __init__(self, host: str, port: int, on_accept: Callable[[socket.socket, str], None]) -> None:
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self.sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self.sock.bind((host, port))
+            self.sock.listen(4)
+        except OSError as exc:
+            self.sock.close()
+            raise MeshError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        self.address = _peer_name(self.sock.getsockname())
+        self.port: int = self.sock.getsockname()[1]
+        self._on_accept = on_accept
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"fatima-listen-{self.port}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.sock, selectors.EVENT_READ)
+            selector.register(self._wake_r, selectors.EVENT_READ)
+            while not self._stop.is_set():
+                for key, _ in selector.select():
+                    if key.fileobj is self._wake_r or self._stop.is_set():
+                        return
+                    try:
+                        conn, address = self.sock.accept()
+                    except OSError as exc:
+                        log.warning("FAtiMA listener on %s: accept failed: %s", self.address, exc)
+                        continue
+                    self._on_accept(conn, _peer_name(address))
+
+    def close(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._wake_w.send(b"x")
+        self._thread.join(10.0)
+        for s in (self.sock, self._wake_r, self._wake_w):
+            s.close()
+
+
+# --- the connector -----------------------------------------------------------------------------------
+
+
+@dataclass
+class _Running:
+    key: ActionKey
+    link: Link
+
+
+@dataclass
+class _Outgoing:
+    """The source's side of a migration while the mind's state is asked for."""
+
+    token: Any
+    link: Link
+    timer: Timer | None = None
+
+
+@dataclass
+class _Arrival:
+    """The target's side: a state to set in the mind, then its new world to tell it."""
+
+    state: dict[str, Any]
+    link: Link | None = None  # the mind it was sent to, awaiting STATE-SET
+    timer: Timer | None = None
+    awake: bool = False
+    world: dict[str, Any] | None = None
+
+
+class FAtiMAConnector(Mind):
+    """CMION's ``FAtiMAConnector``: the FAtiMA mind over the agent-mind line protocol (see the module)."""
+
+    def __init__(self, *parameters: str) -> None:
+        self.options = parse_options(parameters)
+        super().__init__(self.options.name)
+        self.gate = FailureGate()
+        self.listener: Listener | None = None
+        self.link: Link | None = None  # the connected mind (loop)
+        self._links_lock = threading.Lock()
+        self._accepted: Link | None = None  # the link the listener holds (accept thread, under the lock)
+        self._running: dict[str, _Running] = {}
+        self._outgoing: _Outgoing | None = None
+        self._given: tuple[Link, str] | None = None  # the mind that gave its state to a migration, and the state
+        self._arrival: _Arrival | None = None
+        self._held_timers: dict[ActionKey, Timer] = {}
+        self._counts = {"actions": 0, "failures": 0, "connections": 0}
+        self._closing = False
+        self._properties_due = False
+
+    # --- life cycle (loop) --------------------------------------------------------------------------
+
+    def attach(self, sim: Simulation) -> None:
+        if not isinstance(sim.components_by_name().get(keys.WORLD_MODEL), Store):
+            log.warning("FAtiMA connector %r runs without the embodiment's world model (outside its daemon?): look-at "
+                        "answers name no properties and the mind does not migrate", self.name)
+        sim.on_event(self._migration_event, component="migration")
+        self._blackboard(AddContainer("", self.name, "mind"))
+        try:
+            self.listener = Listener(self.options.host, self.options.port, self._accept)
+        except MeshError as exc:
+            log.error("FAtiMA connector %r: %s: no FAtiMA mind can connect", self.name, exc)
+            self.raise_event("MindServerFailed", {"mind": self.name, "reason": str(exc)})
+        else:
+            self._blackboard(SetProperty(self.name, "port", self.listener.port))
+            self._blackboard(SetProperty(self.name, "connected", False))
+        super().attach(sim)
+
+    def detach(self) -> None:
+        self._closing = True
+        if self.listener is not None:
+            self.listener.close()
+        with self._links_lock:
+            link, self._accepted = self._accepted, None
+        if link is not None:
+            if link.handshaken and link.open:
+                link.send(SAVE_COMMAND)  # the body stops: the mind keeps what it learnt in its files
+            link.close(drain=2.0)
+        self.link = None
+
+    def connection(self) -> dict[str, Any]:
+        """For the embodiment's description: where it listens, which mind is connected, the counts."""
+        link = self.link
+        return {"protocol": "fatima", "listening": self.listener.address if self.listener is not None else None,
+                "connected": link is not None and link.handshaken, "peer": link.peer if link is not None else None,
+                "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries, **self._counts}
+
+    # --- connections (accept thread -> loop) --------------------------------------------------------
+
+    def _accept(self, conn: socket.socket, peer: str) -> None:
+        with self._links_lock:
+            current = self._accepted
+            if current is not None and current.open:
+                log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind "
+                            "at a time)", self.name, peer, current.peer)
+                conn.close()
+                return
+            link = Link(conn, peer, self._line_in, self._closed_in)
+            self._accepted = link
+        if self.sim.post(functools.partial(self._connected, link)):
+            link.start()  # after the loop has it: its lines come after it
+        else:
+            link.close()
+
+    def _line_in(self, link: Link, line: str) -> None:
+        self.sim.post(functools.partial(self._on_line, link, line))
+
+    def _closed_in(self, link: Link, why: str) -> None:
+        if not self.sim.post(functools.partial(self._disconnected, link, why)):
+            link.close()
+
+    def _connected(self, link: Link) -> None:
+        old = self.link
+        if old is not None and old is not link:  # its end was seen by the listener before its report came here
+            self._disconnected(old, "connection lost")
+        self.link = link
+        self._counts["connections"] += 1
+
+    def _disconnected(self, link: Link, why: str) -> None:
+        with self._links_lock:
+            if self._accepted is link:
+                self._accepted = None
+        link.close()
+        if link is not self.link:
+            return
+        self.link = None
+        if self._closing:
+            return
+        log.warning("FAtiMA mind %s at %s disconnected (%s); its %d running action(s) are cancelled",
+                    link.agent or "(before its handshake)", link.peer, why, len(self._running))
+        self.raise_event("MindDisconnected", {"mind": self.name, "agent": link.agent, "peer": link.peer, "reason": why})
+        self._blackboard(SetProperty(self.name, "connected", False))
+        for action_id in list(self._running):
+            self.cancel(action_id)
+        self._running.clear()
+        for timer in self._held_timers.values():
+            timer.cancel()
+        self._held_timers.clear()
+        self.gate.clear()
+        if self._outgoing is not None and self._outgoing.link is link:
+            self._state_overdue(self._outgoing, f"disconnected ({why}) while its state was asked for")
+        if self._arrival is not None and self._arrival.link is link:
+            self._unwait_arrival()
+            self._arrival.link = None  # kept: set in the next mind that connects
+
+    # --- lines from the mind (loop) -----------------------------------------------------------------
+
+    def _on_line(self, link: Link, line: str) -> None:
+        if link is not self.link:  # lines read before the mind left are still its lines
+            return
+        if not link.handshaken:
+            self._handshake(link, line)
+            return
+        head, _, rest = line.strip().partition(" ")
+        where = f"FAtiMA mind {link.agent} at {link.peer}"
+        if head == "look-at":
+            self._look_at(link, rest.split()[0] if rest.split() else "")
+        elif head == "STATE":
+            self._state_received(link, rest.strip())
+        elif head == "STATE-SET":
+            self._state_set(link)
+        elif head == "CANCEL-ACTION":
+            self._cancel_action(rest.split())
+        elif head.startswith("<"):
+            self._xml(link, line.strip(), where)
+        elif head.startswith("PROPERTY-CHANGED") or head == "":
+            pass  # the mind does not change the world by itself (CMION ignored these too)
+        else:
+            self._action(link, head, tuple(rest.split()))
+
+    def _handshake(self, link: Link, line: str) -> None:
+        try:
+            hello = parse_handshake(line)
+            keys.check_name(hello.agent, "agent name")
+        except MeshError as exc:
+            log.error("FAtiMA mind at %s: bad handshake: %s; connection closed", link.peer, exc)
+            self._disconnected(link, f"bad handshake: {exc}")
+            return
+        link.agent = hello.agent
+        link.handshaken = True
+        link.send("OK")
+        # The mind's own properties make it an agent of the world model, as in CMION.
+        self._world(AddContainer("", hello.agent, "agent"))
+        for name, value in hello.properties.items():
+            if keys.is_name(name):
+                self._world(SetProperty(hello.agent, name, value))
+        self.sim.request(keys.BLACKBOARD, "set_property", SetProperty("", "agentName", hello.agent))
+        facts: dict[str, Any] = {"connected": True, "peer": link.peer, "agent": hello.agent, "role": hello.role,
+                                 "display_name": hello.display_name}
+        for fact, value in facts.items():
+            self._blackboard(SetProperty(self.name, fact, value))
+        self.raise_event("MindConnected", {"mind": self.name, "agent": hello.agent, "peer": link.peer, "role": hello.role})
+        if self._arrival is not None and self.options.migrating:
+            self._set_state(link)
+        elif not self.awake:
+            link.send("CMD Stop")
+        else:
+            link.send("CMD GET-PROPERTIES")
+            for entity in self._entities(self._world_tree()):
+                link.send(f"ENTITY-ADDED {entity}")
+
+    def _look_at(self, link: Link, entity: str) -> None:
+        if not entity:
+            log.warning("FAtiMA mind %s at %s: 'look-at' without an entity ignored", link.agent, link.peer)
+            return
+        self._send_look_at(link, entity, self._world_tree())
+
+    def _send_look_at(self, link: Link, entity: str, tree: Mapping[str, Any]) -> None:
+        node = tree.get("children", {}).get(entity)
+        link.send(look_at_line(entity, node.get("properties", {}) if isinstance(node, dict) else {}, self.options.persistent))
+        link.send(f"ACTION-FINISHED {link.agent} look-at {entity}")
+
+    def _xml(self, link: Link, line: str, where: str) -> None:
+        try:
+            if line.startswith("<EmotionalState"):
+                state = parse_emotional_state(line, where)
+                self._blackboard(SetProperty(self.name, "EmotionalState", line))
+                self._blackboard(SetProperty(self.name, "mood", state["mood"]))
+                self._blackboard(SetProperty(self.name, "emotions", state["emotions"]))
+                self.sim.request(keys.BLACKBOARD, "set_property", SetProperty("", "FatimaMood", format_value(state["mood"])))
+            elif line.startswith("<SemanticMemory"):
+                self._semantic_memory(link, parse_semantic_memory(line, link.agent, where))
+            elif line.startswith("<MemoryResult"):
+                xmlsafe.loads(line.encode("utf-8"), None, name=where, max_bytes=MAX_LINE)
+                self._blackboard(SetProperty(self.name, "MemoryResult", line))
+            # <Relations ...> and other reports: not used by a single-agent body (CMION ignored them)
+        except XmlError as exc:
+            log.warning("%s sent a malformed line, ignored: %s", where, exc)
+
+    def _semantic_memory(self, link: Link, facts: list[tuple[str, str, str, bool]]) -> None:
+        """Keep the mind's knowledge on the blackboard, and copy it into the world model as CMION did
+        (only what differs, so an unchanged fact is not told back to the mind)."""
+        self._blackboard(SetProperty(self.name, "SemanticMemory",
+                                     [{"name": f"{e}({p})", "value": v, "persistent": pers} for e, p, v, pers in facts]))
+        tree = self._world_tree()
+        children = tree.get("children", {})
+        added: set[str] = set()
+        for entity, name, value, persistent in facts:
+            if not (keys.is_name(entity) and keys.is_name(name)):
+                continue
+            node = children.get(entity)
+            if node is None and entity not in added:
+                kind = "object" if any(e == entity and p == "isObject" and v.lower() == "true" for e, p, v, _ in facts) else "agent"
+                self._world(AddContainer("", entity, kind))
+                added.add(entity)
+            current = node.get("properties", {}).get(name) if isinstance(node, dict) else None
+            if isinstance(current, dict) and format_value(current.get("value")) == value and bool(current.get("persistent")) == persistent:
+                continue
+            self._world(SetProperty(entity, name, value, persistent))
+
+    # --- actions --------------------------------------------------------------------------------------
+
+    def _action(self, link: Link, name: str, parameters: tuple[str, ...]) -> None:
+        key: ActionKey = (name, parameters)
+        held = self.gate.held(key)
+        if held is not None:
+            if not held.answering:
+                held.answering = True
+                self._held_timers[key] = self.sim.call_later(HELD_ANSWER_DELAY, functools.partial(self._answer_held, link, key))
+            return
+        self._counts["actions"] += 1
+        try:
+            action_id = self.act(name, parameters, link.agent)
+        except MeshError as exc:
+            self._failed(link, key, str(exc))
+            return
+        self._running[action_id] = _Running(key, link)
+
+    def _answer_held(self, link: Link, key: ActionKey) -> None:
+        self._held_timers.pop(key, None)
+        failure = self.gate.get(key)
+        if failure is not None:
+            failure.answering = False
+        if link is self.link and link.open:
+            link.send(f"ACTION-FAILED {link.agent} {action_text(*key)}")
+
+    def _failed(self, link: Link, key: ActionKey, reason: str) -> None:
+        previous = self.gate.get(key)
+        retried = previous.retries if previous is not None else 0
+        failure = self.gate.failed(key, reason)
+        self._counts["failures"] += 1
+        log.info("FAtiMA action %r of %s failed (%s); retries held for %.0f s%s", action_text(*key), link.agent, reason,
+                 failure.hold, f" ({retried} retries answered since the last run)" if retried else "")
+        if link is self.link and link.open:
+            link.send(f"ACTION-FAILED {link.agent} {action_text(*key)}")
+
+    def _cancel_action(self, tokens: list[str]) -> None:
+        if not tokens:
+            return
+        key: ActionKey = (tokens[0], tuple(tokens[1:]))
+        exact = [i for i, r in self._running.items() if r.key == key]
+        named = [i for i, r in self._running.items() if r.key[0] == key[0]]
+        chosen = exact or named[-1:]
+        for action_id in chosen:
+            self.cancel(action_id)
+
+    def on_action_succeeded(self, report: ActionReport) -> None:
+        running = self._running.pop(report.action_id, None)
+        if running is None:
+            return
+        self.gate.succeeded(running.key)
+        link = running.link
+        if link is self.link and link.open:
+            link.send(f"ACTION-FINISHED {link.agent} {action_text(*running.key)}")
+
+    def on_action_failed(self, report: ActionReport) -> None:
+        running = self._running.pop(report.action_id, None)
+        if running is not None:
+            self._failed(running.link, running.key, report.reason or "failed")
+
+    def on_action_cancelled(self, report: ActionReport) -> None:
+        # FAtiMA takes no feedback on a cancellation (CMION sent none).
+        self._running.pop(report.action_id, None)
+
+    def on_remote_action(self, action: MindAction) -> None:
+        link = self._ready()
+        if link is not None:
+            link.send(f"ACTION-FINISHED {action.subject or 'World'} {action_text(action.name, action.parameters)}")
+
+    # --- perceptions (loop) -------------------------------------------------------------------------
+
+    def _ready(self) -> Link | None:
+        link = self.link
+        return link if link is not None and link.handshaken and link.open else None
+
+    def on_entity_added(self, name: str, kind: str) -> None:
+        link = self._ready()
+        if link is not None:
+            link.send(f"ENTITY-ADDED {name}")
+
+    def on_entity_removed(self, name: str, kind: str) -> None:
+        link = self._ready()
+        if link is not None:
+            link.send(f"ENTITY-REMOVED {name}")
+
+    def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None:
+        link = self._ready()
+        if link is not None and entity and "/" not in entity:  # entities are the world model's top level
+            link.send(property_changed_line(entity, name, value, persistent, self.options))
+
+    def on_property_removed(self, entity: str, name: str, persistent: bool) -> None:
+        link = self._ready()
+        if link is not None and entity and "/" not in entity:
+            link.send(f"PROPERTY-REMOVED {entity} {name}")
+
+    # --- sleep, wake, migration (loop) --------------------------------------------------------------
+
+    def on_sleep(self) -> None:
+        link = self._ready()
+        if link is not None:
+            link.send("CMD Stop")
+
+    def on_wake(self) -> None:
+        arrival = self._arrival
+        if arrival is not None and arrival.link is not None:
+            arrival.awake = True  # CMD Start once the state is set
+            return
+        link = self._ready()
+        if link is not None:
+            link.send("CMD Start")
+            self._properties_due = True  # unless on_arrived, which follows a wake on arrival, asks first
+            self.sim.call(functools.partial(self._ask_properties, link))
+
+    def _ask_properties(self, link: Link) -> None:
+        if self._properties_due and link is self._ready():
+            link.send("CMD GET-PROPERTIES")
+        self._properties_due = False
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        """A raw message ``{"line": "..."}`` is sent to the mind as it is (CMION's raw messages)."""
+        line = data.get("line")
+        link = self._ready()
+        if not isinstance(line, str) or "\n" in line or "\r" in line:
+            raise MeshError(f"mind {self.name!r} takes a raw message {{'line': 'one line of text'}}, not {str(data)[:80]}")
+        if link is None:
+            raise MeshError(f"no FAtiMA mind is connected to {self.name!r}")
+        link.send(line)
+
+    def on_arrived(self, world_model: dict[str, Any]) -> None:
+        arrival = self._arrival
+        if arrival is not None and arrival.link is not None:
+            arrival.world = world_model
+            return
+        link = self._ready()
+        if link is not None:
+            self._tell_world(link, world_model)
+
+    def _tell_world(self, link: Link, tree: Mapping[str, Any]) -> None:
+        for entity in self._entities(tree):
+            self._send_look_at(link, entity, tree)
+        link.send("CMD GET-PROPERTIES")
+        self._properties_due = False
+
+    def _migration_event(self, event: Event) -> None:
+        if event.name == "MigrationStarting":
+            self._migration_starting()
+        elif event.name in ("MigrationFailed", "MigrationSucceeded") and self._outgoing is not None:
+            outgoing, self._outgoing = self._outgoing, None
+            if outgoing.timer is not None:
+                outgoing.timer.cancel()
+        if event.name == "MigrationSucceeded":  # the companion left: a state kept for it left with it
+            self._unwait_arrival()
+            self._arrival = None
+
+    def _migration_starting(self) -> None:
+        link = self._ready()
+        manager = self._migration()
+        if not self.options.migrating or link is None or manager is None:
+            return  # nothing to ask: a kept, undelivered state is carried by state()
+        try:
+            token = manager.wait(self.name)
+        except MeshError:
+            return  # the migration ended already
+        outgoing = _Outgoing(token, link)
+        self._outgoing = outgoing
+        # CMD Stop went out as the mind was put to sleep; give FAtiMA's cycle a moment to end.
+        self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
+        outgoing.timer = self.sim.call_later(self.options.stop_wait + self.options.state_timeout,
+                                             functools.partial(self._state_overdue, outgoing))
+
+    def _ask_state(self, outgoing: _Outgoing) -> None:
+        if self._outgoing is outgoing and outgoing.link.open:
+            outgoing.link.send("CMD GET-STATE")
+
+    def _state_overdue(self, outgoing: _Outgoing, why: str = "") -> None:
+        if self._outgoing is not outgoing:
+            return
+        self._outgoing = None
+        if outgoing.timer is not None:
+            outgoing.timer.cancel()
+        reason = (f"the FAtiMA mind {outgoing.link.agent} at {outgoing.link.peer} "
+                  f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
+        log.error("%s: the migration is abandoned", reason)
+        manager = self._migration()
+        if manager is not None:
+            manager.refuse(outgoing.token, reason)
+
+    def _state_received(self, link: Link, hex_state: str) -> None:
+        outgoing = self._outgoing
+        if outgoing is None or outgoing.link is not link:
+            log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for: ignored", link.agent, link.peer)
+            return
+        if not hex_state or any(c.isspace() for c in hex_state):
+            self._state_overdue(outgoing, "answered GET-STATE with no state (or more than one token)")
+            return
+        self._outgoing = None
+        if outgoing.timer is not None:
+            outgoing.timer.cancel()
+        self._given = (link, hex_state)
+        finished = [f"ACTION-FINISHED {link.agent} {action_text(*r.key)}" for r in self._running.values() if r.link is link]
+        manager = self._migration()
+        if manager is not None:
+            manager.resolve(outgoing.token, {"state": hex_state, "agent": link.agent, "finished": finished,
+                                             "from": self.sim.embodiment})
+
+    def state(self) -> dict[str, Any]:
+        """A state that arrived and is not yet set in a mind (carried on if the companion leaves first)."""
+        return dict(self._arrival.state) if self._arrival is not None else {}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        if not self.options.migrating or not isinstance(state.get("state"), str):
+            return
+        if state.get("from") == self.sim.embodiment:
+            # Resumed here after a migration failed past its packing: the document holds the state
+            # this embodiment's mind gave, and its Migrate action did not succeed.
+            given = self._given
+            if given is not None and given[0] is self._ready() and given[1] == state["state"]:
+                return  # the mind that gave it is still here, holding it
+            state = {**state, "finished": []}
+        self._unwait_arrival()
+        self._arrival = _Arrival(dict(state))
+        link = self._ready()
+        if link is not None:
+            self._set_state(link)
+        else:
+            log.warning("FAtiMA connector %r: the companion's mind state arrived with no FAtiMA mind connected; it is set "
+                        "in the next one that connects", self.name)
+
+    def _set_state(self, link: Link) -> None:
+        arrival = self._arrival
+        assert arrival is not None
+        arrival.link = link
+        arrival.awake = arrival.awake or self.awake
+        link.send(f"CMD SET-STATE {arrival.state['state']}")
+        arrival.timer = self.sim.call_later(self.options.state_timeout, functools.partial(self._set_overdue, arrival))
+
+    def _set_overdue(self, arrival: _Arrival) -> None:
+        if self._arrival is arrival and arrival.link is not None:
+            log.error("FAtiMA mind %s at %s did not answer SET-STATE within %g s: started anyway", arrival.link.agent,
+                      arrival.link.peer, self.options.state_timeout)
+            self._state_set(arrival.link, confirmed=False)
+
+    def _state_set(self, link: Link, *, confirmed: bool = True) -> None:
+        arrival = self._arrival
+        if arrival is None or arrival.link is not link:
+            return
+        self._unwait_arrival()
+        if confirmed:
+            self._arrival = None
+        else:
+            arrival.link = None  # kept: set again in the next mind that connects
+        if not (arrival.awake or self.awake):
+            link.send("CMD Stop")
+            return
+        link.send("CMD Start")
+        for line in arrival.state.get("finished", []):
+            if isinstance(line, str) and "\n" not in line:
+                link.send(line)
+        self._tell_world(link, arrival.world if arrival.world is not None else self._world_tree())
+
+    def _unwait_arrival(self) -> None:
+        arrival = self._arrival
+        if arrival is not None and arrival.timer is not None:
+            arrival.timer.cancel()
+            arrival.timer = None
+
+    def _migration(self) -> MigrationManager | None:
+        manager = self.sim.components_by_name().get("migration")
+        return manager if isinstance(manager, MigrationManager) else None
+
+    # --- stores ---------------------------------------------------------------------------------------
+
+    def _blackboard(self, write: SetProperty | AddContainer) -> None:
+        self.sim.request(keys.BLACKBOARD, "set_property" if isinstance(write, SetProperty) else "add_container", write)
+
+    def _world(self, write: SetProperty | AddContainer) -> None:
+        self.sim.request(keys.WORLD_MODEL, "set_property" if isinstance(write, SetProperty) else "add_container", write)
+
+    def _world_tree(self) -> dict[str, Any]:
+        store = self.sim.components_by_name().get(keys.WORLD_MODEL)
+        return store.tree() if isinstance(store, Store) else {}
+
+    @staticmethod
+    def _entities(tree: Mapping[str, Any]) -> list[str]:
+        """Agents first, then objects, as CMION told them."""
+        children = tree.get("children", {})
+        return sorted(children, key=lambda n: (children[n].get("kind") != "agent", n))

@@ -1,0 +1,319 @@
+"""The FAtiMA connector's pieces: options, line formats, parsing, the failure gate, and the
+connector on an in-memory embodiment with the stand-in mind on a real loopback socket (the
+cross-process tests are in ``test_fatima.py``)."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cmion_mesh import fatima
+from cmion_mesh.architecture import load_architecture
+from cmion_mesh.embodiment import Embodiment
+from cmion_mesh.errors import ConfigError, MeshError, XmlError
+from cmion_mesh.fatima import (
+    FailureGate,
+    FAtiMAConnector,
+    Options,
+    format_value,
+    look_at_line,
+    parse_emotional_state,
+    parse_handshake,
+    parse_options,
+    parse_semantic_memory,
+    property_changed_line,
+)
+from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.messages import ActionStatus, AddContainer, MindMessage, SetProperty
+from cmion_mesh.rules import load_rules
+from cmion_mesh.testing.fatima_peer import Peer
+from cmion_mesh.testing.wait import wait_for
+
+RULES = """<CompetencyManagerRules>
+  <Rule><MindAction Name="Express"><Parameter No="1" Value="*"/></MindAction>
+    <CompetencyExecutionPlan><Competency ID="1" Type="Animation">
+      <CompetencyParameter Name="AnimationName" Value="$parameter1"/></Competency></CompetencyExecutionPlan></Rule>
+  <Rule><MindAction Name="GoTo"><Parameter No="1" Value="*"/></MindAction>
+    <CompetencyExecutionPlan><Competency ID="1" Type="Navigation">
+      <CompetencyParameter Name="Location" Value="$parameter1"/></Competency></CompetencyExecutionPlan></Rule>
+</CompetencyManagerRules>
+"""
+
+
+# --- pure functions ---------------------------------------------------------------------------------
+
+
+def test_options_as_cmion_wrote_them_and_our_extensions() -> None:
+    assert parse_options([]) == Options()
+    assert parse_options([""]) == Options()
+    opts = parse_options(["Modular persistent migrating", "port:0 host:0.0.0.0 name:mind2 stop-wait:2 state-timeout:1.5"])
+    assert (opts.modular, opts.persistent, opts.migrating) == (True, True, True)
+    assert (opts.port, opts.host, opts.name, opts.stop_wait, opts.state_timeout) == (0, "0.0.0.0", "mind2", 2.0, 1.5)
+    assert parse_options(["sleeping"]) == Options()
+    for bad, why in (("magic", "unknown option 'magic'"), ("port:99999", "not a TCP port"), ("port:x", "port:x"),
+                     ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option")):
+        with pytest.raises(MeshError, match=why):
+            parse_options([bad])
+
+
+def test_values_and_lines_as_cmion_formatted_them() -> None:
+    assert [format_value(v) for v in (True, False, None, 3, 0.5, "a b", [1, "x"], "two\nlines")] == [
+        "True", "False", "null", "3", "0.5", "a b", '[1,"x"]', "two lines"]
+    plain, modular = Options(), Options(modular=True)
+    both = Options(modular=True, persistent=True)
+    assert property_changed_line("User", "isPresent", True, False, plain) == "PROPERTY-CHANGED User(isPresent) True"
+    assert property_changed_line("User", "isPresent", True, True, modular) == "PROPERTY-CHANGED * User(isPresent) True"
+    assert property_changed_line("User", "isPresent", True, True, both) == "PROPERTY-CHANGED-PERSISTENT * User(isPresent) True"
+    assert property_changed_line("User", "isPresent", False, False, both) == "PROPERTY-CHANGED-NONPERSISTENT * User(isPresent) False"
+    props = {"isPresent": {"value": True, "persistent": False}, "isPerson": {"value": True, "persistent": True},
+             "said": {"value": "hello there", "persistent": False}}
+    assert look_at_line("User", props, False) == "LOOK-AT User isPresent:True isPerson:True said:hello_there"
+    assert look_at_line("User", props, True) == "LOOK-AT User NP:isPresent:True P:isPerson:True NP:said:hello_there"
+    assert look_at_line("Nobody", {}, True) == "LOOK-AT Nobody"
+
+
+def test_handshake_and_xml_lines() -> None:
+    hello = parse_handshake("SpiritOfTheBuilding TestAgent Spirit role:TestAgent isTestMind:True url:http://x odd")
+    assert (hello.agent, hello.role, hello.display_name) == ("SpiritOfTheBuilding", "TestAgent", "Spirit")
+    assert hello.properties == {"role": "TestAgent", "isTestMind": "True", "url": "http://x"}
+    with pytest.raises(MeshError, match="first line"):
+        parse_handshake("Spirit TestAgent")
+    state = parse_emotional_state('<EmotionalState><Mood>-0.5</Mood><Emotion type="DISTRESS" intensity="1"/></EmotionalState>', "m")
+    assert state == {"mood": -0.5, "emotions": [{"type": "DISTRESS", "intensity": "1"}]}
+    memory = ('<SemanticMemory><STM><Property persistent="true" name="ProbBias(TestAction1)" value="0.0"/>'
+              '<Property persistent="true" name="SELF(mood)" value="ok"/><Property persistent="false" name="User(isPresent)" value="True"/>'
+              '<Property persistent="false" name="ActionContext()" value=""/></STM><LTM><Property persistent="true" '
+              'name="Cup(isObject)" value="True"/></LTM></SemanticMemory>')
+    assert parse_semantic_memory(memory, "Spirit", "m") == [
+        ("Spirit", "mood", "ok", True), ("User", "isPresent", "True", False), ("Cup", "isObject", "True", True)]
+    with pytest.raises(XmlError, match=r"the mind at 1\.2\.3\.4"):
+        parse_semantic_memory("<SemanticMemory><STM>", "Spirit", "the mind at 1.2.3.4")
+    with pytest.raises(XmlError):
+        parse_emotional_state('<!DOCTYPE x [<!ENTITY a "b">]><EmotionalState>&a;</EmotionalState>', "m")
+
+
+def test_failure_gate_holds_then_backs_off() -> None:
+    now = [100.0]
+    gate = FailureGate(first=2.0, most=5.0, clock=lambda: now[0])
+    key = ("greet", ("User",))
+    assert gate.held(key) is None
+    gate.failed(key, "no rule")
+    now[0] += 0.25
+    held = gate.held(key)
+    assert held is not None and held.retries == 1 and held.reason == "no rule"
+    now[0] += 1.8  # past the first window: the rules run again
+    assert gate.held(key) is None
+    assert gate.failed(key, "still no rule").hold == 4.0
+    assert gate.failed(key, "again").hold == 5.0  # at most HOLD_MOST
+    assert gate.held_retries == 1
+    gate.succeeded(key)
+    assert gate.held(key) is None and gate.get(key) is None
+
+
+def test_architecture_names_the_connector_with_cmion_parameters(tmp_path: Path) -> None:
+    for params, expected in (("", Options()), ("modular persistent migrating", Options(True, True, True)),
+                             ("migrating,port:0", Options(migrating=True, port=0))):
+        config = tmp_path / "ArchitectureConfiguration.xml"
+        (tmp_path / "r.xml").write_text("<CompetencyManagerRules/>")
+        (tmp_path / "l.xml").write_text("<CompetencyLibrary/>")
+        config.write_text('<ArchitectureConfiguration Embodiment="e" CompetencyManagerRulesFile="r.xml" '
+                          'CompetencyLibraryConfigurationFile="l.xml">\n'
+                          f'  <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector" ConstructorParameters="{params}"/>\n'
+                          "</ArchitectureConfiguration>\n")
+        (built,) = load_architecture(config).build_components()
+        assert isinstance(built, FAtiMAConnector) and built.options == expected and built.listener is None
+    config.write_text(config.read_text().replace("migrating,port:0", "migrating wobbly"))
+    with pytest.raises(ConfigError, match=r"ArchitectureConfiguration.xml:2: .*unknown option 'wobbly'"):
+        load_architecture(config).build_components()
+
+
+# --- the connector on an in-memory embodiment -------------------------------------------------------
+
+
+@pytest.fixture
+def body(tmp_path: Path) -> Iterator[tuple[Embodiment, FAtiMAConnector]]:
+    from cmion_mesh.competencies.spirit import Animation, Navigation
+
+    (tmp_path / "rules.xml").write_text(RULES)
+    mind = FAtiMAConnector("persistent", "port:0")  # not modular: CMION's old PROPERTY-CHANGED form
+    with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment(
+            "robot", transport=transport, rules=load_rules(tmp_path / "rules.xml"),
+            competencies=[Animation("0"), Navigation("0.5", "Self", "60")], components=[mind]) as embodiment:
+        embodiment.world_model.apply_now(AddContainer("", "Far", "object"))
+        embodiment.world_model.apply_now(SetProperty("Far", "isLocation", True))
+        embodiment.world_model.apply_now(AddContainer("", "Self", "agent"))
+        wait_for(lambda: mind.listener is not None, 5, "the connector listening")
+        yield embodiment, mind
+
+
+def _peer(mind: FAtiMAConnector, **kwargs: object) -> Peer:
+    assert mind.listener is not None
+    return Peer("127.0.0.1", mind.listener.port, **kwargs)  # type: ignore[arg-type]
+
+
+def test_port_zero_cancel_remote_action_and_old_form(body: tuple[Embodiment, FAtiMAConnector]) -> None:
+    embodiment, mind = body
+    assert mind.listener is not None and mind.listener.port != 0
+    assert embodiment.blackboard.get("fatima", "port") == mind.listener.port
+    with _peer(mind) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "ENTITY-ADDED Far")
+        embodiment.world_model.apply_now(SetProperty("Far", "visited", False))
+        peer.wait_for(lambda line: line == "PROPERTY-CHANGED Far(visited) False")
+        peer.send("look-at Far")
+        peer.wait_for(lambda line: line == "LOOK-AT Far NP:isLocation:True NP:visited:False")
+        peer.send("GoTo Far")
+        wait_for(lambda: embodiment.manager.active, 5, "GoTo running")
+        peer.send("CANCEL-ACTION GoTo Far")
+        wait_for(lambda: not embodiment.manager.active, 5, "GoTo cancelled")
+        embodiment.sim.raise_event("invitations", "RemoteAction",
+                                   {"name": "MigrationInvitation", "parameters": ["screen"], "subject": "screen"})
+        peer.wait_for(lambda line: line == "ACTION-FINISHED screen MigrationInvitation screen")
+        assert not any(line.startswith("ACTION-FINISHED Spirit GoTo") for line in peer.received)
+        assert embodiment.describe()["mind_connections"]["fatima"]["connected"] is True
+        # CMION's raw messages: a line handed to the mind as it is
+        outcome = embodiment.sim.request("fatima", "message", MindMessage({"line": "CMD Save"})).result(5)
+        assert outcome.status == "accepted", outcome
+        peer.wait_for(lambda line: line == "CMD Save")
+        bad = embodiment.sim.request("fatima", "message", MindMessage({"line": "two\nlines"})).result(5)
+        assert bad.status == "rejected" and "one line of text" in bad.reason
+
+
+def test_the_mind_is_asked_to_save_as_the_body_stops() -> None:
+    mind = FAtiMAConnector("port:0")
+    with MemoryTransport(MemoryNetwork(), "local") as transport:
+        embodiment = Embodiment("robot", transport=transport, components=[mind]).start()
+        try:
+            wait_for(lambda: mind.listener is not None, 5, "listening")
+            with _peer(mind) as peer:
+                peer.connect()
+                peer.wait_for(lambda line: line == "OK")
+                embodiment.close()
+                peer.wait_for(lambda line: line == "CMD Save")
+        finally:
+            embodiment.close()
+
+
+def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture) -> None:
+    _, mind = body
+    assert mind.listener is not None
+    with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=5) as sock:
+        sock.sendall(b"Lonely\r\n")
+        assert sock.recv(100) == b""  # closed: no OK
+    wait_for(lambda: "bad handshake" in caplog.text, 5, "the refusal logged")
+    assert "127.0.0.1:" in caplog.text
+    with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=5) as sock, sock.makefile("rb") as lines:
+        sock.sendall(b"Spirit Role Spirit\r\nExpress nod\r\n")
+        got = [lines.readline()]
+        while got[-1] not in (b"", b"ACTION-FINISHED Spirit Express nod\n") and len(got) < 20:
+            got.append(lines.readline())
+        assert got[0] == b"OK\n" and got[-1] == b"ACTION-FINISHED Spirit Express nod\n", got
+
+
+def test_an_overlong_line_closes_the_connection(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    _, mind = body
+    monkeypatch.setattr(fatima, "MAX_LINE", 1000)
+    with _peer(mind) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        peer.send("x" * 5000)
+        wait_for(lambda: "longer than 1000 bytes" in caplog.text, 5, "the refusal logged")
+        wait_for(lambda: not mind.connection()["connected"], 5, "the link dropped")
+    assert "127.0.0.1:" in caplog.text
+
+
+def test_a_taken_port_is_reported(caplog: pytest.LogCaptureFixture) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        mind = FAtiMAConnector(f"port:{port}")
+        with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment("robot", transport=transport, components=[mind]):
+            wait_for(lambda: f"cannot listen on 127.0.0.1:{port}" in caplog.text, 5, "the failure logged")
+        assert mind.listener is None and mind.connection()["listening"] is None
+
+
+def test_held_retries_are_counted(body: tuple[Embodiment, FAtiMAConnector], monkeypatch: pytest.MonkeyPatch) -> None:
+    embodiment, mind = body
+    monkeypatch.setattr(fatima, "HELD_ANSWER_DELAY", 0.05)
+    with _peer(mind, retry_interval=0.01) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        peer.act("Fly away")
+        wait_for(lambda: peer.received.count("ACTION-FAILED Spirit Fly away") >= 5, 5, "five answers")
+        peer.drop("Fly away")
+    link = mind.connection()
+    assert link["failures"] == 1 and link["held_retries"] >= 4, link
+    value = embodiment.sim.request("manager", "status", ActionStatus("")).result(5).value
+    assert value == {"running": []}
+
+
+# --- migrations that fail, on in-memory embodiments --------------------------------------------------
+
+
+@pytest.fixture
+def two(tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
+    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else."""
+    network = MemoryNetwork()
+    mind = FAtiMAConnector("modular migrating port:0 stop-wait:0 state-timeout:2")
+    robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
+                       companion="spirit", components=[mind])
+    kiosk = Embodiment("kiosk", mesh=mesh, transport=MemoryTransport(network, "kiosk"), state_dir=tmp_path / "kiosk",
+                       admit={"someone-else": None})
+    failures: list[Any] = []
+    try:
+        robot.start()
+        kiosk.start()
+        robot.sim.on_event(lambda e: failures.append(e.data), component="migration", event="MigrationFailed")
+        wait_for(lambda: robot.inhabitant == "spirit" and mind.listener is not None and mind.awake, 5, "spirit awake on the robot")
+        yield robot, mind, failures
+    finally:
+        for e in (robot, kiosk):
+            e.close()
+            e.transport.close()
+
+
+def test_a_refused_migration_leaves_the_mind_its_state(two: tuple[Embodiment, FAtiMAConnector, list[Any]]) -> None:
+    robot, mind, failures = two
+    with _peer(mind, state="cafe0123") as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+        peer.act("Migrate kiosk")
+        peer.wait_for(lambda line: line == "ACTION-FAILED Spirit Migrate kiosk")
+        peer.drop("Migrate kiosk")
+        received = peer.received
+        assert received.index("CMD Stop") < received.index("CMD GET-STATE") < received.index("CMD Start")
+        assert not any(line.startswith("CMD SET-STATE") for line in received), "the mind kept its own state"
+        assert "ACTION-FINISHED Spirit Migrate kiosk" not in received
+        assert failures and "may not enter 'kiosk'" in str(failures[0])
+    assert robot.inhabitant == "spirit" and mind.awake
+
+
+def test_a_mind_leaving_while_asked_for_its_state_ends_the_migration(two: tuple[Embodiment, FAtiMAConnector, list[Any]]) -> None:
+    robot, mind, failures = two
+    with _peer(mind, answer_state=False) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+        assert robot.migration is not None
+        robot.migration.start("kiosk")
+        peer.wait_for(lambda line: line == "CMD GET-STATE")
+        peer.disconnect()
+        wait_for(lambda: failures, 1.5, "the migration abandoned before the state timeout")
+    assert "disconnected" in str(failures[0]) and robot.inhabitant == "spirit"
+
+
+def test_the_stand_in_reads_its_options() -> None:
+    from cmion_mesh.testing import fatima_peer
+
+    args = fatima_peer.parse_args(["--port", "5", "--prop", "a:1", "--prop", "b:2", "--mute-state", "--retry-interval", "0.5"])
+    assert (args.port, args.prop, args.mute_state, args.retry_interval, args.host) == (5, ["a:1", "b:2"], True, 0.5, "127.0.0.1")
+    for bad in (["--port"], ["--port", "x"], ["--colour", "red"], ["stray"]):
+        with pytest.raises(SystemExit, match=r"usage|not a number"):
+            fatima_peer.parse_args(bad)
