@@ -14,7 +14,7 @@ CMION's ``modular`` (FAtiMA-Modular: ``PROPERTY-CHANGED * e(p) v``; without it t
 ``PROPERTY-CHANGED e(p) v``), ``persistent`` (``PROPERTY-CHANGED-PERSISTENT``/``-NONPERSISTENT``
 with ``modular``, and ``P:``/``NP:`` pairs in ``LOOK-AT``), ``migrating`` (the mind's state
 migrates) and ``sleeping`` (accepted; the migration manager decides when the mind sleeps). Our
-extensions: ``port:N`` (default 46874; ``port:0`` takes a free port, written to the blackboard as
+extensions: ``port:N`` (default 46874, or ``CMION_MESH_FATIMA_PORT`` when set; ``port:0`` takes a free port, written to the blackboard as
 ``<name>/port``), ``host:ADDR`` (default 127.0.0.1; ``host:0.0.0.0`` for every interface),
 ``name:N`` (the component's name, default ``fatima``), ``stop-wait:S`` (seconds between ``CMD Stop``
 and ``CMD GET-STATE``, default 0.5; CMION waited 2) and ``state-timeout:S`` (how long FAtiMA may
@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import queue
 import selectors
 import socket
@@ -78,6 +79,8 @@ from cmion_mesh.storage import Store
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 46874
+#: The port a connector listens on when its parameters name none (instead of ``DEFAULT_PORT``).
+PORT_VARIABLE = "CMION_MESH_FATIMA_PORT"
 DEFAULT_HOST = "127.0.0.1"
 #: Longest line accepted from the mind (a STATE line of CMION's minds is 34-46 k characters).
 MAX_LINE = 16 * 1024 * 1024
@@ -151,6 +154,12 @@ def parse_options(parameters: Sequence[str]) -> Options:
                 raise ValueError("unknown option")
         except ValueError as exc:
             raise MeshError(f"option {word!r} of the FAtiMA connector: {exc}") from None
+    if "port" not in values and os.environ.get(PORT_VARIABLE, "").strip():
+        # CMION's files leave the port to the code (46874): two embodiments on one machine need another.
+        raw = os.environ[PORT_VARIABLE].strip()
+        if not raw.isdigit() or int(raw) > 65535:
+            raise MeshError(f"{PORT_VARIABLE}={raw!r} is not a TCP port")
+        values["port"] = int(raw)
     return Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
 
 

@@ -417,12 +417,24 @@ def test_up_starts_cmion_own_test_configuration(wild_daemon: tuple[Daemon, list[
     waiting = needs_pending(DATA / "cmion2011" / "ArchitectureConfiguration.xml")
     if waiting:
         pytest.skip(f"needs {waiting}")
+    from cmion_mesh.fatima import PORT_VARIABLE
+    from cmion_mesh.testing.fatima_peer import PeerProcess
+
     _, net = wild_daemon
     mesh_options = net[:3]
-    with Daemon(cli_argv("up", str(DATA / "cmion2011"), *net, "--state-dir", str(tmp_path)), name="cmion2011") as original:
+    mind_port = free_port()  # the file leaves FAtiMA on CMION's fixed 46874; a test takes a free one
+    with Daemon(cli_argv("up", str(DATA / "cmion2011"), *net, "--state-dir", str(tmp_path), "--companion", "spirit"),
+                env={PORT_VARIABLE: str(mind_port)}, name="cmion2011") as original:
         original.wait_line("up in mesh", 30)
         assert any("cmion.addOns.samgar.SamgarConnector (component)" in line for line in original.lines), original.lines
         code, out, err = run_cli("act", "cmion2011", "TestAction2", *net)
         assert code == 0, (out, err)
+        # The mind CMION was built for, on the file's own FAtiMAConnector entry: the rules of
+        # CompManagerRulesTest.xml answer its action (rule 1 fails, rule 3 succeeds).
+        with contextlib.closing(PeerProcess(mind_port, "--agent", "SpiritOfTheBuilding", "--prop", "role:TestAgent")) as mind:
+            mind.got("OK", timeout=15)
+            start = mind.mark()
+            mind.command("act TestAction test")
+            mind.got("ACTION-FINISHED SpiritOfTheBuilding TestAction test", timeout=15, start=start)
         code, out, err = run_cli("peers", *mesh_options, "--connect", net[-1], "--json")
         assert {p["name"] for p in json.loads(out)} >= {"cmion2011", "cmion2011-inthewild"}
