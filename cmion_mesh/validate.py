@@ -284,15 +284,16 @@ def _distribute(found: Diagnostics, owner: FileReport, by_real: dict[str, FileRe
 
 
 def expand(path: str) -> list[str]:
-    """What ``validate PATH`` checks: a file; every ``*.xml`` of a folder; or, as ``up`` takes it, the
-    folder of a shipped embodiment named by itself (``robot``)."""
+    """What ``validate PATH`` checks: a file; every ``*.xml`` of a folder and its subfolders (a
+    project with a folder per embodiment); or, as ``up`` takes it, the folder of a shipped
+    embodiment named by itself (``robot``)."""
     candidate = Path(path)
     if not candidate.exists() and "/" not in path and (data_dir("embodiments") / path).is_dir():
         candidate = data_dir("embodiments") / path
     if candidate.is_dir():
-        found = sorted(str(p) for p in candidate.glob("*.xml"))
+        found = sorted(str(p) for p in candidate.rglob("*.xml") if p.is_file())
         if not found:
-            raise ConfigError("no *.xml file in this folder", path=str(candidate))
+            raise ConfigError("no *.xml file in this folder or below it", path=str(candidate))
         return found
     return [path]
 

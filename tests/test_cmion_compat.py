@@ -2,13 +2,7 @@
 ``validate`` run, and what CMION's loaders accepted (element order, Android names, parameters).
 
 Mostly in-process checks on the in-memory transport; one real ``cmion-mesh up`` per configuration
-kind that needs no pending module, in its own process, driven by ``cmion-mesh act``.
-
-Pending merges: ``cmion_mesh.fatima`` (FAtiMAConnector, branch issue-14-fatima),
-``cmion_mesh.supersimple`` (the SuperSimple minds) and the ``migrationconfig`` kind (branch
-issue-14-invite) live in other branches. Until they are merged, the files naming them are
-expected to report exactly that (an import error, an unknown kind) and the configurations
-needing them are skipped when started; once merged, the same tests hold them to "no error".
+kind, in its own process, driven by ``cmion-mesh act`` and by a stand-in FAtiMA.
 """
 
 from __future__ import annotations
@@ -36,7 +30,7 @@ from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.rules import load_rules
 from cmion_mesh.standin import StandInCompetency, StandInComponent
 from cmion_mesh.storage import load_world_model_init
-from cmion_mesh.validate import KINDS, check_embodiment, validate_paths
+from cmion_mesh.validate import check_embodiment, validate_paths
 
 from .conftest import DATA
 
@@ -55,13 +49,6 @@ CONFIGURATIONS = [
     INVITE / "ArchitectureConfigurationMigrationByInviteSend.xml",
     INVITE / "ArchitectureConfigurationMigrationByInviteReceive.xml",
 ]
-
-#: Port-map targets written in other branches: module -> the branch bringing it.
-PENDING_MODULES = {module: branch for module, branch in {
-    "cmion_mesh.fatima": "issue-14-fatima", "cmion_mesh.supersimple": "issue-14-invite"}.items()
-    if importlib.util.find_spec(module) is None}
-#: The device-table kind, added by branch issue-14-invite.
-MIGRATIONCONFIG_PENDING = "migrationconfig" not in KINDS
 
 #: Every class named in CMION 2011's real configuration files (protocols.md section 5), the
 #: generic bases and the test competencies.
@@ -82,25 +69,6 @@ SECTION_5 = [
     "cmion.personalguide.competencies.TalkCompetency",
     "cmion.level2.RemoteCompetency", "cmion.level2.RemoteTCPCompetency", "cmion.level3.AgentMindConnector", "cmion.level2.Competency",
 ]
-
-
-def pending_reason(text: str) -> str | None:
-    """The pending merge ``text`` (an error) is waiting for, if any."""
-    for module, branch in PENDING_MODULES.items():
-        if f"cannot import module {module!r}" in text:
-            return f"{module} (branch {branch})"
-    if MIGRATIONCONFIG_PENDING and "unknown document kind <migrationconfig>" in text:
-        return "the migrationconfig kind (branch issue-14-invite)"
-    return None
-
-
-def needs_pending(config: Path) -> str | None:
-    found = Diagnostics()
-    arch = read_architecture(config, found)
-    assert arch is not None, [str(d) for d in found]
-    arch.build_components(found, construct_them=False)
-    waiting = {pending_reason(d.message) for d in found.errors} - {None}
-    return ", ".join(sorted(w for w in waiting if w)) or None
 
 
 def run_cli(*args: str) -> tuple[int, str, str]:
@@ -128,7 +96,7 @@ def test_port_map_covers_every_class_of_real_configurations() -> None:
     assert gui and all(p.action == "command" and p.command and p.command.startswith("cmion-mesh ") for p in gui)
     for port in portmap.PORT_MAP.values():
         assert port.java.startswith(portmap.JAVA_PREFIX) and port.note, port
-        if port.action == "ported" and port.target is not None and port.target.partition(":")[0] not in PENDING_MODULES:
+        if port.action == "ported" and port.target is not None:
             module, _, name = port.target.partition(":")
             assert hasattr(importlib.import_module(module), name), port.target
 
@@ -149,19 +117,22 @@ def test_every_file_validates(folder: Path) -> None:
     reports = validate_paths(files)
     assert [r.path for r in reports] == files
     for report in reports:
-        unexpected = [str(d) for d in report.diagnostics.errors if pending_reason(d.message) is None]
-        assert not unexpected, unexpected
-        if report.kind is None:
-            assert pending_reason(str(report.diagnostics.errors[0])), report.path  # a migrationconfig, until merged
+        assert not report.diagnostics.errors, [str(d) for d in report.diagnostics.errors]
     kinds = {r.kind for r in reports}
     assert "ArchitectureConfiguration" in kinds and "CompetencyLibrary" in kinds and "CompetencyManagerRules" in kinds
 
 
+def test_validate_takes_the_whole_test_data_tree_in_one_run() -> None:
+    """Every XML file under tests/data (subfolders too: a project with a folder per embodiment)."""
+    code, out, err = run_cli("validate", str(DATA))
+    assert code == 0, err
+    every = sorted(DATA.rglob("*.xml"))
+    assert f"{len(every)} files: 0 failed; 0 errors" in err, err
+    assert "(migrationconfig)" in out and "(ArchitectureConfiguration" in out
+
+
 @pytest.mark.parametrize("config", CONFIGURATIONS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_each_configuration_starts(config: Path, tmp_path: Path, mesh: str) -> None:
-    waiting = needs_pending(config)
-    if waiting:
-        pytest.skip(f"needs {waiting}")
     name = re.sub(r"[^A-Za-z0-9_-]", "-", config.stem)  # the invitation pair shares a folder: one name each
     with MemoryTransport(MemoryNetwork(), "local") as transport, \
             Embodiment.from_architecture(config, mesh=mesh, transport=transport, name=name, state_dir=tmp_path) as body:
@@ -414,9 +385,6 @@ def test_up_starts_with_standins_listed(wild_daemon: tuple[Daemon, list[str]]) -
 def test_up_starts_cmion_own_test_configuration(wild_daemon: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     """CMION 2011's ArchitectureConfiguration.xml as it is (FAtiMA connector, GUI add-ons, SAMGAR),
     joined to the running daemon's mesh."""
-    waiting = needs_pending(DATA / "cmion2011" / "ArchitectureConfiguration.xml")
-    if waiting:
-        pytest.skip(f"needs {waiting}")
     from cmion_mesh.fatima import PORT_VARIABLE
     from cmion_mesh.testing.fatima_peer import PeerProcess
 
