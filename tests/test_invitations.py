@@ -13,10 +13,9 @@ import pytest
 
 from cmion_mesh import devices, invitation, supersimple
 from cmion_mesh.client import MeshClient
-from cmion_mesh.competency import load_library
 from cmion_mesh.devices import DeviceTable
 from cmion_mesh.embodiment import Embodiment
-from cmion_mesh.errors import ConfigError, RequestRejected
+from cmion_mesh.errors import RequestRejected
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Code, Invite
 from cmion_mesh.mind import Mind
@@ -300,15 +299,6 @@ def test_an_invitation_from_the_empty_embodiment_moves_the_companion(pair: Pair)
     wait_for(lambda: pair.inhabitants()["A"] == devices.DEFAULT_COMPANION, 20, "invited back to A")
 
 
-def _java_names_load() -> bool:
-    try:
-        load_library(INVITE_DATA / "send" / "CompetencyLibrary.xml")
-    except ConfigError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _java_names_load(), reason="CMION's Java class names need the port map (issue 14, item 1)")
 def test_cmions_java_named_configurations_run_as_they_are(tmp_path: Path, mesh: str) -> None:
     started = start_pair(tmp_path, mesh, java_names=True)
     try:
