@@ -134,6 +134,10 @@ class NameClaim(Handle):
                     self._cond.wait_for(lambda: name in self._alive, REPORTED_WAIT)
                 seen.add(name)
             with self._cond:
+                # An older claim is a daemon still starting, or (its token delayed under load) one
+                # already running: let it show which before telling the user, or let it withdraw.
+                self._cond.wait_for(lambda: name in seen or name in self._alive
+                                    or not any(rank < self.rank for rank in self._claims), REPORTED_WAIT)
                 taken = name in seen or name in self._alive
                 older = sorted(rank for rank in self._claims if rank < self.rank)
             if taken:
