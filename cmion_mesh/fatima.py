@@ -86,6 +86,14 @@ DEFAULT_HOST = "127.0.0.1"
 MAX_LINE = 16 * 1024 * 1024
 #: A write the mind does not take within this many seconds closes the connection.
 SEND_TIMEOUT = 30.0
+#: Lines read from the mind and not yet handled by the update loop: beyond, the reader stops reading,
+#: so a flooding mind is held back by TCP instead of filling the loop's queue (and the memory).
+MAX_IN_FLIGHT = 64
+#: Bytes waiting to be written to the mind (beyond the line being written): beyond, the mind is not
+#: reading and is disconnected, instead of the queue growing without end.
+MAX_QUEUED = 8 * 1024 * 1024
+#: Refused connections from one host are logged once in this many seconds (the others are counted).
+REFUSED_LOG_INTERVAL = 10.0
 #: Seconds before a held retry of a failed action is answered ``ACTION-FAILED``.
 HELD_ANSWER_DELAY = 1.0
 #: First and longest hold window of a failed action (seconds): retries within it do not run the rules.
@@ -321,7 +329,12 @@ def _peer_name(address: Any) -> str:
 
 
 class Link:
-    """One mind connection: a reader thread handing lines on, a writer thread sending queued lines."""
+    """One mind connection: a reader thread handing lines on, a writer thread sending queued lines.
+
+    Both directions are bounded: at most ``MAX_IN_FLIGHT`` lines read and not yet handled (the loop
+    calls ``line_done`` for each; meanwhile the reader stops reading and TCP holds the mind back),
+    and at most ``MAX_QUEUED`` bytes waiting to be written (beyond, the mind is not reading and the
+    link reports itself closed)."""
 
     def __init__(self, sock: socket.socket, peer: str, on_line: Callable[[Link, str], None],
                  on_closed: Callable[[Link, str], None]) -> None:
@@ -337,6 +350,14 @@ class Link:
         self._dead = threading.Event()  # the reader or writer found the connection gone
         self._reported = threading.Lock()
         self._told = False
+        self._flow = threading.Condition()
+        self.in_flight = 0  # lines handed to the loop, not yet handled (under _flow)
+        self.queued = 0  # bytes waiting for the writer (under _flow)
+        self.peak_in_flight = 0
+        self.peak_queued = 0
+        # Requests of the body the mind answers in order, counted to match each answer to its request.
+        self.set_states_sent = 0
+        self.set_states_answered = 0
         sock.settimeout(SEND_TIMEOUT)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
         # A mind whose host froze or vanished is noticed in about 25 s (not the system's 2 hours),
@@ -356,11 +377,43 @@ class Link:
         return not (self._closed.is_set() or self._dead.is_set())
 
     def send(self, line: str) -> None:
-        if not self._closed.is_set():
-            self._out.put(line.encode("utf-8") + b"\n")
+        if not self.open:
+            return
+        data = line.encode("utf-8") + b"\n"
+        with self._flow:
+            backlog = self.queued
+            if backlog <= MAX_QUEUED:
+                self.queued += len(data)
+                self.peak_queued = max(self.peak_queued, self.queued)
+        if backlog > MAX_QUEUED:
+            why = f"mind is not reading: more than {MAX_QUEUED} bytes wait to be sent to it"
+            log.error("FAtiMA mind %s at %s: %s; connection closed", self.agent or "(before its handshake)", self.peer, why)
+            self._report(why)
+            return
+        self._out.put(data)
+
+    def line_done(self) -> None:
+        """The loop has handled one line handed on: the reader may hand on another."""
+        with self._flow:
+            self.in_flight -= 1
+            self._flow.notify_all()
+
+    def _hand_on(self, line: str) -> bool:
+        """Wait for room in the loop, then hand ``line`` on; False once the link is closing."""
+        with self._flow:
+            while self.in_flight >= MAX_IN_FLIGHT and self.open:
+                self._flow.wait()
+            if not self.open:
+                return False
+            self.in_flight += 1
+            self.peak_in_flight = max(self.peak_in_flight, self.in_flight)
+        self._on_line(self, line)
+        return True
 
     def _report(self, why: str) -> None:
         self._dead.set()
+        with self._flow:
+            self._flow.notify_all()
         with self._reported:
             if self._told:
                 return
@@ -390,13 +443,27 @@ class Link:
                     searched = 0
                     if raw.endswith(b"\r"):
                         raw = raw[:-1]
-                    self._on_line(self, raw.decode("utf-8", errors="replace"))
+                    try:
+                        line = raw.decode("utf-8")
+                    except UnicodeDecodeError as exc:
+                        # The protocol is UTF-8: a line that is not is dropped whole, never guessed at.
+                        log.warning("FAtiMA mind %s at %s sent a line that is not UTF-8 (%s), dropped: %r",
+                                    self.agent or "(before its handshake)", self.peer, exc.reason, raw[:80])
+                        continue
+                    if not self._hand_on(line):
+                        break
+                if not self.open:
+                    break  # closing: what is left was the mind's, for a loop that no longer wants it
                 if len(buffer) > MAX_LINE and buffer.find(b"\n", 0, MAX_LINE + 1) < 0:
                     why = f"sent a line longer than {MAX_LINE} bytes"
                     log.error("FAtiMA mind at %s %s: connection closed", self.peer, why)
+                    buffer.clear()
                     break
         except OSError as exc:
             why = f"connection lost: {exc}"
+        if buffer and not self._closed.is_set() and not self._dead.is_set():
+            log.warning("FAtiMA mind %s at %s: the connection ended inside a line; its %d byte(s) discarded: %r",
+                        self.agent or "(before its handshake)", self.peer, len(buffer), bytes(buffer[:120]))
         self._report(why)
 
     def _write(self) -> None:
@@ -404,6 +471,8 @@ class Link:
             data = self._out.get()
             if data is None:
                 return
+            with self._flow:  # the line being written no longer counts: the backlog behind it does
+                self.queued -= len(data)
             try:
                 self.sock.sendall(data)
             except OSError as exc:
@@ -415,6 +484,8 @@ class Link:
         if self._closed.is_set():
             return
         self._closed.set()
+        with self._flow:
+            self._flow.notify_all()  # a reader waiting for room in the loop
         self._out.put(None)
         if drain and self._writer.ident is not None and self._writer is not threading.current_thread():
             self._writer.join(drain)
@@ -522,6 +593,10 @@ class FAtiMAConnector(Mind):
         self._counts = {"actions": 0, "failures": 0, "connections": 0}
         self._closing = False
         self._properties_due = False
+        # Facts the mind's semantic memory wrote into the world model: their change events are not
+        # told back to the mind, which knows them ({(entity, property): (value as told, persistent)}).
+        self._told: OrderedDict[tuple[str, str], tuple[str, bool]] = OrderedDict()
+        self._refused: dict[str, tuple[float, int]] = {}  # host -> (last logged, refusals not logged since) (accept thread)
 
     # --- life cycle (loop) --------------------------------------------------------------------------
 
@@ -558,7 +633,9 @@ class FAtiMAConnector(Mind):
         link = self.link
         return {"protocol": "fatima", "listening": self.listener.address if self.listener is not None else None,
                 "connected": link is not None and link.handshaken, "peer": link.peer if link is not None else None,
-                "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries, **self._counts}
+                "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries,
+                "lines_in_flight": link.in_flight if link is not None else 0,
+                "bytes_queued": link.queued if link is not None else 0, **self._counts}
 
     # --- connections (accept thread -> loop) --------------------------------------------------------
 
@@ -566,8 +643,7 @@ class FAtiMAConnector(Mind):
         with self._links_lock:
             current = self._accepted
             if current is not None and current.open:
-                log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind "
-                            "at a time)", self.name, peer, current.peer)
+                self._log_refused(peer, current.peer)
                 conn.close()
                 return
             link = Link(conn, peer, self._line_in, self._closed_in)
@@ -577,8 +653,31 @@ class FAtiMAConnector(Mind):
         else:
             link.close()
 
+    def _log_refused(self, peer: str, connected: str) -> None:
+        """A warning per host and ``REFUSED_LOG_INTERVAL`` (a mind retrying in a loop must not flood
+        the log), saying how many refusals went unlogged since the last."""
+        host = peer.rsplit(":", 1)[0]
+        now = time.monotonic()
+        last, unlogged = self._refused.get(host, (-REFUSED_LOG_INTERVAL, 0))
+        if now - last < REFUSED_LOG_INTERVAL:
+            self._refused[host] = (last, unlogged + 1)
+            return
+        while len(self._refused) >= MAX_HELD:
+            del self._refused[next(iter(self._refused))]
+        self._refused[host] = (now, 0)
+        more = f" ({unlogged} more from {host} refused unlogged since the last warning)" if unlogged else ""
+        log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind at a time)%s",
+                    self.name, peer, connected, more)
+
     def _line_in(self, link: Link, line: str) -> None:
-        self.sim.post(functools.partial(self._on_line, link, line))
+        if not self.sim.post(functools.partial(self._take_line, link, line)):
+            link.line_done()
+
+    def _take_line(self, link: Link, line: str) -> None:
+        try:
+            self._on_line(link, line)
+        finally:
+            link.line_done()
 
     def _closed_in(self, link: Link, why: str) -> None:
         if not self.sim.post(functools.partial(self._disconnected, link, why)):

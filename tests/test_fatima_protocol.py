@@ -5,7 +5,7 @@ cross-process tests are in ``test_fatima.py``)."""
 from __future__ import annotations
 
 import socket
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +28,9 @@ from cmion_mesh.fatima import (
     property_changed_line,
 )
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import ActionStatus, AddContainer, MindMessage, SetProperty
+from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
 from cmion_mesh.rules import load_rules
-from cmion_mesh.testing.fatima_peer import Peer
+from cmion_mesh.testing.fatima_peer import Peer, PeerProcess
 from cmion_mesh.testing.wait import wait_for
 
 RULES = """<CompetencyManagerRules>
@@ -198,6 +198,15 @@ def test_the_mind_is_asked_to_save_as_the_body_stops() -> None:
             embodiment.close()
 
 
+def _lines_until(lines: Any, last: Callable[[bytes], bool], limit: int = 200) -> list[bytes]:
+    """Lines read from a socket file up to the first for which ``last`` is true (bounded)."""
+    got = [lines.readline()]
+    while got[-1] != b"" and not last(got[-1]) and len(got) < limit:
+        got.append(lines.readline())
+    assert got[-1] != b"" and last(got[-1]), got
+    return got
+
+
 def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture) -> None:
     _, mind = body
     assert mind.listener is not None
@@ -212,6 +221,105 @@ def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector]
         while got[-1] not in (b"", b"ACTION-FINISHED Spirit Express nod\n") and len(got) < 20:
             got.append(lines.readline())
         assert got[0] == b"OK\n" and got[-1] == b"ACTION-FINISHED Spirit Express nod\n", got
+
+
+def test_a_line_not_utf8_is_dropped_and_a_cut_line_logged(body: tuple[Embodiment, FAtiMAConnector],
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    _, mind = body
+    assert mind.listener is not None
+    with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=10) as sock, sock.makefile("rb") as lines:
+        peer = f"127.0.0.1:{sock.getsockname()[1]}"
+        sock.sendall(b"Spirit Role Spirit\nExpress caf\xe9\nExpress nod\n")
+        got = _lines_until(lines, lambda line: line.startswith(b"ACTION-FINISHED Spirit Express"))
+        assert got[-1] == b"ACTION-FINISHED Spirit Express nod\n", got  # the bad line never became an action
+        assert not any(b"caf" in line for line in got)
+        sock.sendall(b"Express unfinish")  # then the mind goes, inside a line
+        sock.shutdown(socket.SHUT_WR)
+        wait_for(lambda: "ended inside a line" in caplog.text, 5, "the cut line logged")
+    dropped = next(r.getMessage() for r in caplog.records if "not UTF-8" in r.getMessage())
+    assert peer in dropped and "caf\\xe9" in dropped, dropped
+    cut = next(r.getMessage() for r in caplog.records if "ended inside a line" in r.getMessage())
+    assert peer in cut and "16 byte(s)" in cut and "Express unfinish" in cut, cut
+
+
+def test_refused_connections_are_logged_once_a_while(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    _, mind = body
+    assert mind.listener is not None
+    monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 3600.0)
+
+    def refused() -> None:
+        with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=5) as sock:  # type: ignore[union-attr]
+            assert sock.recv(100) == b""  # closed at once: logged (or counted) before
+
+    def warnings() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "refused a connection" in r.getMessage()]
+
+    with _peer(mind) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        for _ in range(3):
+            refused()
+        assert len(warnings()) == 1 and "more from" not in warnings()[0], warnings()
+        monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 0.0)
+        refused()
+        assert len(warnings()) == 2 and "(2 more from 127.0.0.1 refused unlogged" in warnings()[1], warnings()
+
+
+def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Embodiment, FAtiMAConnector]) -> None:
+    embodiment, mind = body
+    assert mind.listener is not None
+    with PeerProcess(mind.listener.port) as peer:
+        peer.got("OK")
+        link = wait_for(lambda: mind.link if mind.link is not None and mind.link.handshaken else None, 5, "the link")
+        peer.command("quiet")  # the peer answers, keeps nothing (a flood's answers are many)
+        peer.wait(lambda line: line == "# quiet")
+        peer.command("flood look-at Far")
+        # The reader stops at the bound of lines in flight: TCP holds the mind back from there on.
+        wait_for(lambda: link.peak_in_flight >= fatima.MAX_IN_FLIGHT, 20, "the flood reaching the bound")
+        waiting: list[int] = []
+
+        def written() -> bool:
+            waiting.append(embodiment.sim.queued())
+            return bool(embodiment.blackboard.get("animation", "last") == "flood-proof")
+
+        act = embodiment.sim.request("manager", "act", Act("Express", ["flood-proof"])).result(20)
+        assert act.status == "accepted", act
+        wait_for(written, 30, "the competency's blackboard write, during the flood")
+        assert not any(line.startswith("# flood ended") for line in peer.lines), "the flood went on meanwhile"
+        peer.command("stop-flood")
+        ended = peer.wait(lambda line: line.startswith("# flood ended"), 20)
+        assert ended.endswith("(stopped)"), ended  # the connection held all along
+        flooded = int(ended.split()[4])
+        assert flooded > 10 * fatima.MAX_IN_FLIGHT, ended
+    # What the daemon held for it stayed bounded, whatever the flood's length.
+    assert link.peak_in_flight == fatima.MAX_IN_FLIGHT
+    assert max(waiting) <= fatima.MAX_IN_FLIGHT + 16, max(waiting)
+    assert link.peak_queued <= fatima.MAX_QUEUED
+
+
+def test_a_mind_that_does_not_read_is_disconnected(body: tuple[Embodiment, FAtiMAConnector],
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    embodiment, mind = body
+    assert mind.listener is not None
+    embodiment.world_model.apply_now(SetProperty("Far", "description", "x" * 65536))  # each look-at: a 64 KB answer
+    gone: list[Event] = []
+    embodiment.sim.on_event(gone.append, component="fatima", event="MindDisconnected")
+    with PeerProcess(mind.listener.port) as peer:
+        peer.got("OK")
+        link = wait_for(lambda: mind.link if mind.link is not None and mind.link.handshaken else None, 5, "the link")
+        peer.command("stop-reading")
+        peer.wait(lambda line: line == "# stopped reading")
+        peer.command("flood look-at Far")
+        event = wait_for(lambda: gone[0] if gone else None, 60, "the mind disconnected")
+        assert isinstance(event.data, dict) and event.data["reason"].startswith("mind is not reading"), event.data
+        peer.wait(lambda line: line.startswith("# flood ended"), 20)
+    logged = next(r.getMessage() for r in caplog.records if "mind is not reading" in r.getMessage())
+    assert link.peer in logged and "connection closed" in logged, logged
+    assert fatima.MAX_QUEUED < link.peak_queued <= fatima.MAX_QUEUED + 70_000, link.peak_queued  # at most one line beyond
+    with _peer(mind) as again:  # and the next mind is welcome
+        again.connect()
+        again.wait_for(lambda line: line == "OK")
 
 
 def test_an_overlong_line_closes_the_connection(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
