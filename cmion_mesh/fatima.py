@@ -226,17 +226,35 @@ class Handshake:
     properties: dict[str, str]
 
 
+#: First words of the mind's other lines: a first line starting with one is not a handshake.
+_NOT_AGENT_NAMES = frozenset({"look-at", "CANCEL-ACTION", "STATE", "STATE-SET", "PROPERTY-CHANGED"})
+
+
 def parse_handshake(line: str) -> Handshake:
-    """``<agentName> <role> <displayName> k:v ...``; ``ProtocolError`` if it is not one."""
+    """``<agentName> <role> <displayName> k:v ...``; ``ProtocolError`` saying what is wrong otherwise."""
+
+    def bad(why: str) -> ProtocolError:
+        return ProtocolError(f"the first line must be the handshake '<agentName> <role> <displayName> k:v ...': {why}; "
+                             f"got {line[:120]!r}")
+
     tokens = line.split()
     if len(tokens) < 3:
-        raise ProtocolError(f"the first line must be '<agentName> <role> <displayName> k:v ...', got {line[:120]!r}")
+        raise bad(f"{len(tokens)} word(s), not at least 3")
+    agent, role, display = tokens[:3]
+    if agent in _NOT_AGENT_NAMES or agent.startswith("<"):
+        raise bad(f"{agent!r} starts another message of the protocol")
+    if not keys.is_name(agent):
+        raise bad(f"agent name {agent!r} is not a valid name (no / * $ # ? nor a leading @)")
+    for what, word in (("agent name", agent), ("role", role), ("display name", display)):
+        if ":" in word:
+            raise bad(f"the {what} {word!r} is a k:v pair (a name is missing)")
     properties: dict[str, str] = {}
     for pair in tokens[3:]:
         name, sep, value = pair.partition(":")
-        if sep and name:
-            properties[name] = value
-    return Handshake(tokens[0], tokens[1], tokens[2], properties)
+        if not sep or not keys.is_name(name):
+            raise bad(f"{pair!r} is not a property 'name:value' with a valid name")
+        properties[name] = value
+    return Handshake(agent, role, display, properties)
 
 
 def parse_emotional_state(line: str, where: str) -> dict[str, Any]:
@@ -711,6 +729,7 @@ class FAtiMAConnector(Mind):
             timer.cancel()
         self._held_timers.clear()
         self.gate.clear()
+        self._told.clear()
         if self._outgoing is not None and self._outgoing.link is link:
             self._state_overdue(self._outgoing, f"disconnected ({why}) while its state was asked for")
         if self._arrival is not None and self._arrival.link is link:
@@ -745,7 +764,6 @@ class FAtiMAConnector(Mind):
     def _handshake(self, link: Link, line: str) -> None:
         try:
             hello = parse_handshake(line)
-            keys.check_name(hello.agent, "agent name")
         except MeshError as exc:
             log.error("FAtiMA mind at %s: bad handshake: %s; connection closed", link.peer, exc)
             self._disconnected(link, f"bad handshake: {exc}")
@@ -753,11 +771,14 @@ class FAtiMAConnector(Mind):
         link.agent = hello.agent
         link.handshaken = True
         link.send("OK")
-        # The mind's own properties make it an agent of the world model, as in CMION.
+        # The mind's own properties make it an agent of the world model, as in CMION. A property
+        # there already keeps its persistence (its semantic memory said which): otherwise it would
+        # flip with every connection, and each flip is told to the mind again.
         self._world(AddContainer("", hello.agent, "agent"))
+        known = self._world_tree().get("children", {}).get(hello.agent, {}).get("properties", {})
         for name, value in hello.properties.items():
-            if keys.is_name(name):
-                self._world(SetProperty(hello.agent, name, value))
+            current = known.get(name)
+            self._world(SetProperty(hello.agent, name, value, bool(isinstance(current, dict) and current.get("persistent"))))
         self.sim.request(keys.BLACKBOARD, "set_property", SetProperty("", "agentName", hello.agent))
         facts: dict[str, Any] = {"connected": True, "peer": link.peer, "agent": hello.agent, "role": hello.role,
                                  "display_name": hello.display_name}
@@ -820,6 +841,10 @@ class FAtiMAConnector(Mind):
             current = node.get("properties", {}).get(name) if isinstance(node, dict) else None
             if isinstance(current, dict) and format_value(current.get("value")) == value and bool(current.get("persistent")) == persistent:
                 continue
+            self._told[(entity, name)] = (value, persistent)
+            self._told.move_to_end((entity, name))
+            while len(self._told) > MAX_HELD:
+                self._told.popitem(last=False)
             self._world(SetProperty(entity, name, value, persistent))
 
     # --- actions --------------------------------------------------------------------------------------
@@ -908,6 +933,8 @@ class FAtiMAConnector(Mind):
             link.send(f"ENTITY-REMOVED {name}")
 
     def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None:
+        if self._told and self._told.pop((entity, name), None) == (format_value(value), persistent):
+            return  # the mind's own semantic memory wrote it: it knows
         link = self._ready()
         if link is not None and entity and "/" not in entity:  # entities are the world model's top level
             link.send(property_changed_line(entity, name, value, persistent, self.options))

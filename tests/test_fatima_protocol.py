@@ -77,11 +77,18 @@ def test_values_and_lines_as_cmion_formatted_them() -> None:
 
 
 def test_handshake_and_xml_lines() -> None:
-    hello = parse_handshake("SpiritOfTheBuilding TestAgent Spirit role:TestAgent isTestMind:True url:http://x odd")
+    hello = parse_handshake("SpiritOfTheBuilding TestAgent Spirit role:TestAgent isTestMind:True url:http://x empty:")
     assert (hello.agent, hello.role, hello.display_name) == ("SpiritOfTheBuilding", "TestAgent", "Spirit")
-    assert hello.properties == {"role": "TestAgent", "isTestMind": "True", "url": "http://x"}
-    with pytest.raises(MeshError, match="first line"):
-        parse_handshake("Spirit TestAgent")
+    assert hello.properties == {"role": "TestAgent", "isTestMind": "True", "url": "http://x", "empty": ""}
+    assert parse_handshake("Spirit TestAgent Spirit").properties == {}
+    # Per the spec, and with the reason: a mind that skipped its handshake, or a malformed one.
+    for bad, why in (("Spirit TestAgent", "2 word"), ("look-at Spirit now", "'look-at' starts another message"),
+                     ("<EmotionalState><Mood>0</Mood> a b", "starts another message"), ("STATE-SET a b", "another message"),
+                     ("Spi/rit TestAgent Spirit", "not a valid name"), ("Spirit role:TestAgent Spirit", "role 'role:TestAgent'"),
+                     ("Spirit TestAgent Spirit role:A odd", "'odd' is not a property"),
+                     ("Spirit TestAgent Spirit :x", "':x' is not a property")):
+        with pytest.raises(MeshError, match=f"handshake.*{why}"):
+            parse_handshake(bad)
     state = parse_emotional_state('<EmotionalState><Mood>-0.5</Mood><Emotion type="DISTRESS" intensity="1"/></EmotionalState>', "m")
     assert state == {"mood": -0.5, "emotions": [{"type": "DISTRESS", "intensity": "1"}]}
     memory = ('<SemanticMemory><STM><Property persistent="true" name="ProbBias(TestAction1)" value="0.0"/>'
@@ -359,6 +366,28 @@ def test_held_retries_are_counted(body: tuple[Embodiment, FAtiMAConnector], monk
     assert link["failures"] == 1 and link["held_retries"] >= 4, link
     value = embodiment.sim.request("manager", "status", ActionStatus("")).result(5).value
     assert value == {"running": []}
+
+
+def test_the_minds_own_properties_are_told_once(body: tuple[Embodiment, FAtiMAConnector]) -> None:
+    embodiment, mind = body
+    with _peer(mind) as peer:
+        for connection in range(2):  # the first connection, and a reconnection (the properties known)
+            start = len(peer.received)
+            peer.connect()
+            peer.wait_for(lambda line: line == "CMD GET-PROPERTIES", start=start)
+            wait_for(lambda: peer.sent[-1].startswith("<SemanticMemory>"), 5, "its semantic memory sent")
+            peer.send("look-at Far")  # once answered, the semantic memory before it was read, its writes queued
+            peer.wait_for(lambda line: line == "ACTION-FINISHED Spirit look-at Far", start=start)
+            # A write queued after those: once it is told, every change before it has been told too.
+            assert embodiment.sim.request("wm", "set_property", SetProperty("Far", "marker", connection)).result(5).status == "accepted"
+            peer.wait_for(lambda line: line == f"PROPERTY-CHANGED Far(marker) {connection}", start=start)  # noqa: B023
+            role = embodiment.world_model.tree()["children"]["Spirit"]["properties"]["role"]
+            assert role == {"value": "TestAgent", "persistent": True}, role  # as its semantic memory said
+            told = peer.received[start:]
+            assert told.count("PROPERTY-CHANGED Spirit(role) TestAgent") == 1, told
+            assert told.count("PROPERTY-CHANGED Spirit(isTestMind) True") == 1, told
+            peer.disconnect()
+            wait_for(lambda: not mind.connection()["connected"], 5, "the mind gone")
 
 
 # --- migrations that fail, on in-memory embodiments --------------------------------------------------
