@@ -18,13 +18,18 @@ extensions: ``port:N`` (default 46874, or ``CMION_MESH_FATIMA_PORT`` when set; `
 ``<name>/port``), ``host:ADDR`` (default 127.0.0.1; ``host:0.0.0.0`` for every interface),
 ``name:N`` (the component's name, default ``fatima``), ``stop-wait:S`` (seconds between ``CMD Stop``
 and ``CMD GET-STATE``, default 0.5; CMION waited 2) and ``state-timeout:S`` (how long FAtiMA may
-take to answer ``GET-STATE``/``SET-STATE``, default 4). An unknown word is a configuration error.
+take to answer ``GET-STATE``/``SET-STATE``, default 4; with ``migrating``, the two must add up to
+less than the migration's ``SECTION_DEADLINE``). An unknown word is a configuration error.
 
 **Connections.** One mind at a time: while one is connected, another connection is refused
-(closed at once, with a warning naming both peers); when the connected mind's socket closes, the
-next connection is accepted. Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at most
-``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer). Sockets are
-read and written by threads of their own: the update loop never waits for the mind.
+(closed at once, with a warning naming both peers, once per host and ``REFUSED_LOG_INTERVAL``);
+when the connected mind's socket closes, the next connection is accepted. The first line must be
+a handshake (``parse_handshake``). Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at
+most ``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer; one
+that is not UTF-8 is dropped and logged). Sockets are read and written by threads of their own:
+the update loop never waits for the mind. Both directions are bounded (``Link``): at most
+``MAX_IN_FLIGHT`` lines wait for the loop (then TCP holds the mind back), at most ``MAX_QUEUED``
+bytes wait to be written (then the mind is disconnected: it is not reading).
 
 **No storm on failure.** FAtiMA retries a failed action about every 250 ms, forever. An action
 that failed is held (``FailureGate``): a retry of the identical action (same name and parameters)
@@ -43,11 +48,15 @@ none). CMION's last revision sent ``CMD GET-PROPERTIES`` instead, so the mind ne
 
 **Migration** (option ``migrating``): see ``docs/fatima.md``. The source stops the mind, asks for
 its state and puts the hex into the mind's section unchanged; if the mind does not answer within
-``state-timeout`` the migration is abandoned (the mind is woken: ``CMD Start``). The target sends
-``CMD SET-STATE``, waits for ``STATE-SET``, then ``CMD Start``, ``ACTION-FINISHED`` for the actions
-that were running when the companion left (as CMION's ``successMsg``), a ``LOOK-AT`` per entity and
-``CMD GET-PROPERTIES``. With no mind connected when the companion arrives, the state is kept (and
-carried on, should the companion leave first) and set in the next mind that connects.
+``state-timeout`` the migration is abandoned (the mind is woken: ``CMD Start``); with no mind
+connected, one connecting within ``stop-wait`` + ``state-timeout`` is asked, else the migration is
+refused (``MindStateUnavailable``): the companion never leaves with an empty mind. The target sends
+``CMD SET-STATE``, waits for ``STATE-SET``, then ``CMD Start``, ``ACTION-FINISHED`` for the action
+that migrated it (as CMION's ``successMsg``) and ``ACTION-FAILED`` for the others that were running
+(cancelled at the source), a ``LOOK-AT`` per entity and ``CMD GET-PROPERTIES``. With no mind
+connected when the companion arrives, the state is kept (and carried on, should the companion leave
+first) and set in the next mind that connects. Late answers (a ``STATE`` or ``STATE-SET`` whose
+request was given up) are logged and ignored.
 """
 
 from __future__ import annotations
@@ -70,8 +79,9 @@ import msgspec
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import MeshError, ProtocolError, XmlError
 from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
-from cmion_mesh.migration import MigrationManager
+from cmion_mesh.migration import SECTION_DEADLINE, MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.rules import MindAction
 from cmion_mesh.storage import Store
@@ -168,7 +178,14 @@ def parse_options(parameters: Sequence[str]) -> Options:
         if not raw.isdigit() or int(raw) > 65535:
             raise MeshError(f"{PORT_VARIABLE}={raw!r} is not a TCP port")
         values["port"] = int(raw)
-    return Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
+    options = Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
+    if options.migrating and options.stop_wait + options.state_timeout >= SECTION_DEADLINE:
+        # Past the migration manager's deadline the migration is abandoned with a vaguer reason
+        # ("components ... did not give their sections") while the connector still waits.
+        raise MeshError(f"options stop-wait:{options.stop_wait:g} and state-timeout:{options.state_timeout:g} of the FAtiMA "
+                        f"connector add up to {options.stop_wait + options.state_timeout:g} s: with 'migrating' they must stay "
+                        f"under the {SECTION_DEADLINE:g} s a migration gives each component for its section")
+    return options
 
 
 # --- the protocol's lines (pure functions) ---------------------------------------------------------
@@ -577,8 +594,9 @@ class _Outgoing:
     """The source's side of a migration while the mind's state is asked for."""
 
     token: Any
-    link: Link
+    link: Link | None  # None: no mind was connected as the migration started; the next one is asked
     timer: Timer | None = None
+    asked: bool = False  # CMD GET-STATE went out: a STATE before it answered an older request
 
 
 @dataclass
@@ -587,6 +605,7 @@ class _Arrival:
 
     state: dict[str, Any]
     link: Link | None = None  # the mind it was sent to, awaiting STATE-SET
+    sent: int = 0  # which of that link's SET-STATEs it was (its STATE-SET is the answer of that number)
     timer: Timer | None = None
     awake: bool = False
     world: dict[str, Any] | None = None
@@ -751,7 +770,7 @@ class FAtiMAConnector(Mind):
         elif head == "STATE":
             self._state_received(link, rest.strip())
         elif head == "STATE-SET":
-            self._state_set(link)
+            self._state_set_answer(link)
         elif head == "CANCEL-ACTION":
             self._cancel_action(rest.split())
         elif head.startswith("<"):
@@ -789,6 +808,10 @@ class FAtiMAConnector(Mind):
             self._set_state(link)
         elif not self.awake:
             link.send("CMD Stop")
+            outgoing = self._outgoing
+            if outgoing is not None and outgoing.link is None:  # a migration waits for a mind to ask
+                outgoing.link = link
+                self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
         else:
             link.send("CMD GET-PROPERTIES")
             for entity in self._entities(self._world_tree()):
@@ -1002,26 +1025,45 @@ class FAtiMAConnector(Mind):
         if event.name == "MigrationSucceeded":  # the companion left: a state kept for it left with it
             self._unwait_arrival()
             self._arrival = None
+            self._companion_left()
+
+    def _companion_left(self) -> None:
+        """The mind's actions went with the companion (told to its mind where it arrived): those still
+        running here are cancelled, nothing more about them is told to the mind left behind."""
+        migrating = set(self._actions_running(MigrationCompetency.type))
+        for action_id in list(self._running):
+            if action_id not in migrating:  # the Migrate action ends by itself, with the migration
+                self.cancel(action_id)
+        self._running.clear()
 
     def _migration_starting(self) -> None:
-        link = self._ready()
         manager = self._migration()
-        if not self.options.migrating or link is None or manager is None:
-            return  # nothing to ask: a kept, undelivered state is carried by state()
+        if not self.options.migrating or manager is None:
+            return
+        link = self._ready()
+        if link is None and self._arrival is not None:
+            return  # the state kept for the next mind is carried by state()
         try:
             token = manager.wait(self.name)
         except MeshError:
             return  # the migration ended already
         outgoing = _Outgoing(token, link)
         self._outgoing = outgoing
-        # CMD Stop went out as the mind was put to sleep; give FAtiMA's cycle a moment to end.
-        self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
-        outgoing.timer = self.sim.call_later(self.options.stop_wait + self.options.state_timeout,
-                                             functools.partial(self._state_overdue, outgoing))
+        wait = self.options.stop_wait + self.options.state_timeout
+        if link is None:
+            # Leaving without it would carry an empty mind: a mind connecting meanwhile is asked instead.
+            log.warning("FAtiMA connector %r: the companion starts leaving with no FAtiMA mind connected; a mind that "
+                        "connects within %g s is asked for its state, else the migration is refused", self.name, wait)
+        else:
+            # CMD Stop went out as the mind was put to sleep; give FAtiMA's cycle a moment to end.
+            self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
+        outgoing.timer = self.sim.call_later(wait, functools.partial(self._state_overdue, outgoing))
 
     def _ask_state(self, outgoing: _Outgoing) -> None:
-        if self._outgoing is outgoing and outgoing.link.open:
-            outgoing.link.send("CMD GET-STATE")
+        link = outgoing.link
+        if self._outgoing is outgoing and link is not None and link.open:
+            outgoing.asked = True
+            link.send("CMD GET-STATE")
 
     def _state_overdue(self, outgoing: _Outgoing, why: str = "") -> None:
         if self._outgoing is not outgoing:
@@ -1029,17 +1071,28 @@ class FAtiMAConnector(Mind):
         self._outgoing = None
         if outgoing.timer is not None:
             outgoing.timer.cancel()
-        reason = (f"the FAtiMA mind {outgoing.link.agent} at {outgoing.link.peer} "
-                  f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
-        log.error("%s: the migration is abandoned", reason)
+        link = outgoing.link
+        wait = self.options.stop_wait + self.options.state_timeout
+        if link is None:
+            listening = self.listener.address if self.listener is not None else "no address (it could not listen)"
+            reason = (f"no FAtiMA mind is connected to connector {self.name!r} (listening on {listening}) to give the "
+                      f"companion's mind state; none connected within {wait:g} s")
+        else:
+            reason = (f"the FAtiMA mind {link.agent} at {link.peer} (connector {self.name!r}) "
+                      f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
+        log.error("%s: the migration is refused", reason)
+        self.raise_event("MindStateUnavailable", {"mind": self.name, "agent": link.agent if link is not None else "",
+                                                  "peer": link.peer if link is not None else "", "reason": reason})
         manager = self._migration()
         if manager is not None:
             manager.refuse(outgoing.token, reason)
 
     def _state_received(self, link: Link, hex_state: str) -> None:
         outgoing = self._outgoing
-        if outgoing is None or outgoing.link is not link:
-            log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for: ignored", link.agent, link.peer)
+        if outgoing is None or outgoing.link is not link or not outgoing.asked:
+            # A late answer to a GET-STATE whose migration was abandoned: an older state than the mind's.
+            log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for (late, or before CMD GET-STATE): ignored",
+                        link.agent, link.peer)
             return
         if not hex_state or any(c.isspace() for c in hex_state):
             self._state_overdue(outgoing, "answered GET-STATE with no state (or more than one token)")
@@ -1048,11 +1101,24 @@ class FAtiMAConnector(Mind):
         if outgoing.timer is not None:
             outgoing.timer.cancel()
         self._given = (link, hex_state)
-        finished = [f"ACTION-FINISHED {link.agent} {action_text(*r.key)}" for r in self._running.values() if r.link is link]
+        # The Migrate action succeeds where the companion arrives (CMION's successMsg); the others
+        # end here with the companion, so the mind is told they failed and retries those it still wants.
+        migrating = set(self._actions_running(MigrationCompetency.type))
+        finished: list[str] = []
+        failed: list[str] = []
+        for action_id, running in self._running.items():
+            if running.link is link:
+                (finished if action_id in migrating else failed).append(action_text(*running.key))
         manager = self._migration()
         if manager is not None:
-            manager.resolve(outgoing.token, {"state": hex_state, "agent": link.agent, "finished": finished,
-                                             "from": self.sim.embodiment})
+            manager.resolve(outgoing.token, {
+                "state": hex_state, "agent": link.agent, "from": self.sim.embodiment,
+                "finished": [f"ACTION-FINISHED {link.agent} {text}" for text in finished],
+                "failed": [f"ACTION-FAILED {link.agent} {text}" for text in failed]})
+
+    def _actions_running(self, competency_type: str) -> list[str]:
+        manager = self.sim.components_by_name().get("manager")
+        return manager.actions_running(competency_type) if isinstance(manager, CompetencyManager) else []
 
     def state(self) -> dict[str, Any]:
         """A state that arrived and is not yet set in a mind (carried on if the companion leaves first)."""
@@ -1063,11 +1129,11 @@ class FAtiMAConnector(Mind):
             return
         if state.get("from") == self.sim.embodiment:
             # Resumed here after a migration failed past its packing: the document holds the state
-            # this embodiment's mind gave, and its Migrate action did not succeed.
+            # this embodiment's mind gave, and its actions did not end.
             given = self._given
             if given is not None and given[0] is self._ready() and given[1] == state["state"]:
                 return  # the mind that gave it is still here, holding it
-            state = {**state, "finished": []}
+            state = {**state, "finished": [], "failed": []}
         self._unwait_arrival()
         self._arrival = _Arrival(dict(state))
         link = self._ready()
@@ -1081,6 +1147,8 @@ class FAtiMAConnector(Mind):
         arrival = self._arrival
         assert arrival is not None
         arrival.link = link
+        link.set_states_sent += 1
+        arrival.sent = link.set_states_sent
         arrival.awake = arrival.awake or self.awake
         link.send(f"CMD SET-STATE {arrival.state['state']}")
         arrival.timer = self.sim.call_later(self.options.state_timeout, functools.partial(self._set_overdue, arrival))
@@ -1090,6 +1158,19 @@ class FAtiMAConnector(Mind):
             log.error("FAtiMA mind %s at %s did not answer SET-STATE within %g s: started anyway", arrival.link.agent,
                       arrival.link.peer, self.options.state_timeout)
             self._state_set(arrival.link, confirmed=False)
+
+    def _state_set_answer(self, link: Link) -> None:
+        """A ``STATE-SET`` line: the mind answers SET-STATEs in order, so it is the answer to the
+        next one of this link; one whose arrival timed out, or was replaced, is ignored."""
+        link.set_states_answered += 1
+        answer = link.set_states_answered
+        arrival = self._arrival
+        if arrival is not None and arrival.link is link and arrival.sent == answer:
+            self._state_set(link)
+            return
+        awaited = f"#{arrival.sent} is awaited" if arrival is not None and arrival.link is link else "none is awaited"
+        log.warning("FAtiMA mind %s at %s answered SET-STATE #%d late (%s): ignored, the state kept as it is",
+                    link.agent, link.peer, answer, awaited)
 
     def _state_set(self, link: Link, *, confirmed: bool = True) -> None:
         arrival = self._arrival
@@ -1104,9 +1185,11 @@ class FAtiMAConnector(Mind):
             link.send("CMD Stop")
             return
         link.send("CMD Start")
-        for line in arrival.state.get("finished", []):
-            if isinstance(line, str) and "\n" not in line:
-                link.send(line)
+        for name in ("finished", "failed"):
+            lines = arrival.state.get(name)
+            for line in lines if isinstance(lines, list) else []:
+                if isinstance(line, str) and line.startswith("ACTION-") and "\n" not in line:
+                    link.send(line)
         self._tell_world(link, arrival.world if arrival.world is not None else self._world_tree())
 
     def _unwait_arrival(self) -> None:

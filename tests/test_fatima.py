@@ -278,6 +278,8 @@ def test_a_second_mind_is_refused(world: Mesh) -> None:
 def test_migrates_with_its_state_byte_for_byte(world: Mesh) -> None:
     a, b = world.a, world.b
     start_a, start_b = a.mark(), b.mark()
+    a.command("act GoTo Far")  # 30 s of walking, cut short by the companion leaving
+    wait_for(lambda: world.running("robot"), 10, "the GoTo action running")
     a.command("act Migrate screen")
     a.got("CMD Stop", start=start_a)
     a.got("CMD GET-STATE", start=start_a)
@@ -285,8 +287,11 @@ def test_migrates_with_its_state_byte_for_byte(world: Mesh) -> None:
     assert line[len("< CMD SET-STATE "):] == world.state_a, "the opaque state arrives unchanged"
     b.got("CMD Start", start=start_b)
     b.got("ACTION-FINISHED Spirit Migrate screen", start=start_b)  # the action that moved it ends where it arrived
+    b.got("ACTION-FAILED Spirit GoTo Far", start=start_b)  # the others did not: the mind retries them if it will
     b.got("CMD GET-PROPERTIES", start=start_b)
     received = b.received(start_b)
+    assert "ACTION-FINISHED Spirit GoTo Far" not in received
+    assert received.index("ACTION-FINISHED Spirit Migrate screen") < received.index("ACTION-FAILED Spirit GoTo Far")
     order = [received.index(line[2:]), received.index("CMD Start")]
     for entity in [*ENTITIES, "Spirit"]:
         look = next(r for r in received if r.startswith(f"LOOK-AT {entity}"))
@@ -295,10 +300,12 @@ def test_migrates_with_its_state_byte_for_byte(world: Mesh) -> None:
     assert order[:2] == sorted(order[:2]) and max(order[:2]) < min(order[2:-1]) < order[-1], received
     assert "LOOK-AT UserA P:speaksEnglish:True" in received  # the screen runs with `persistent`
     assert "STATE-SET" in b.sent(start_b)
-    # Its semantic memory (persistent facts about itself) is told back in the persistent form.
+    # The persistent facts of the world model came with the companion (its role, from its semantic memory).
     b.got("PROPERTY-CHANGED-PERSISTENT * Spirit(role) TestAgent", start=start_b)
     assert wait_for(lambda: world.inhabitant("screen") == "spirit", 10, "spirit on the screen")
     assert world.inhabitant("robot") is None
+    # Nothing works on the robot any more for the companion that left.
+    wait_for(lambda: not world.running("robot"), 10, "the GoTo action cancelled on the robot")
 
 
 def test_migration_fails_cleanly_when_the_mind_keeps_its_state(world: Mesh) -> None:

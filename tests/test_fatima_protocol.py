@@ -58,6 +58,10 @@ def test_options_as_cmion_wrote_them_and_our_extensions() -> None:
                      ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option")):
         with pytest.raises(MeshError, match=why):
             parse_options([bad])
+    # A migration gives each component 5 s for its section: the connector's own wait must end first.
+    assert parse_options(["stop-wait:2 state-timeout:4"]).state_timeout == 4.0  # no migration: no such limit
+    with pytest.raises(MeshError, match=r"stop-wait:2 and state-timeout:3 .* add up to 5 s: with 'migrating' .* under the 5 s"):
+        parse_options(["migrating stop-wait:2 state-timeout:3"])
 
 
 def test_values_and_lines_as_cmion_formatted_them() -> None:
@@ -394,10 +398,11 @@ def test_the_minds_own_properties_are_told_once(body: tuple[Embodiment, FAtiMACo
 
 
 @pytest.fixture
-def two(tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
-    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else."""
+def two(request: pytest.FixtureRequest, tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
+    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else.
+    (Parametrized indirectly: the connector's state-timeout, default 2.)"""
     network = MemoryNetwork()
-    mind = FAtiMAConnector("modular migrating port:0 stop-wait:0 state-timeout:2")
+    mind = FAtiMAConnector(f"modular migrating port:0 stop-wait:0 state-timeout:{getattr(request, 'param', 2)}")
     robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
                        companion="spirit", components=[mind])
     kiosk = Embodiment("kiosk", mesh=mesh, transport=MemoryTransport(network, "kiosk"), state_dir=tmp_path / "kiosk",
@@ -454,3 +459,63 @@ def test_the_stand_in_reads_its_options() -> None:
     for bad in (["--port"], ["--port", "x"], ["--colour", "red"], ["stray"]):
         with pytest.raises(SystemExit, match=r"usage|not a number"):
             fatima_peer.parse_args(bad)
+
+
+def test_no_mind_no_migration(two: tuple[Embodiment, FAtiMAConnector, list[Any]], caplog: pytest.LogCaptureFixture) -> None:
+    robot, _, failures = two
+    unavailable: list[Event] = []
+    robot.sim.on_event(unavailable.append, component="fatima", event="MindStateUnavailable")
+    wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+    assert robot.migration is not None
+    outcome = robot.migration.start("kiosk").result(10)
+    # The companion does not leave with an empty mind: the migration is refused, naming the connector.
+    assert outcome.status == "rejected" and "no FAtiMA mind is connected to connector 'fatima'" in outcome.reason, outcome
+    assert failures and "no FAtiMA mind is connected to connector 'fatima'" in str(failures[0])
+    wait_for(lambda: unavailable, 5, "MindStateUnavailable raised")
+    assert isinstance(unavailable[0].data, dict) and unavailable[0].data["mind"] == "fatima"
+    assert "no FAtiMA mind is connected to connector 'fatima'" in caplog.text
+    assert robot.inhabitant == "spirit"
+
+
+@pytest.mark.parametrize("two", [4], indirect=True)
+def test_a_mind_connecting_while_the_companion_leaves_gives_its_state(two: tuple[Embodiment, FAtiMAConnector, list[Any]],
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    robot, mind, _ = two
+    wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+    assert robot.migration is not None
+    future = robot.migration.start("kiosk")
+    wait_for(lambda: "starts leaving with no FAtiMA mind connected" in caplog.text, 5, "the connector waiting for a mind")
+    with _peer(mind, state="cafe0123") as peer:
+        peer.connect()
+        outcome = future.result(10)
+        received = peer.received
+        assert received.index("OK") < received.index("CMD Stop") < received.index("CMD GET-STATE"), received
+        # Its state was packed: the kiosk's refusal is the end of it, not the connector's.
+        assert outcome.status == "rejected" and "may not enter 'kiosk'" in outcome.reason, outcome
+        peer.wait_for(lambda line: line == "CMD Start")  # resumed here, its mind woken
+    assert robot.inhabitant == "spirit"
+
+
+def test_a_late_state_set_is_not_taken_for_a_later_one(caplog: pytest.LogCaptureFixture) -> None:
+    mind = FAtiMAConnector("migrating port:0 stop-wait:0 state-timeout:0.5")
+    with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment("robot", transport=transport, components=[mind]):
+        wait_for(lambda: mind.listener is not None, 5, "listening")
+        assert mind.listener is not None
+        with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=10) as sock, sock.makefile("rb") as lines:
+            sock.sendall(b"Spirit Role Spirit\n")
+            _lines_until(lines, lambda line: line == b"ENTITY-ADDED Spirit\n")
+            mind.sim.call(lambda: mind.restore({"state": "aa01", "agent": "Spirit"}))
+            _lines_until(lines, lambda line: line == b"CMD SET-STATE aa01\n")
+            # No answer within state-timeout: the mind is started anyway, the state kept.
+            _lines_until(lines, lambda line: line == b"CMD Start\n")
+            mind.sim.call(lambda: mind.restore({"state": "bb02", "agent": "Spirit"}))
+            _lines_until(lines, lambda line: line == b"CMD SET-STATE bb02\n")
+            sock.sendall(b"STATE-SET\nlook-at Nobody\n")  # the late answer to the first
+            got = _lines_until(lines, lambda line: line == b"ACTION-FINISHED Spirit look-at Nobody\n")
+            assert b"CMD Start\n" not in got, got  # not taken for the second's answer
+            assert mind.state()["state"] == "bb02", "the second state is still awaited, kept"
+            late = next(r.getMessage() for r in caplog.records if "late" in r.getMessage())
+            assert "SET-STATE #1 late (#2 is awaited): ignored" in late and "127.0.0.1:" in late, late
+            sock.sendall(b"STATE-SET\n")
+            _lines_until(lines, lambda line: line == b"CMD Start\n")
+            wait_for(lambda: mind.state() == {}, 5, "the second state confirmed")
