@@ -285,7 +285,7 @@ def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Emb
         link = wait_for(lambda: mind.link if mind.link is not None and mind.link.handshaken else None, 5, "the link")
         peer.command("quiet")  # the peer answers, keeps nothing (a flood's answers are many)
         peer.wait(lambda line: line == "# quiet")
-        peer.command("flood look-at Far")
+        peer.command("flood-reading look-at Far")  # at most 10,000 look-ats ahead of the answers read
         # The reader stops at the bound of lines in flight: TCP holds the mind back from there on.
         wait_for(lambda: link.peak_in_flight >= fatima.MAX_IN_FLIGHT, 20, "the flood reaching the bound")
         waiting: list[int] = []

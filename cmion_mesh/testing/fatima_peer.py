@@ -17,6 +17,8 @@ connection, and takes commands on standard input, one a line:
 ``mute-state`` / ``answer-state``   stop / start answering ``CMD GET-STATE``
 ``disconnect`` / ``connect``        close the connection / connect again (a new handshake)
 ``flood LINE`` / ``stop-flood``     send LINE over and over, as fast as the body takes it / stop
+``flood-reading LINE``    the same, never more than ``FLOOD_WINDOW`` lines ahead of the answers read
+                          (``ACTION-FINISHED``/``-FAILED``): a flooding mind that reads its answers
 ``stop-reading`` / ``read``         stop / start reading what the body sends (a mind that hangs)
 ``quiet`` / ``verbose``   stop / start keeping and printing received lines (they are still answered)
 ``quit``                  leave (so does the end of standard input)
@@ -38,6 +40,8 @@ from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
 RETRY_INTERVAL = 0.25
+#: Lines a ``flood-reading`` keeps sent ahead of the answers it has read.
+FLOOD_WINDOW = 10_000
 
 
 class Peer:
@@ -61,6 +65,7 @@ class Peer:
         self._reading.set()
         self._send_lock = threading.Lock()  # one line at a time on the socket (floods run on a thread)
         self._flood: tuple[threading.Thread, threading.Event] | None = None
+        self.answers = 0  # ACTION-FINISHED / ACTION-FAILED lines received (under _lock)
         self.set_state: str | None = None  # the last state the body set
         self.running = True
         self._lock = threading.Condition()
@@ -151,11 +156,12 @@ class Peer:
         with self._lock:
             self._retrying.discard(action)
 
-    def flood(self, line: str) -> None:
-        """Send ``line`` over and over on a thread of its own, until ``stop_flood`` or a failed send."""
+    def flood(self, line: str, *, window: int = 0) -> None:
+        """Send ``line`` over and over on a thread of its own, until ``stop_flood`` or a failed send;
+        with ``window``, never more than that many lines ahead of the answers received."""
         self.stop_flood()
         stop = threading.Event()
-        thread = threading.Thread(target=self._flood_loop, args=(line, stop), name="peer-flood", daemon=True)
+        thread = threading.Thread(target=self._flood_loop, args=(line, stop, window), name="peer-flood", daemon=True)
         self._flood = (thread, stop)
         thread.start()
 
@@ -163,15 +169,21 @@ class Peer:
         flood, self._flood = self._flood, None
         if flood is not None:
             flood[1].set()
+            with self._lock:
+                self._lock.notify_all()  # a flood waiting for answers
             flood[0].join(10.0)
 
-    def _flood_loop(self, line: str, stop: threading.Event) -> None:
+    def _flood_loop(self, line: str, stop: threading.Event, window: int) -> None:
         batch = (line.encode("utf-8") + b"\n") * 256
         sent = 0
         why = "stopped"
+        with self._lock:
+            answered = self.answers
         self._note(f"# flooding: {line[:80]}")
         while not stop.is_set():
             with self._lock:
+                while window and sent - (self.answers - answered) > window and not stop.is_set():
+                    self._lock.wait(1.0)
                 sock = self._sock
             if sock is None:
                 why = "not connected"
@@ -237,6 +249,8 @@ class Peer:
             if subject != self.agent:
                 return
             with self._lock:
+                self.answers += 1
+                self._lock.notify_all()
                 if head == "ACTION-FINISHED":
                     self._retrying.discard(action)
                 elif action in self._retrying:
@@ -377,8 +391,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             elif command in ("mute-state", "answer-state"):
                 peer.answer_state = command == "answer-state"
                 _print(f"# {command}")
-            elif command == "flood":
-                peer.flood(rest)
+            elif command in ("flood", "flood-reading"):
+                peer.flood(rest, window=FLOOD_WINDOW if command == "flood-reading" else 0)
             elif command == "stop-flood":
                 peer.stop_flood()
             elif command == "stop-reading":
