@@ -158,6 +158,10 @@ class ExecutionSystem(Component):
         self._advance(run)
         return plan_id
 
+    def running_plans(self, competency_type: str) -> list[str]:
+        """Ids of the plan runs with a step of ``competency_type`` running (loop thread)."""
+        return [run.id for run in self._plans.values() if any(s.step.type == competency_type for s in run.running())]
+
     def cancel(self, plan_id: str) -> bool:
         run = self._plans.get(plan_id)
         if run is None or run.state == "done":

@@ -18,13 +18,18 @@ extensions: ``port:N`` (default 46874, or ``CMION_MESH_FATIMA_PORT`` when set; `
 ``<name>/port``), ``host:ADDR`` (default 127.0.0.1; ``host:0.0.0.0`` for every interface),
 ``name:N`` (the component's name, default ``fatima``), ``stop-wait:S`` (seconds between ``CMD Stop``
 and ``CMD GET-STATE``, default 0.5; CMION waited 2) and ``state-timeout:S`` (how long FAtiMA may
-take to answer ``GET-STATE``/``SET-STATE``, default 4). An unknown word is a configuration error.
+take to answer ``GET-STATE``/``SET-STATE``, default 4; with ``migrating``, the two must add up to
+less than the migration's ``SECTION_DEADLINE``). An unknown word is a configuration error.
 
 **Connections.** One mind at a time: while one is connected, another connection is refused
-(closed at once, with a warning naming both peers); when the connected mind's socket closes, the
-next connection is accepted. Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at most
-``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer). Sockets are
-read and written by threads of their own: the update loop never waits for the mind.
+(closed at once, with a warning naming both peers, once per host and ``REFUSED_LOG_INTERVAL``);
+when the connected mind's socket closes, the next connection is accepted. The first line must be
+a handshake (``parse_handshake``). Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at
+most ``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer; one
+that is not UTF-8 is dropped and logged). Sockets are read and written by threads of their own:
+the update loop never waits for the mind. Both directions are bounded (``Link``): at most
+``MAX_IN_FLIGHT`` lines wait for the loop (then TCP holds the mind back), at most ``MAX_QUEUED``
+bytes wait to be written (then the mind is disconnected: it is not reading).
 
 **No storm on failure.** FAtiMA retries a failed action about every 250 ms, forever. An action
 that failed is held (``FailureGate``): a retry of the identical action (same name and parameters)
@@ -43,11 +48,15 @@ none). CMION's last revision sent ``CMD GET-PROPERTIES`` instead, so the mind ne
 
 **Migration** (option ``migrating``): see ``docs/fatima.md``. The source stops the mind, asks for
 its state and puts the hex into the mind's section unchanged; if the mind does not answer within
-``state-timeout`` the migration is abandoned (the mind is woken: ``CMD Start``). The target sends
-``CMD SET-STATE``, waits for ``STATE-SET``, then ``CMD Start``, ``ACTION-FINISHED`` for the actions
-that were running when the companion left (as CMION's ``successMsg``), a ``LOOK-AT`` per entity and
-``CMD GET-PROPERTIES``. With no mind connected when the companion arrives, the state is kept (and
-carried on, should the companion leave first) and set in the next mind that connects.
+``state-timeout`` the migration is abandoned (the mind is woken: ``CMD Start``); with no mind
+connected, one connecting within ``stop-wait`` + ``state-timeout`` is asked, else the migration is
+refused (``MindStateUnavailable``): the companion never leaves with an empty mind. The target sends
+``CMD SET-STATE``, waits for ``STATE-SET``, then ``CMD Start``, ``ACTION-FINISHED`` for the action
+that migrated it (as CMION's ``successMsg``) and ``ACTION-FAILED`` for the others that were running
+(cancelled at the source), a ``LOOK-AT`` per entity and ``CMD GET-PROPERTIES``. With no mind
+connected when the companion arrives, the state is kept (and carried on, should the companion leave
+first) and set in the next mind that connects. Late answers (a ``STATE`` or ``STATE-SET`` whose
+request was given up) are logged and ignored.
 """
 
 from __future__ import annotations
@@ -70,8 +79,9 @@ import msgspec
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import MeshError, ProtocolError, XmlError
 from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
-from cmion_mesh.migration import MigrationManager
+from cmion_mesh.migration import SECTION_DEADLINE, MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.rules import MindAction
 from cmion_mesh.storage import Store
@@ -86,6 +96,14 @@ DEFAULT_HOST = "127.0.0.1"
 MAX_LINE = 16 * 1024 * 1024
 #: A write the mind does not take within this many seconds closes the connection.
 SEND_TIMEOUT = 30.0
+#: Lines read from the mind and not yet handled by the update loop: beyond, the reader stops reading,
+#: so a flooding mind is held back by TCP instead of filling the loop's queue (and the memory).
+MAX_IN_FLIGHT = 64
+#: Bytes waiting to be written to the mind (beyond the line being written): beyond, the mind is not
+#: reading and is disconnected, instead of the queue growing without end.
+MAX_QUEUED = 8 * 1024 * 1024
+#: Refused connections from one host are logged once in this many seconds (the others are counted).
+REFUSED_LOG_INTERVAL = 10.0
 #: Seconds before a held retry of a failed action is answered ``ACTION-FAILED``.
 HELD_ANSWER_DELAY = 1.0
 #: First and longest hold window of a failed action (seconds): retries within it do not run the rules.
@@ -160,7 +178,14 @@ def parse_options(parameters: Sequence[str]) -> Options:
         if not raw.isdigit() or int(raw) > 65535:
             raise MeshError(f"{PORT_VARIABLE}={raw!r} is not a TCP port")
         values["port"] = int(raw)
-    return Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
+    options = Options(modular="modular" in flags, persistent="persistent" in flags, migrating="migrating" in flags, **values)
+    if options.migrating and options.stop_wait + options.state_timeout >= SECTION_DEADLINE:
+        # Past the migration manager's deadline the migration is abandoned with a vaguer reason
+        # ("components ... did not give their sections") while the connector still waits.
+        raise MeshError(f"options stop-wait:{options.stop_wait:g} and state-timeout:{options.state_timeout:g} of the FAtiMA "
+                        f"connector add up to {options.stop_wait + options.state_timeout:g} s: with 'migrating' they must stay "
+                        f"under the {SECTION_DEADLINE:g} s a migration gives each component for its section")
+    return options
 
 
 # --- the protocol's lines (pure functions) ---------------------------------------------------------
@@ -218,17 +243,35 @@ class Handshake:
     properties: dict[str, str]
 
 
+#: First words of the mind's other lines: a first line starting with one is not a handshake.
+_NOT_AGENT_NAMES = frozenset({"look-at", "CANCEL-ACTION", "STATE", "STATE-SET", "PROPERTY-CHANGED"})
+
+
 def parse_handshake(line: str) -> Handshake:
-    """``<agentName> <role> <displayName> k:v ...``; ``ProtocolError`` if it is not one."""
+    """``<agentName> <role> <displayName> k:v ...``; ``ProtocolError`` saying what is wrong otherwise."""
+
+    def bad(why: str) -> ProtocolError:
+        return ProtocolError(f"the first line must be the handshake '<agentName> <role> <displayName> k:v ...': {why}; "
+                             f"got {line[:120]!r}")
+
     tokens = line.split()
     if len(tokens) < 3:
-        raise ProtocolError(f"the first line must be '<agentName> <role> <displayName> k:v ...', got {line[:120]!r}")
+        raise bad(f"{len(tokens)} word(s), not at least 3")
+    agent, role, display = tokens[:3]
+    if agent in _NOT_AGENT_NAMES or agent.startswith("<"):
+        raise bad(f"{agent!r} starts another message of the protocol")
+    if not keys.is_name(agent):
+        raise bad(f"agent name {agent!r} is not a valid name (no / * $ # ? nor a leading @)")
+    for what, word in (("agent name", agent), ("role", role), ("display name", display)):
+        if ":" in word:
+            raise bad(f"the {what} {word!r} is a k:v pair (a name is missing)")
     properties: dict[str, str] = {}
     for pair in tokens[3:]:
         name, sep, value = pair.partition(":")
-        if sep and name:
-            properties[name] = value
-    return Handshake(tokens[0], tokens[1], tokens[2], properties)
+        if not sep or not keys.is_name(name):
+            raise bad(f"{pair!r} is not a property 'name:value' with a valid name")
+        properties[name] = value
+    return Handshake(agent, role, display, properties)
 
 
 def parse_emotional_state(line: str, where: str) -> dict[str, Any]:
@@ -321,7 +364,12 @@ def _peer_name(address: Any) -> str:
 
 
 class Link:
-    """One mind connection: a reader thread handing lines on, a writer thread sending queued lines."""
+    """One mind connection: a reader thread handing lines on, a writer thread sending queued lines.
+
+    Both directions are bounded: at most ``MAX_IN_FLIGHT`` lines read and not yet handled (the loop
+    calls ``line_done`` for each; meanwhile the reader stops reading and TCP holds the mind back),
+    and at most ``MAX_QUEUED`` bytes waiting to be written (beyond, the mind is not reading and the
+    link reports itself closed)."""
 
     def __init__(self, sock: socket.socket, peer: str, on_line: Callable[[Link, str], None],
                  on_closed: Callable[[Link, str], None]) -> None:
@@ -337,6 +385,14 @@ class Link:
         self._dead = threading.Event()  # the reader or writer found the connection gone
         self._reported = threading.Lock()
         self._told = False
+        self._flow = threading.Condition()
+        self.in_flight = 0  # lines handed to the loop, not yet handled (under _flow)
+        self.queued = 0  # bytes waiting for the writer (under _flow)
+        self.peak_in_flight = 0
+        self.peak_queued = 0
+        # Requests of the body the mind answers in order, counted to match each answer to its request.
+        self.set_states_sent = 0
+        self.set_states_answered = 0
         sock.settimeout(SEND_TIMEOUT)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
         # A mind whose host froze or vanished is noticed in about 25 s (not the system's 2 hours),
@@ -356,11 +412,43 @@ class Link:
         return not (self._closed.is_set() or self._dead.is_set())
 
     def send(self, line: str) -> None:
-        if not self._closed.is_set():
-            self._out.put(line.encode("utf-8") + b"\n")
+        if not self.open:
+            return
+        data = line.encode("utf-8") + b"\n"
+        with self._flow:
+            backlog = self.queued
+            if backlog <= MAX_QUEUED:
+                self.queued += len(data)
+                self.peak_queued = max(self.peak_queued, self.queued)
+        if backlog > MAX_QUEUED:
+            why = f"mind is not reading: more than {MAX_QUEUED} bytes wait to be sent to it"
+            log.error("FAtiMA mind %s at %s: %s; connection closed", self.agent or "(before its handshake)", self.peer, why)
+            self._report(why)
+            return
+        self._out.put(data)
+
+    def line_done(self) -> None:
+        """The loop has handled one line handed on: the reader may hand on another."""
+        with self._flow:
+            self.in_flight -= 1
+            self._flow.notify_all()
+
+    def _hand_on(self, line: str) -> bool:
+        """Wait for room in the loop, then hand ``line`` on; False once the link is closing."""
+        with self._flow:
+            while self.in_flight >= MAX_IN_FLIGHT and self.open:
+                self._flow.wait()
+            if not self.open:
+                return False
+            self.in_flight += 1
+            self.peak_in_flight = max(self.peak_in_flight, self.in_flight)
+        self._on_line(self, line)
+        return True
 
     def _report(self, why: str) -> None:
         self._dead.set()
+        with self._flow:
+            self._flow.notify_all()
         with self._reported:
             if self._told:
                 return
@@ -390,13 +478,27 @@ class Link:
                     searched = 0
                     if raw.endswith(b"\r"):
                         raw = raw[:-1]
-                    self._on_line(self, raw.decode("utf-8", errors="replace"))
+                    try:
+                        line = raw.decode("utf-8")
+                    except UnicodeDecodeError as exc:
+                        # The protocol is UTF-8: a line that is not is dropped whole, never guessed at.
+                        log.warning("FAtiMA mind %s at %s sent a line that is not UTF-8 (%s), dropped: %r",
+                                    self.agent or "(before its handshake)", self.peer, exc.reason, raw[:80])
+                        continue
+                    if not self._hand_on(line):
+                        break
+                if not self.open:
+                    break  # closing: what is left was the mind's, for a loop that no longer wants it
                 if len(buffer) > MAX_LINE and buffer.find(b"\n", 0, MAX_LINE + 1) < 0:
                     why = f"sent a line longer than {MAX_LINE} bytes"
                     log.error("FAtiMA mind at %s %s: connection closed", self.peer, why)
+                    buffer.clear()
                     break
         except OSError as exc:
             why = f"connection lost: {exc}"
+        if buffer and not self._closed.is_set() and not self._dead.is_set():
+            log.warning("FAtiMA mind %s at %s: the connection ended inside a line; its %d byte(s) discarded: %r",
+                        self.agent or "(before its handshake)", self.peer, len(buffer), bytes(buffer[:120]))
         self._report(why)
 
     def _write(self) -> None:
@@ -404,6 +506,8 @@ class Link:
             data = self._out.get()
             if data is None:
                 return
+            with self._flow:  # the line being written no longer counts: the backlog behind it does
+                self.queued -= len(data)
             try:
                 self.sock.sendall(data)
             except OSError as exc:
@@ -415,6 +519,8 @@ class Link:
         if self._closed.is_set():
             return
         self._closed.set()
+        with self._flow:
+            self._flow.notify_all()  # a reader waiting for room in the loop
         self._out.put(None)
         if drain and self._writer.ident is not None and self._writer is not threading.current_thread():
             self._writer.join(drain)
@@ -488,8 +594,9 @@ class _Outgoing:
     """The source's side of a migration while the mind's state is asked for."""
 
     token: Any
-    link: Link
+    link: Link | None  # None: no mind was connected as the migration started; the next one is asked
     timer: Timer | None = None
+    asked: bool = False  # CMD GET-STATE went out: a STATE before it answered an older request
 
 
 @dataclass
@@ -498,6 +605,7 @@ class _Arrival:
 
     state: dict[str, Any]
     link: Link | None = None  # the mind it was sent to, awaiting STATE-SET
+    sent: int = 0  # which of that link's SET-STATEs it was (its STATE-SET is the answer of that number)
     timer: Timer | None = None
     awake: bool = False
     world: dict[str, Any] | None = None
@@ -522,6 +630,10 @@ class FAtiMAConnector(Mind):
         self._counts = {"actions": 0, "failures": 0, "connections": 0}
         self._closing = False
         self._properties_due = False
+        # Facts the mind's semantic memory wrote into the world model: their change events are not
+        # told back to the mind, which knows them ({(entity, property): (value as told, persistent)}).
+        self._told: OrderedDict[tuple[str, str], tuple[str, bool]] = OrderedDict()
+        self._refused: dict[str, tuple[float, int]] = {}  # host -> (last logged, refusals not logged since) (accept thread)
 
     # --- life cycle (loop) --------------------------------------------------------------------------
 
@@ -558,7 +670,9 @@ class FAtiMAConnector(Mind):
         link = self.link
         return {"protocol": "fatima", "listening": self.listener.address if self.listener is not None else None,
                 "connected": link is not None and link.handshaken, "peer": link.peer if link is not None else None,
-                "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries, **self._counts}
+                "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries,
+                "lines_in_flight": link.in_flight if link is not None else 0,
+                "bytes_queued": link.queued if link is not None else 0, **self._counts}
 
     # --- connections (accept thread -> loop) --------------------------------------------------------
 
@@ -566,8 +680,7 @@ class FAtiMAConnector(Mind):
         with self._links_lock:
             current = self._accepted
             if current is not None and current.open:
-                log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind "
-                            "at a time)", self.name, peer, current.peer)
+                self._log_refused(peer, current.peer)
                 conn.close()
                 return
             link = Link(conn, peer, self._line_in, self._closed_in)
@@ -577,8 +690,31 @@ class FAtiMAConnector(Mind):
         else:
             link.close()
 
+    def _log_refused(self, peer: str, connected: str) -> None:
+        """A warning per host and ``REFUSED_LOG_INTERVAL`` (a mind retrying in a loop must not flood
+        the log), saying how many refusals went unlogged since the last."""
+        host = peer.rsplit(":", 1)[0]
+        now = time.monotonic()
+        last, unlogged = self._refused.get(host, (-REFUSED_LOG_INTERVAL, 0))
+        if now - last < REFUSED_LOG_INTERVAL:
+            self._refused[host] = (last, unlogged + 1)
+            return
+        while len(self._refused) >= MAX_HELD:
+            del self._refused[next(iter(self._refused))]
+        self._refused[host] = (now, 0)
+        more = f" ({unlogged} more from {host} refused unlogged since the last warning)" if unlogged else ""
+        log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind at a time)%s",
+                    self.name, peer, connected, more)
+
     def _line_in(self, link: Link, line: str) -> None:
-        self.sim.post(functools.partial(self._on_line, link, line))
+        if not self.sim.post(functools.partial(self._take_line, link, line)):
+            link.line_done()
+
+    def _take_line(self, link: Link, line: str) -> None:
+        try:
+            self._on_line(link, line)
+        finally:
+            link.line_done()
 
     def _closed_in(self, link: Link, why: str) -> None:
         if not self.sim.post(functools.partial(self._disconnected, link, why)):
@@ -612,6 +748,7 @@ class FAtiMAConnector(Mind):
             timer.cancel()
         self._held_timers.clear()
         self.gate.clear()
+        self._told.clear()
         if self._outgoing is not None and self._outgoing.link is link:
             self._state_overdue(self._outgoing, f"disconnected ({why}) while its state was asked for")
         if self._arrival is not None and self._arrival.link is link:
@@ -633,7 +770,7 @@ class FAtiMAConnector(Mind):
         elif head == "STATE":
             self._state_received(link, rest.strip())
         elif head == "STATE-SET":
-            self._state_set(link)
+            self._state_set_answer(link)
         elif head == "CANCEL-ACTION":
             self._cancel_action(rest.split())
         elif head.startswith("<"):
@@ -646,7 +783,6 @@ class FAtiMAConnector(Mind):
     def _handshake(self, link: Link, line: str) -> None:
         try:
             hello = parse_handshake(line)
-            keys.check_name(hello.agent, "agent name")
         except MeshError as exc:
             log.error("FAtiMA mind at %s: bad handshake: %s; connection closed", link.peer, exc)
             self._disconnected(link, f"bad handshake: {exc}")
@@ -654,11 +790,14 @@ class FAtiMAConnector(Mind):
         link.agent = hello.agent
         link.handshaken = True
         link.send("OK")
-        # The mind's own properties make it an agent of the world model, as in CMION.
+        # The mind's own properties make it an agent of the world model, as in CMION. A property
+        # there already keeps its persistence (its semantic memory said which): otherwise it would
+        # flip with every connection, and each flip is told to the mind again.
         self._world(AddContainer("", hello.agent, "agent"))
+        known = self._world_tree().get("children", {}).get(hello.agent, {}).get("properties", {})
         for name, value in hello.properties.items():
-            if keys.is_name(name):
-                self._world(SetProperty(hello.agent, name, value))
+            current = known.get(name)
+            self._world(SetProperty(hello.agent, name, value, bool(isinstance(current, dict) and current.get("persistent"))))
         self.sim.request(keys.BLACKBOARD, "set_property", SetProperty("", "agentName", hello.agent))
         facts: dict[str, Any] = {"connected": True, "peer": link.peer, "agent": hello.agent, "role": hello.role,
                                  "display_name": hello.display_name}
@@ -669,6 +808,10 @@ class FAtiMAConnector(Mind):
             self._set_state(link)
         elif not self.awake:
             link.send("CMD Stop")
+            outgoing = self._outgoing
+            if outgoing is not None and outgoing.link is None:  # a migration waits for a mind to ask
+                outgoing.link = link
+                self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
         else:
             link.send("CMD GET-PROPERTIES")
             for entity in self._entities(self._world_tree()):
@@ -721,6 +864,10 @@ class FAtiMAConnector(Mind):
             current = node.get("properties", {}).get(name) if isinstance(node, dict) else None
             if isinstance(current, dict) and format_value(current.get("value")) == value and bool(current.get("persistent")) == persistent:
                 continue
+            self._told[(entity, name)] = (value, persistent)
+            self._told.move_to_end((entity, name))
+            while len(self._told) > MAX_HELD:
+                self._told.popitem(last=False)
             self._world(SetProperty(entity, name, value, persistent))
 
     # --- actions --------------------------------------------------------------------------------------
@@ -809,6 +956,8 @@ class FAtiMAConnector(Mind):
             link.send(f"ENTITY-REMOVED {name}")
 
     def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None:
+        if self._told and self._told.pop((entity, name), None) == (format_value(value), persistent):
+            return  # the mind's own semantic memory wrote it: it knows
         link = self._ready()
         if link is not None and entity and "/" not in entity:  # entities are the world model's top level
             link.send(property_changed_line(entity, name, value, persistent, self.options))
@@ -876,26 +1025,45 @@ class FAtiMAConnector(Mind):
         if event.name == "MigrationSucceeded":  # the companion left: a state kept for it left with it
             self._unwait_arrival()
             self._arrival = None
+            self._companion_left()
+
+    def _companion_left(self) -> None:
+        """The mind's actions went with the companion (told to its mind where it arrived): those still
+        running here are cancelled, nothing more about them is told to the mind left behind."""
+        migrating = set(self._actions_running(MigrationCompetency.type))
+        for action_id in list(self._running):
+            if action_id not in migrating:  # the Migrate action ends by itself, with the migration
+                self.cancel(action_id)
+        self._running.clear()
 
     def _migration_starting(self) -> None:
-        link = self._ready()
         manager = self._migration()
-        if not self.options.migrating or link is None or manager is None:
-            return  # nothing to ask: a kept, undelivered state is carried by state()
+        if not self.options.migrating or manager is None:
+            return
+        link = self._ready()
+        if link is None and self._arrival is not None:
+            return  # the state kept for the next mind is carried by state()
         try:
             token = manager.wait(self.name)
         except MeshError:
             return  # the migration ended already
         outgoing = _Outgoing(token, link)
         self._outgoing = outgoing
-        # CMD Stop went out as the mind was put to sleep; give FAtiMA's cycle a moment to end.
-        self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
-        outgoing.timer = self.sim.call_later(self.options.stop_wait + self.options.state_timeout,
-                                             functools.partial(self._state_overdue, outgoing))
+        wait = self.options.stop_wait + self.options.state_timeout
+        if link is None:
+            # Leaving without it would carry an empty mind: a mind connecting meanwhile is asked instead.
+            log.warning("FAtiMA connector %r: the companion starts leaving with no FAtiMA mind connected; a mind that "
+                        "connects within %g s is asked for its state, else the migration is refused", self.name, wait)
+        else:
+            # CMD Stop went out as the mind was put to sleep; give FAtiMA's cycle a moment to end.
+            self.sim.call_later(self.options.stop_wait, functools.partial(self._ask_state, outgoing))
+        outgoing.timer = self.sim.call_later(wait, functools.partial(self._state_overdue, outgoing))
 
     def _ask_state(self, outgoing: _Outgoing) -> None:
-        if self._outgoing is outgoing and outgoing.link.open:
-            outgoing.link.send("CMD GET-STATE")
+        link = outgoing.link
+        if self._outgoing is outgoing and link is not None and link.open:
+            outgoing.asked = True
+            link.send("CMD GET-STATE")
 
     def _state_overdue(self, outgoing: _Outgoing, why: str = "") -> None:
         if self._outgoing is not outgoing:
@@ -903,17 +1071,28 @@ class FAtiMAConnector(Mind):
         self._outgoing = None
         if outgoing.timer is not None:
             outgoing.timer.cancel()
-        reason = (f"the FAtiMA mind {outgoing.link.agent} at {outgoing.link.peer} "
-                  f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
-        log.error("%s: the migration is abandoned", reason)
+        link = outgoing.link
+        wait = self.options.stop_wait + self.options.state_timeout
+        if link is None:
+            listening = self.listener.address if self.listener is not None else "no address (it could not listen)"
+            reason = (f"no FAtiMA mind is connected to connector {self.name!r} (listening on {listening}) to give the "
+                      f"companion's mind state; none connected within {wait:g} s")
+        else:
+            reason = (f"the FAtiMA mind {link.agent} at {link.peer} (connector {self.name!r}) "
+                      f"{why or f'did not answer GET-STATE within {self.options.state_timeout:g} s'}")
+        log.error("%s: the migration is refused", reason)
+        self.raise_event("MindStateUnavailable", {"mind": self.name, "agent": link.agent if link is not None else "",
+                                                  "peer": link.peer if link is not None else "", "reason": reason})
         manager = self._migration()
         if manager is not None:
             manager.refuse(outgoing.token, reason)
 
     def _state_received(self, link: Link, hex_state: str) -> None:
         outgoing = self._outgoing
-        if outgoing is None or outgoing.link is not link:
-            log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for: ignored", link.agent, link.peer)
+        if outgoing is None or outgoing.link is not link or not outgoing.asked:
+            # A late answer to a GET-STATE whose migration was abandoned: an older state than the mind's.
+            log.warning("FAtiMA mind %s at %s sent a STATE nobody asked for (late, or before CMD GET-STATE): ignored",
+                        link.agent, link.peer)
             return
         if not hex_state or any(c.isspace() for c in hex_state):
             self._state_overdue(outgoing, "answered GET-STATE with no state (or more than one token)")
@@ -922,11 +1101,24 @@ class FAtiMAConnector(Mind):
         if outgoing.timer is not None:
             outgoing.timer.cancel()
         self._given = (link, hex_state)
-        finished = [f"ACTION-FINISHED {link.agent} {action_text(*r.key)}" for r in self._running.values() if r.link is link]
+        # The Migrate action succeeds where the companion arrives (CMION's successMsg); the others
+        # end here with the companion, so the mind is told they failed and retries those it still wants.
+        migrating = set(self._actions_running(MigrationCompetency.type))
+        finished: list[str] = []
+        failed: list[str] = []
+        for action_id, running in self._running.items():
+            if running.link is link:
+                (finished if action_id in migrating else failed).append(action_text(*running.key))
         manager = self._migration()
         if manager is not None:
-            manager.resolve(outgoing.token, {"state": hex_state, "agent": link.agent, "finished": finished,
-                                             "from": self.sim.embodiment})
+            manager.resolve(outgoing.token, {
+                "state": hex_state, "agent": link.agent, "from": self.sim.embodiment,
+                "finished": [f"ACTION-FINISHED {link.agent} {text}" for text in finished],
+                "failed": [f"ACTION-FAILED {link.agent} {text}" for text in failed]})
+
+    def _actions_running(self, competency_type: str) -> list[str]:
+        manager = self.sim.components_by_name().get("manager")
+        return manager.actions_running(competency_type) if isinstance(manager, CompetencyManager) else []
 
     def state(self) -> dict[str, Any]:
         """A state that arrived and is not yet set in a mind (carried on if the companion leaves first)."""
@@ -937,11 +1129,11 @@ class FAtiMAConnector(Mind):
             return
         if state.get("from") == self.sim.embodiment:
             # Resumed here after a migration failed past its packing: the document holds the state
-            # this embodiment's mind gave, and its Migrate action did not succeed.
+            # this embodiment's mind gave, and its actions did not end.
             given = self._given
             if given is not None and given[0] is self._ready() and given[1] == state["state"]:
                 return  # the mind that gave it is still here, holding it
-            state = {**state, "finished": []}
+            state = {**state, "finished": [], "failed": []}
         self._unwait_arrival()
         self._arrival = _Arrival(dict(state))
         link = self._ready()
@@ -955,6 +1147,8 @@ class FAtiMAConnector(Mind):
         arrival = self._arrival
         assert arrival is not None
         arrival.link = link
+        link.set_states_sent += 1
+        arrival.sent = link.set_states_sent
         arrival.awake = arrival.awake or self.awake
         link.send(f"CMD SET-STATE {arrival.state['state']}")
         arrival.timer = self.sim.call_later(self.options.state_timeout, functools.partial(self._set_overdue, arrival))
@@ -964,6 +1158,19 @@ class FAtiMAConnector(Mind):
             log.error("FAtiMA mind %s at %s did not answer SET-STATE within %g s: started anyway", arrival.link.agent,
                       arrival.link.peer, self.options.state_timeout)
             self._state_set(arrival.link, confirmed=False)
+
+    def _state_set_answer(self, link: Link) -> None:
+        """A ``STATE-SET`` line: the mind answers SET-STATEs in order, so it is the answer to the
+        next one of this link; one whose arrival timed out, or was replaced, is ignored."""
+        link.set_states_answered += 1
+        answer = link.set_states_answered
+        arrival = self._arrival
+        if arrival is not None and arrival.link is link and arrival.sent == answer:
+            self._state_set(link)
+            return
+        awaited = f"#{arrival.sent} is awaited" if arrival is not None and arrival.link is link else "none is awaited"
+        log.warning("FAtiMA mind %s at %s answered SET-STATE #%d late (%s): ignored, the state kept as it is",
+                    link.agent, link.peer, answer, awaited)
 
     def _state_set(self, link: Link, *, confirmed: bool = True) -> None:
         arrival = self._arrival
@@ -978,9 +1185,11 @@ class FAtiMAConnector(Mind):
             link.send("CMD Stop")
             return
         link.send("CMD Start")
-        for line in arrival.state.get("finished", []):
-            if isinstance(line, str) and "\n" not in line:
-                link.send(line)
+        for name in ("finished", "failed"):
+            lines = arrival.state.get(name)
+            for line in lines if isinstance(lines, list) else []:
+                if isinstance(line, str) and line.startswith("ACTION-") and "\n" not in line:
+                    link.send(line)
         self._tell_world(link, arrival.world if arrival.world is not None else self._world_tree())
 
     def _unwait_arrival(self) -> None:

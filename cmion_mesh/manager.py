@@ -74,6 +74,11 @@ class CompetencyManager(Component):
     def active(self) -> list[str]:
         return list(self._active)
 
+    def actions_running(self, competency_type: str) -> list[str]:
+        """Ids of the actions whose current plan has a step of ``competency_type`` running (loop thread)."""
+        runs = set(self.execution.running_plans(competency_type))
+        return [action_id for action_id, active in self._active.items() if active.run_id in runs]
+
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         for request in batch:
             match request.payload:

@@ -70,6 +70,8 @@ log = logging.getLogger(__name__)
 #: stranger's flood of prepares costs it ``rejected: busy``, not this embodiment's disk or time.
 PREPARE_BURST = 20
 PREPARE_RATE = 5.0
+#: Seconds the components of the source have to give their sections once a migration starts.
+SECTION_DEADLINE = 5.0
 
 
 def crash_point(point: str) -> None:
@@ -125,7 +127,7 @@ class MigrationManager(Component):
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
     sender_requests = frozenset({"prepare", "commit", "abort", "status"})
 
-    def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = 5.0,
+    def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = SECTION_DEADLINE,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
                  admit: dict[str, bytes | None] | None = None) -> None:
         """``admit``: which companions may enter (name -> trusted identity key, or None to pin it at the

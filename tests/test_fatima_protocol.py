@@ -5,7 +5,7 @@ cross-process tests are in ``test_fatima.py``)."""
 from __future__ import annotations
 
 import socket
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +28,9 @@ from cmion_mesh.fatima import (
     property_changed_line,
 )
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import ActionStatus, AddContainer, MindMessage, SetProperty
+from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
 from cmion_mesh.rules import load_rules
-from cmion_mesh.testing.fatima_peer import Peer
+from cmion_mesh.testing.fatima_peer import Peer, PeerProcess
 from cmion_mesh.testing.wait import wait_for
 
 RULES = """<CompetencyManagerRules>
@@ -58,6 +58,10 @@ def test_options_as_cmion_wrote_them_and_our_extensions() -> None:
                      ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option")):
         with pytest.raises(MeshError, match=why):
             parse_options([bad])
+    # A migration gives each component 5 s for its section: the connector's own wait must end first.
+    assert parse_options(["stop-wait:2 state-timeout:4"]).state_timeout == 4.0  # no migration: no such limit
+    with pytest.raises(MeshError, match=r"stop-wait:2 and state-timeout:3 .* add up to 5 s: with 'migrating' .* under the 5 s"):
+        parse_options(["migrating stop-wait:2 state-timeout:3"])
 
 
 def test_values_and_lines_as_cmion_formatted_them() -> None:
@@ -77,11 +81,18 @@ def test_values_and_lines_as_cmion_formatted_them() -> None:
 
 
 def test_handshake_and_xml_lines() -> None:
-    hello = parse_handshake("SpiritOfTheBuilding TestAgent Spirit role:TestAgent isTestMind:True url:http://x odd")
+    hello = parse_handshake("SpiritOfTheBuilding TestAgent Spirit role:TestAgent isTestMind:True url:http://x empty:")
     assert (hello.agent, hello.role, hello.display_name) == ("SpiritOfTheBuilding", "TestAgent", "Spirit")
-    assert hello.properties == {"role": "TestAgent", "isTestMind": "True", "url": "http://x"}
-    with pytest.raises(MeshError, match="first line"):
-        parse_handshake("Spirit TestAgent")
+    assert hello.properties == {"role": "TestAgent", "isTestMind": "True", "url": "http://x", "empty": ""}
+    assert parse_handshake("Spirit TestAgent Spirit").properties == {}
+    # Per the spec, and with the reason: a mind that skipped its handshake, or a malformed one.
+    for bad, why in (("Spirit TestAgent", "2 word"), ("look-at Spirit now", "'look-at' starts another message"),
+                     ("<EmotionalState><Mood>0</Mood> a b", "starts another message"), ("STATE-SET a b", "another message"),
+                     ("Spi/rit TestAgent Spirit", "not a valid name"), ("Spirit role:TestAgent Spirit", "role 'role:TestAgent'"),
+                     ("Spirit TestAgent Spirit role:A odd", "'odd' is not a property"),
+                     ("Spirit TestAgent Spirit :x", "':x' is not a property")):
+        with pytest.raises(MeshError, match=f"handshake.*{why}"):
+            parse_handshake(bad)
     state = parse_emotional_state('<EmotionalState><Mood>-0.5</Mood><Emotion type="DISTRESS" intensity="1"/></EmotionalState>', "m")
     assert state == {"mood": -0.5, "emotions": [{"type": "DISTRESS", "intensity": "1"}]}
     memory = ('<SemanticMemory><STM><Property persistent="true" name="ProbBias(TestAction1)" value="0.0"/>'
@@ -198,6 +209,15 @@ def test_the_mind_is_asked_to_save_as_the_body_stops() -> None:
             embodiment.close()
 
 
+def _lines_until(lines: Any, last: Callable[[bytes], bool], limit: int = 200) -> list[bytes]:
+    """Lines read from a socket file up to the first for which ``last`` is true (bounded)."""
+    got = [lines.readline()]
+    while got[-1] != b"" and not last(got[-1]) and len(got) < limit:
+        got.append(lines.readline())
+    assert got[-1] != b"" and last(got[-1]), got
+    return got
+
+
 def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture) -> None:
     _, mind = body
     assert mind.listener is not None
@@ -212,6 +232,105 @@ def test_crlf_lines_and_a_bad_handshake(body: tuple[Embodiment, FAtiMAConnector]
         while got[-1] not in (b"", b"ACTION-FINISHED Spirit Express nod\n") and len(got) < 20:
             got.append(lines.readline())
         assert got[0] == b"OK\n" and got[-1] == b"ACTION-FINISHED Spirit Express nod\n", got
+
+
+def test_a_line_not_utf8_is_dropped_and_a_cut_line_logged(body: tuple[Embodiment, FAtiMAConnector],
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    _, mind = body
+    assert mind.listener is not None
+    with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=10) as sock, sock.makefile("rb") as lines:
+        peer = f"127.0.0.1:{sock.getsockname()[1]}"
+        sock.sendall(b"Spirit Role Spirit\nExpress caf\xe9\nExpress nod\n")
+        got = _lines_until(lines, lambda line: line.startswith(b"ACTION-FINISHED Spirit Express"))
+        assert got[-1] == b"ACTION-FINISHED Spirit Express nod\n", got  # the bad line never became an action
+        assert not any(b"caf" in line for line in got)
+        sock.sendall(b"Express unfinish")  # then the mind goes, inside a line
+        sock.shutdown(socket.SHUT_WR)
+        wait_for(lambda: "ended inside a line" in caplog.text, 5, "the cut line logged")
+    dropped = next(r.getMessage() for r in caplog.records if "not UTF-8" in r.getMessage())
+    assert peer in dropped and "caf\\xe9" in dropped, dropped
+    cut = next(r.getMessage() for r in caplog.records if "ended inside a line" in r.getMessage())
+    assert peer in cut and "16 byte(s)" in cut and "Express unfinish" in cut, cut
+
+
+def test_refused_connections_are_logged_once_a_while(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    _, mind = body
+    assert mind.listener is not None
+    monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 3600.0)
+
+    def refused() -> None:
+        with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=5) as sock:  # type: ignore[union-attr]
+            assert sock.recv(100) == b""  # closed at once: logged (or counted) before
+
+    def warnings() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "refused a connection" in r.getMessage()]
+
+    with _peer(mind) as peer:
+        peer.connect()
+        peer.wait_for(lambda line: line == "OK")
+        for _ in range(3):
+            refused()
+        assert len(warnings()) == 1 and "more from" not in warnings()[0], warnings()
+        monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 0.0)
+        refused()
+        assert len(warnings()) == 2 and "(2 more from 127.0.0.1 refused unlogged" in warnings()[1], warnings()
+
+
+def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Embodiment, FAtiMAConnector]) -> None:
+    embodiment, mind = body
+    assert mind.listener is not None
+    with PeerProcess(mind.listener.port) as peer:
+        peer.got("OK")
+        link = wait_for(lambda: mind.link if mind.link is not None and mind.link.handshaken else None, 5, "the link")
+        peer.command("quiet")  # the peer answers, keeps nothing (a flood's answers are many)
+        peer.wait(lambda line: line == "# quiet")
+        peer.command("flood-reading look-at Far")  # at most 10,000 look-ats ahead of the answers read
+        # The reader stops at the bound of lines in flight: TCP holds the mind back from there on.
+        wait_for(lambda: link.peak_in_flight >= fatima.MAX_IN_FLIGHT, 20, "the flood reaching the bound")
+        waiting: list[int] = []
+
+        def written() -> bool:
+            waiting.append(embodiment.sim.queued())
+            return bool(embodiment.blackboard.get("animation", "last") == "flood-proof")
+
+        act = embodiment.sim.request("manager", "act", Act("Express", ["flood-proof"])).result(20)
+        assert act.status == "accepted", act
+        wait_for(written, 30, "the competency's blackboard write, during the flood")
+        assert not any(line.startswith("# flood ended") for line in peer.lines), "the flood went on meanwhile"
+        peer.command("stop-flood")
+        ended = peer.wait(lambda line: line.startswith("# flood ended"), 20)
+        assert ended.endswith("(stopped)"), ended  # the connection held all along
+        flooded = int(ended.split()[4])
+        assert flooded > 10 * fatima.MAX_IN_FLIGHT, ended
+    # What the daemon held for it stayed bounded, whatever the flood's length.
+    assert link.peak_in_flight == fatima.MAX_IN_FLIGHT
+    assert max(waiting) <= fatima.MAX_IN_FLIGHT + 16, max(waiting)
+    assert link.peak_queued <= fatima.MAX_QUEUED
+
+
+def test_a_mind_that_does_not_read_is_disconnected(body: tuple[Embodiment, FAtiMAConnector],
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    embodiment, mind = body
+    assert mind.listener is not None
+    embodiment.world_model.apply_now(SetProperty("Far", "description", "x" * 65536))  # each look-at: a 64 KB answer
+    gone: list[Event] = []
+    embodiment.sim.on_event(gone.append, component="fatima", event="MindDisconnected")
+    with PeerProcess(mind.listener.port) as peer:
+        peer.got("OK")
+        link = wait_for(lambda: mind.link if mind.link is not None and mind.link.handshaken else None, 5, "the link")
+        peer.command("stop-reading")
+        peer.wait(lambda line: line == "# stopped reading")
+        peer.command("flood look-at Far")
+        event = wait_for(lambda: gone[0] if gone else None, 60, "the mind disconnected")
+        assert isinstance(event.data, dict) and event.data["reason"].startswith("mind is not reading"), event.data
+        peer.wait(lambda line: line.startswith("# flood ended"), 20)
+    logged = next(r.getMessage() for r in caplog.records if "mind is not reading" in r.getMessage())
+    assert link.peer in logged and "connection closed" in logged, logged
+    assert fatima.MAX_QUEUED < link.peak_queued <= fatima.MAX_QUEUED + 70_000, link.peak_queued  # at most one line beyond
+    with _peer(mind) as again:  # and the next mind is welcome
+        again.connect()
+        again.wait_for(lambda line: line == "OK")
 
 
 def test_an_overlong_line_closes_the_connection(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
@@ -253,14 +372,37 @@ def test_held_retries_are_counted(body: tuple[Embodiment, FAtiMAConnector], monk
     assert value == {"running": []}
 
 
+def test_the_minds_own_properties_are_told_once(body: tuple[Embodiment, FAtiMAConnector]) -> None:
+    embodiment, mind = body
+    with _peer(mind) as peer:
+        for connection in range(2):  # the first connection, and a reconnection (the properties known)
+            start = len(peer.received)
+            peer.connect()
+            peer.wait_for(lambda line: line == "CMD GET-PROPERTIES", start=start)
+            wait_for(lambda: peer.sent[-1].startswith("<SemanticMemory>"), 5, "its semantic memory sent")
+            peer.send("look-at Far")  # once answered, the semantic memory before it was read, its writes queued
+            peer.wait_for(lambda line: line == "ACTION-FINISHED Spirit look-at Far", start=start)
+            # A write queued after those: once it is told, every change before it has been told too.
+            assert embodiment.sim.request("wm", "set_property", SetProperty("Far", "marker", connection)).result(5).status == "accepted"
+            peer.wait_for(lambda line: line == f"PROPERTY-CHANGED Far(marker) {connection}", start=start)  # noqa: B023
+            role = embodiment.world_model.tree()["children"]["Spirit"]["properties"]["role"]
+            assert role == {"value": "TestAgent", "persistent": True}, role  # as its semantic memory said
+            told = peer.received[start:]
+            assert told.count("PROPERTY-CHANGED Spirit(role) TestAgent") == 1, told
+            assert told.count("PROPERTY-CHANGED Spirit(isTestMind) True") == 1, told
+            peer.disconnect()
+            wait_for(lambda: not mind.connection()["connected"], 5, "the mind gone")
+
+
 # --- migrations that fail, on in-memory embodiments --------------------------------------------------
 
 
 @pytest.fixture
-def two(tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
-    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else."""
+def two(request: pytest.FixtureRequest, tmp_path: Path, mesh: str) -> Iterator[tuple[Embodiment, FAtiMAConnector, list[Any]]]:
+    """The robot hosting spirit with a FAtiMA connector; a kiosk that admits only someone else.
+    (Parametrized indirectly: the connector's state-timeout, default 2.)"""
     network = MemoryNetwork()
-    mind = FAtiMAConnector("modular migrating port:0 stop-wait:0 state-timeout:2")
+    mind = FAtiMAConnector(f"modular migrating port:0 stop-wait:0 state-timeout:{getattr(request, 'param', 2)}")
     robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
                        companion="spirit", components=[mind])
     kiosk = Embodiment("kiosk", mesh=mesh, transport=MemoryTransport(network, "kiosk"), state_dir=tmp_path / "kiosk",
@@ -317,3 +459,63 @@ def test_the_stand_in_reads_its_options() -> None:
     for bad in (["--port"], ["--port", "x"], ["--colour", "red"], ["stray"]):
         with pytest.raises(SystemExit, match=r"usage|not a number"):
             fatima_peer.parse_args(bad)
+
+
+def test_no_mind_no_migration(two: tuple[Embodiment, FAtiMAConnector, list[Any]], caplog: pytest.LogCaptureFixture) -> None:
+    robot, _, failures = two
+    unavailable: list[Event] = []
+    robot.sim.on_event(unavailable.append, component="fatima", event="MindStateUnavailable")
+    wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+    assert robot.migration is not None
+    outcome = robot.migration.start("kiosk").result(10)
+    # The companion does not leave with an empty mind: the migration is refused, naming the connector.
+    assert outcome.status == "rejected" and "no FAtiMA mind is connected to connector 'fatima'" in outcome.reason, outcome
+    assert failures and "no FAtiMA mind is connected to connector 'fatima'" in str(failures[0])
+    wait_for(lambda: unavailable, 5, "MindStateUnavailable raised")
+    assert isinstance(unavailable[0].data, dict) and unavailable[0].data["mind"] == "fatima"
+    assert "no FAtiMA mind is connected to connector 'fatima'" in caplog.text
+    assert robot.inhabitant == "spirit"
+
+
+@pytest.mark.parametrize("two", [4], indirect=True)
+def test_a_mind_connecting_while_the_companion_leaves_gives_its_state(two: tuple[Embodiment, FAtiMAConnector, list[Any]],
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    robot, mind, _ = two
+    wait_for(lambda: robot.presence is not None and "kiosk" in robot.presence.alive(), 5, "the robot sees the kiosk")
+    assert robot.migration is not None
+    future = robot.migration.start("kiosk")
+    wait_for(lambda: "starts leaving with no FAtiMA mind connected" in caplog.text, 5, "the connector waiting for a mind")
+    with _peer(mind, state="cafe0123") as peer:
+        peer.connect()
+        outcome = future.result(10)
+        received = peer.received
+        assert received.index("OK") < received.index("CMD Stop") < received.index("CMD GET-STATE"), received
+        # Its state was packed: the kiosk's refusal is the end of it, not the connector's.
+        assert outcome.status == "rejected" and "may not enter 'kiosk'" in outcome.reason, outcome
+        peer.wait_for(lambda line: line == "CMD Start")  # resumed here, its mind woken
+    assert robot.inhabitant == "spirit"
+
+
+def test_a_late_state_set_is_not_taken_for_a_later_one(caplog: pytest.LogCaptureFixture) -> None:
+    mind = FAtiMAConnector("migrating port:0 stop-wait:0 state-timeout:0.5")
+    with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment("robot", transport=transport, components=[mind]):
+        wait_for(lambda: mind.listener is not None, 5, "listening")
+        assert mind.listener is not None
+        with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=10) as sock, sock.makefile("rb") as lines:
+            sock.sendall(b"Spirit Role Spirit\n")
+            _lines_until(lines, lambda line: line == b"ENTITY-ADDED Spirit\n")
+            mind.sim.call(lambda: mind.restore({"state": "aa01", "agent": "Spirit"}))
+            _lines_until(lines, lambda line: line == b"CMD SET-STATE aa01\n")
+            # No answer within state-timeout: the mind is started anyway, the state kept.
+            _lines_until(lines, lambda line: line == b"CMD Start\n")
+            mind.sim.call(lambda: mind.restore({"state": "bb02", "agent": "Spirit"}))
+            _lines_until(lines, lambda line: line == b"CMD SET-STATE bb02\n")
+            sock.sendall(b"STATE-SET\nlook-at Nobody\n")  # the late answer to the first
+            got = _lines_until(lines, lambda line: line == b"ACTION-FINISHED Spirit look-at Nobody\n")
+            assert b"CMD Start\n" not in got, got  # not taken for the second's answer
+            assert mind.state()["state"] == "bb02", "the second state is still awaited, kept"
+            late = next(r.getMessage() for r in caplog.records if "late" in r.getMessage())
+            assert "SET-STATE #1 late (#2 is awaited): ignored" in late and "127.0.0.1:" in late, late
+            sock.sendall(b"STATE-SET\n")
+            _lines_until(lines, lambda line: line == b"CMD Start\n")
+            wait_for(lambda: mind.state() == {}, 5, "the second state confirmed")

@@ -16,6 +16,11 @@ connection, and takes commands on standard input, one a line:
 ``emotion MOOD``          send an ``<EmotionalState>`` line
 ``mute-state`` / ``answer-state``   stop / start answering ``CMD GET-STATE``
 ``disconnect`` / ``connect``        close the connection / connect again (a new handshake)
+``flood LINE`` / ``stop-flood``     send LINE over and over, as fast as the body takes it / stop
+``flood-reading LINE``    the same, never more than ``FLOOD_WINDOW`` lines ahead of the answers read
+                          (``ACTION-FINISHED``/``-FAILED``): a flooding mind that reads its answers
+``stop-reading`` / ``read``         stop / start reading what the body sends (a mind that hangs)
+``quiet`` / ``verbose``   stop / start keeping and printing received lines (they are still answered)
 ``quit``                  leave (so does the end of standard input)
 
 ``Peer`` is the same thing as a class, for benchmarks that play the mind in their own process.
@@ -35,6 +40,8 @@ from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
 RETRY_INTERVAL = 0.25
+#: Lines a ``flood-reading`` keeps sent ahead of the answers it has read.
+FLOOD_WINDOW = 10_000
 
 
 class Peer:
@@ -53,6 +60,12 @@ class Peer:
         self.echo = echo
         self.received: list[str] = []
         self.sent: list[str] = []
+        self.quiet = False  # received lines are answered, not kept nor echoed (a flood's answers)
+        self._reading = threading.Event()
+        self._reading.set()
+        self._send_lock = threading.Lock()  # one line at a time on the socket (floods run on a thread)
+        self._flood: tuple[threading.Thread, threading.Event] | None = None
+        self.answers = 0  # ACTION-FINISHED / ACTION-FAILED lines received (under _lock)
         self.set_state: str | None = None  # the last state the body set
         self.running = True
         self._lock = threading.Condition()
@@ -89,6 +102,8 @@ class Peer:
         self.send(" ".join([self.agent, self.role, self.display, *self.properties]))
 
     def disconnect(self) -> None:
+        self.stop_flood()
+        self._reading.set()
         with self._lock:
             sock, self._sock = self._sock, None
             self._retrying.clear()
@@ -124,7 +139,8 @@ class Peer:
             self._note(f"# not connected: {line[:80]} not sent")
             return
         try:
-            sock.sendall(line.encode("utf-8") + b"\n")
+            with self._send_lock:
+                sock.sendall(line.encode("utf-8") + b"\n")
         except OSError as exc:
             self._note(f"# send failed: {exc}")
             return
@@ -140,6 +156,53 @@ class Peer:
         with self._lock:
             self._retrying.discard(action)
 
+    def flood(self, line: str, *, window: int = 0) -> None:
+        """Send ``line`` over and over on a thread of its own, until ``stop_flood`` or a failed send;
+        with ``window``, never more than that many lines ahead of the answers received."""
+        self.stop_flood()
+        stop = threading.Event()
+        thread = threading.Thread(target=self._flood_loop, args=(line, stop, window), name="peer-flood", daemon=True)
+        self._flood = (thread, stop)
+        thread.start()
+
+    def stop_flood(self) -> None:
+        flood, self._flood = self._flood, None
+        if flood is not None:
+            flood[1].set()
+            with self._lock:
+                self._lock.notify_all()  # a flood waiting for answers
+            flood[0].join(10.0)
+
+    def _flood_loop(self, line: str, stop: threading.Event, window: int) -> None:
+        batch = (line.encode("utf-8") + b"\n") * 256
+        sent = 0
+        why = "stopped"
+        with self._lock:
+            answered = self.answers
+        self._note(f"# flooding: {line[:80]}")
+        while not stop.is_set():
+            with self._lock:
+                while window and sent - (self.answers - answered) > window and not stop.is_set():
+                    self._lock.wait(1.0)
+                sock = self._sock
+            if sock is None:
+                why = "not connected"
+                break
+            try:
+                with self._send_lock:
+                    sock.sendall(batch)
+            except OSError as exc:
+                why = f"send failed: {exc}"
+                break
+            sent += 256
+        self._note(f"# flood ended after {sent} lines ({why})")
+
+    def stop_reading(self) -> None:
+        self._reading.clear()
+
+    def read(self) -> None:
+        self._reading.set()
+
     def emotion(self, mood: str) -> None:
         self.send(f"<EmotionalState><Mood>{mood}</Mood><Emotion type=\"JOY\" direction=\"User\" intensity=\"2.5\"/>"
                   "</EmotionalState>")
@@ -150,16 +213,18 @@ class Peer:
         with sock.makefile("r", encoding="utf-8", newline="\n") as lines:
             try:
                 for raw in lines:
+                    self._reading.wait()  # stopped: the body's lines pile up in the socket
                     self._received(raw.rstrip("\n").rstrip("\r"))
             except (OSError, ValueError):
                 pass
         self._note("# disconnected")
 
     def _received(self, line: str) -> None:
-        with self._lock:
-            self.received.append(line)
-            self._lock.notify_all()
-        self._note(f"< {line}")
+        if not self.quiet:
+            with self._lock:
+                self.received.append(line)
+                self._lock.notify_all()
+            self._note(f"< {line}")
         head, _, rest = line.partition(" ")
         if line == "CMD GET-STATE":
             if self.answer_state:
@@ -184,6 +249,8 @@ class Peer:
             if subject != self.agent:
                 return
             with self._lock:
+                self.answers += 1
+                self._lock.notify_all()
                 if head == "ACTION-FINISHED":
                     self._retrying.discard(action)
                 elif action in self._retrying:
@@ -323,6 +390,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 peer.emotion(rest)
             elif command in ("mute-state", "answer-state"):
                 peer.answer_state = command == "answer-state"
+                _print(f"# {command}")
+            elif command in ("flood", "flood-reading"):
+                peer.flood(rest, window=FLOOD_WINDOW if command == "flood-reading" else 0)
+            elif command == "stop-flood":
+                peer.stop_flood()
+            elif command == "stop-reading":
+                peer.stop_reading()
+                _print("# stopped reading")
+            elif command == "read":
+                peer.read()
+                _print("# reading")
+            elif command in ("quiet", "verbose"):
+                peer.quiet = command == "quiet"
                 _print(f"# {command}")
             elif command == "disconnect":
                 peer.disconnect()
