@@ -285,8 +285,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         args.connect, args.listen = list(filled.connect), list(filled.listen)
     ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
                                              check_types=arch is None or library is not None)
-    if arch is not None:  # built only when all else is right; otherwise only checked, so that every problem is listed
-        components = arch.build_components(found, construct_them=not found.errors)
+    if arch is not None:
+        components = arch.build_components(found)
     for item in found:
         print(render(item), file=sys.stderr, flush=True)
     if found.errors:

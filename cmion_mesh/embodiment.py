@@ -307,6 +307,7 @@ class Describer(Component):
     """Answers ``.../rq/embodiment/describe`` for discovery."""
 
     requests = {"describe": Describe}
+    built_by_embodiment = True
 
     def __init__(self, embodiment: Embodiment) -> None:
         super().__init__("embodiment")

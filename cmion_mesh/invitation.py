@@ -64,6 +64,7 @@ class Invitations(Component):
     requests = {"invite": Invite, "send": SendInvitations}
     # The inviter is known from the key: in secure mode only its certificate may invite as it.
     sender_requests = frozenset({"invite"})
+    built_by_embodiment = True
 
     def __init__(self, migration: MigrationManager, devices: DeviceTable | None = None, *, request_timeout: float = 5.0) -> None:
         super().__init__("invitation")

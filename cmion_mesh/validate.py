@@ -80,7 +80,7 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
         return
     check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=options.remote_types, diagnostics=diagnostics,
                      check_types=arch.library is not None)
-    arch.build_components(diagnostics, construct_them=False)
+    arch.build_components(diagnostics)  # built, not attached: a constructor refusing its parameters is found here
     if arch.library is not None:
         from cmion_mesh.devices import embodiment_name, table_for_library
 

@@ -272,6 +272,46 @@ def test_up_refuses_on_errors_and_lists_them_all(tmp_path: Path, mesh: str) -> N
     assert "up in mesh" not in out
 
 
+def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) -> None:
+    """A constructor refusing its parameters fails ``validate`` as it fails ``up``, at the entry's
+    line, naming the class; building them opens nothing (a component that would is refused unbuilt)."""
+    (tmp_path / "r.xml").write_text("<CompetencyManagerRules/>")
+    (tmp_path / "l.xml").write_text("<CompetencyLibrary/>")
+    state = tmp_path / "never-made"
+    (tmp_path / "ArchitectureConfiguration.xml").write_text(
+        '<ArchitectureConfiguration Embodiment="x" CompetencyManagerRulesFile="r.xml" CompetencyLibraryConfigurationFile="l.xml">\n'
+        '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, bogus"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,nowhere.json"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.supersimple:SuperSimpleMind" ConstructorParameters="too,many"/>\n'
+        f'<ArchitectureComponent ClassName="cmion_mesh.migration:MigrationManager" ConstructorParameters="{state}"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
+        '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, port:0"/>\n'
+        "</ArchitectureConfiguration>")
+    config = str(tmp_path / "ArchitectureConfiguration.xml")
+    expected = [
+        (2, "cmion.level3.fatima.FAtiMAConnector (ported as cmion_mesh.fatima:FAtiMAConnector): unknown option 'bogus'"),
+        (3, "cmion_mesh.planner:PlannerMind: "),
+        (4, "cannot construct cmion_mesh.supersimple:SuperSimpleMind with parameters ['too', 'many']: TypeError"),
+        (5, "cmion_mesh.migration:MigrationManager is built by every embodiment itself"),
+        (7, "cmion_mesh.mind:Mind: a component named 'twin' is already in this configuration"),
+    ]
+    code, out, err = run_cli("validate", config, "--json")
+    assert code == 1
+    [report] = json.loads(out)
+    errors = [(d["line"], d["message"]) for d in report["diagnostics"] if d["severity"] == "error"]
+    assert len(errors) == len(expected), errors
+    for (line, message), (want_line, words) in zip(errors, expected, strict=True):
+        assert line == want_line and message.startswith(words), (line, message)
+    assert "nowhere.json" in errors[1][1]
+    assert not state.exists(), "validate opened nothing"
+    code, out, err = run_cli("up", config, "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "state"))
+    assert code == 2 and "up in mesh" not in out
+    for line, words in expected:
+        assert f"error: {config}:{line}: {words}" in err, (line, words, err)
+    assert not state.exists()
+
+
 # --- what CMION's loaders read -----------------------------------------------------------------------------------
 
 
