@@ -4,7 +4,7 @@ Each file is read through ``xmlsafe`` (safe parsing), checked against the XSD of
 root element, ``KINDS``; every schema violation is reported), then for meaning: rules
 (dependency graphs, parameters), libraries (every class imports and is a competency, CMION Java
 names through the port map), world models (unique names, typed values), architecture
-configurations (the referenced files, the component classes, and that every competency type the
+configurations (the referenced files, the components, built as ``up`` builds them, and that every competency type the
 rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
 a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
 naming file and line.
@@ -28,7 +28,7 @@ from cmion_mesh import xmlsafe
 from cmion_mesh.architecture import read_architecture
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
-from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.errors import ConfigError
 from cmion_mesh.portmap import DOC
 from cmion_mesh.resources import data_dir
 from cmion_mesh.rules import SCHEMA as RULES_SCHEMA
@@ -129,10 +129,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     every competency type the rules use is provided by the library or named in ``remote_types``
     (served by another process, ``serve-competency``). Returns the rules and the competencies.
 
-    Stand-ins: a type the rules use that no competency of the library provides is attributed to
-    the library's stand-ins, if it has any (one of them provided it in CMION): each then also
-    stands under that type, and the rules needing it fail naming the classes; without stand-ins
-    it is an error. Each stand-in is warned about with the rule types depending on it.
+    A stand-in competency provides the types the port map knows for its class (else its short
+    name): a rule needing one of them fails naming the class, and the stand-in is warned about
+    with the rule types depending on it. A type that nothing provides is an error, stand-ins or
+    not (a typo must not pass for a class with no equivalent), with the closest provided type.
     Without ``diagnostics`` the first error raises its ``ConfigError`` (warnings are logged)."""
     diag = Diagnostics.raising() if diagnostics is None else diagnostics
     ruleset = _load_rules(rules, diag) if rules is not None else None
@@ -140,41 +140,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     if world_model is not None and load_xml(world_model, "WorldModel.xsd", diag) is not None:
         _collected(diag, lambda problems: load_world_model_init(world_model, problems))
     if ruleset is not None and check_types:
-        provided = {c.type for c in competencies} | set(remote_types)
-        missing = ruleset.type_problems(provided)
-        standins = [c for c in competencies if isinstance(c, StandInCompetency)]
-        if standins and missing:
-            competencies += _attribute(ruleset, provided, standins, os.fspath(library or ""), diag)
-        else:
-            for problem in missing:
-                diag.problem(problem)
+        for problem in ruleset.type_problems({c.type for c in competencies} | set(remote_types)):
+            diag.problem(problem)
     _report_standins(competencies, ruleset, diag)
     return ruleset, competencies
-
-
-def _attribute(ruleset: RuleSet, provided: set[str], standins: list[StandInCompetency], library: str,
-               diagnostics: Diagnostics) -> list[Competency]:
-    """Stand-ins entered under the rule types nothing provides (one per stand-in class and type)."""
-    from cmion_mesh.standin import unique
-
-    added: list[Competency] = []
-    names = {c.name for c in standins}
-    classes = {s.java: s for s in standins}
-    for competency_type, lines in ruleset.type_lines().items():
-        if competency_type in provided:
-            continue
-        try:
-            for java, first in classes.items():
-                added.append(StandInCompetency(java, first.port, name=unique(f"{first.name}-{competency_type}", names),
-                                               type=competency_type, parameters=first.constructor_parameters, where=first.where,
-                                               samgar_port=first.samgar_port, attributed=True))
-        except MeshError as exc:  # an invalid type name: the rule's problem
-            diagnostics.error(f"competency type {competency_type!r} cannot be a competency's type: {exc}", ruleset.path, lines[0])
-            continue
-        diagnostics.warning(f"competency type {competency_type!r} is provided by no competency of {os.path.basename(library)}: "
-                            f"attributed to its stand-ins ({', '.join(classes)}), so actions needing it fail naming them",
-                            ruleset.path, lines[0])
-    return added
 
 
 def _report_standins(competencies: list[Competency], ruleset: RuleSet | None, diagnostics: Diagnostics) -> None:

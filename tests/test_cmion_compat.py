@@ -167,8 +167,7 @@ def test_unknown_java_classes_load_as_standins_and_are_listed(inthewild: tuple[E
     assert listed["cmion.inTheWild.ai.DIAgent"]["kind"] == "mind connector"
     assert listed["cmion.inTheWild.ai.DIAgent"]["where"].endswith("ArchitectureConfiguration.xml:15")
     assert listed["cmion.inTheWild.competencies.KinectTrackerConnector"]["samgar_port"] == "Kinect"
-    assert listed["cmion.inTheWild.competencies.GretaBMLSender"]["types"] == ["GretaBMLSender", "Gaze"], \
-        "its own type, and the rule type nothing provides"
+    assert listed["cmion.inTheWild.competencies.GretaBMLSender"]["types"] == ["GretaBMLSender"], "its own type, no other"
     assert listed["cmion.inTheWild.competencies.MoodLamp"]["kind"] == "not in the port map"
     components = {c.name: c for c in body.sim.components}
     assert isinstance(components["DIAgent"], StandInComponent) and components["DIAgent"].parameters == ("5228", "dialogue.xml")
@@ -184,8 +183,8 @@ def test_an_action_needing_a_standin_fails_naming_the_class(inthewild: tuple[Emb
     assert ("competency type 'GretaBMLCreator' is provided only by stand-in cmion.inTheWild.competencies.GretaBMLCreator "
             "(no cmion-mesh equivalent; see docs/portmap.md)") in talk.reason, talk.reason
     look = client.act(body.name, "look", ["door"], timeout=20)
-    assert look.status == "failed" and "cmion.inTheWild.competencies.MoodLamp" in look.reason
-    assert "not in the port map" in look.reason and "no cmion-mesh equivalent" in look.reason
+    assert look.status == "failed"
+    assert "stand-in cmion.inTheWild.competencies.MoodLamp (not in the port map; see docs/portmap.md)" in look.reason, look.reason
     remember = client.act(body.name, "Remember", ["note"], timeout=20)
     assert remember.status == "succeeded", remember.reason
 
@@ -376,21 +375,55 @@ def test_embodiment_name_falls_back_to_a_valid_folder_name(tmp_path: Path) -> No
     assert load_architecture(folder / "ArchitectureConfiguration.xml", name="fine").embodiment == "fine"
 
 
-def test_rule_types_attributed_only_to_a_library_with_standins(tmp_path: Path) -> None:
-    (tmp_path / "r.xml").write_text('<CompetencyManagerRules>\n<Rule><MindAction Name="Fly"/><CompetencyExecutionPlan>\n'
-                                    '<Competency ID="1" Type="Wings"/>\n</CompetencyExecutionPlan></Rule>\n</CompetencyManagerRules>')
-    (tmp_path / "plain.xml").write_text("<CompetencyLibrary/>")
+def test_a_rule_type_nothing_provides_is_an_error_beside_standins_too(tmp_path: Path) -> None:
+    """A stand-in provides the types the port map knows for its class, and no other: a misspelt
+    type is an error with the closest provided type, not a warning blamed on the stand-ins."""
+    (tmp_path / "r.xml").write_text('<CompetencyManagerRules>\n<Rule><MindAction Name="Say"/><CompetencyExecutionPlan>\n'
+                                    '<Competency ID="1" Type="Speek"/>\n</CompetencyExecutionPlan></Rule>\n'
+                                    '<Rule><MindAction Name="Talk"/><CompetencyExecutionPlan>\n'
+                                    '<Competency ID="1" Type="Speak"/>\n</CompetencyExecutionPlan></Rule>\n</CompetencyManagerRules>')
     (tmp_path / "robot.xml").write_text('<CompetencyLibrary>\n<Competency ClassName="cmion.TeamBuddy.competencies.Speak"/>\n'
-                                        "</CompetencyLibrary>")
-    found = Diagnostics()
-    check_embodiment(tmp_path / "r.xml", tmp_path / "plain.xml", diagnostics=found)
-    assert [d.line for d in found.errors] == [3]
+                                        '<Competency ClassName="cmion.inTheWild.competencies.MoodLamp"/>\n</CompetencyLibrary>')
     found = Diagnostics()
     _, competencies = check_embodiment(tmp_path / "r.xml", tmp_path / "robot.xml", diagnostics=found)
+    assert {c.type for c in competencies} == {"Speak", "MoodLamp"}, "the port map's type, and the unknown class's short name"
+    [error] = found.errors
+    assert (error.path, error.line) == (str(tmp_path / "r.xml"), 3)
+    assert "needs competency type 'Speek', which no available competency provides (did you mean 'Speak'?)" in error.message
+    assert any("rule types depending on it: Speak (r.xml:6)" in d.message and d.line == 2 for d in found.warnings)
+    assert any("no rule uses its types (MoodLamp)" in d.message and d.line == 3 for d in found.warnings)
+    # with --remote-type, the type is served by another process: no error
+    found = Diagnostics()
+    check_embodiment(tmp_path / "r.xml", tmp_path / "robot.xml", remote_types=["Speek"], diagnostics=found)
     assert not found.errors
-    assert {c.type for c in competencies} == {"Speak", "Wings"}
-    assert any("'Wings' is provided by no competency of robot.xml" in d.message and d.line == 3 for d in found.warnings)
-    assert any("rule types depending on it: Wings (r.xml:3)" in d.message and d.line == 2 for d in found.warnings)
+
+
+def test_a_misspelt_java_class_is_named_with_the_one_meant(tmp_path: Path, mesh: str) -> None:
+    """A ``cmion.`` name close to one of the port map is a stand-in (as any unknown class), and
+    ``validate`` and ``up`` say which class it probably meant."""
+    (tmp_path / "r.xml").write_text("<CompetencyManagerRules/>")
+    (tmp_path / "l.xml").write_text('<CompetencyLibrary>\n<Competency ClassName="cmion.level2.competencies.test.TestCompetecy1"/>\n'
+                                    "</CompetencyLibrary>")
+    config = tmp_path / "ArchitectureConfiguration.xml"
+    config.write_text('<ArchitectureConfiguration Embodiment="x" CompetencyManagerRulesFile="r.xml" '
+                      'CompetencyLibraryConfigurationFile="l.xml">\n'
+                      '<ArchitectureComponent ClassName="cmion.level3.fatima.FatimaConnector"/>\n</ArchitectureConfiguration>')
+    meant = [(config, 2, "cmion.level3.fatima.FatimaConnector is not in the port map "
+                         "(did you mean 'cmion.level3.fatima.FAtiMAConnector'?)"),
+             (tmp_path / "l.xml", 2, "cmion.level2.competencies.test.TestCompetecy1 is not in the port map "
+                                     "(did you mean 'cmion.level2.competencies.test.TestCompetency1'?)")]
+    code, _, err = run_cli("validate", str(tmp_path))
+    assert code == 0, err
+    for path, line, words in meant:
+        assert f"warning: {path}:{line}: {words}" in err, (words, err)
+    assert run_cli("validate", "--strict", str(tmp_path))[0] == 1
+    code, _, err = run_cli("validate", str(INTHEWILD / "CompetencyLibraryInTheWild.xml"))
+    assert code == 0 and "cmion.inTheWild.competencies.MoodLamp is not in the port map: " in err, "nothing close: no guess"
+    with Daemon(cli_argv("up", str(config), "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "state")),
+                name="misspelt") as daemon:
+        daemon.wait_line("up in mesh", 30)
+        for path, line, words in meant:
+            assert any(f"warning: {path}:{line}: {words}" in text for text in daemon.lines), (words, daemon.lines)
 
 
 # --- the real daemon ---------------------------------------------------------------------------------------------
