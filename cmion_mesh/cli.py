@@ -269,14 +269,18 @@ def cmd_up(args: argparse.Namespace) -> int:
         rules = rules or (str(arch.rules) if arch.rules else None)
         library = library or (str(arch.library) if arch.library else None)
         world_model = world_model or (str(arch.world_model) if arch.world_model else None)
-        table = devices.table_for_library(library) if library else None
-        name = args.name or devices.embodiment_name(table, arch)
+        table = devices.table_for_library(library, found) if library else None
+        try:
+            name = args.name or devices.embodiment_name(table, arch)
+        except ConfigError as exc:
+            found.problem(exc)
+            name = arch.embodiment
         companion = companion or devices.birth(table, arch.companion)
         admitted = arch.admit if admitted is None else {**(arch.admit or {}), **admitted}
     else:
-        table = devices.table_for_library(library) if library else None
+        table = devices.table_for_library(library, found) if library else None
         name = args.name or (table.name if table is not None else None)
-        if not name:
+        if not name and not found.errors:  # else the table's problems say why it has none
             raise ConfigError("give an architecture configuration (PATH) or at least --name")
         companion = companion or devices.birth(table, None)
     if table is not None:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmion_mesh import xmlsafe
-from cmion_mesh.architecture import read_architecture
+from cmion_mesh.architecture import Architecture, read_architecture
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError
@@ -84,19 +84,19 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
     if arch.library is not None:
         from cmion_mesh.devices import embodiment_name, table_for_library
 
-        try:  # the device table its Migration competency names: what ``up`` will read
-            embodiment_name(table_for_library(arch.library), arch)
+        # The device table its Migration competency names, as ``up`` reads it (``validate_paths``
+        # then does not check that file alone: each of its problems is reported once).
+        table = table_for_library(arch.library, diagnostics)
+        try:
+            embodiment_name(table, arch)
         except ConfigError as exc:
             diagnostics.problem(exc)
 
 
 def _migrationconfig(path: str, diagnostics: Diagnostics, options: Options) -> None:
-    from cmion_mesh.devices import load_device_table
+    from cmion_mesh.devices import read_device_table
 
-    try:
-        load_device_table(path)
-    except ConfigError as exc:
-        diagnostics.problem(exc)
+    read_device_table(path, diagnostics)
 
 
 #: Root element -> the schema and the semantic check run after the schema passed.
@@ -231,8 +231,8 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
         found = Diagnostics()
         check_file(report.path, found, options)
         arch = read_architecture(report.path, Diagnostics())
-        for referenced in (arch.rules, arch.library, arch.world_model) if arch is not None else ():
-            other = by_real.get(os.path.realpath(referenced)) if referenced is not None else None
+        for referenced in _referenced(arch):
+            other = by_real.get(os.path.realpath(referenced))
             if other is not None and other is not report and other.kind is not None:
                 other.checked_with = report.path
         _distribute(found, report, by_real)
@@ -243,6 +243,16 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
                 KINDS[report.kind].check(report.path, found, options)
             _distribute(found, report, by_real)
     return reports
+
+
+def _referenced(arch: Architecture | None) -> list[Path]:
+    """The files checked with a configuration: its rules, library, world model and device table."""
+    if arch is None:
+        return []
+    from cmion_mesh.devices import named_table
+
+    table = named_table(arch.library, Diagnostics()) if arch.library is not None else None
+    return [p for p in (arch.rules, arch.library, arch.world_model, table) if p is not None]
 
 
 def _distribute(found: Diagnostics, owner: FileReport, by_real: dict[str, FileReport]) -> None:
