@@ -140,7 +140,7 @@ class Embodiment:
                 self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
                 self.sim.on_event(self._carry_persistent, component=self.migration.name)
-                self.invitations = Invitations(self.migration, devices)
+                self.invitations = Invitations(self.migration, devices, presence=self.presence)
                 self.sim.add(self.invitations)
         except BaseException:
             self.close()
