@@ -40,15 +40,11 @@ ROOT = Path(__file__).resolve().parent.parent
 INTHEWILD = DATA / "cmion2011-inthewild"
 ANDROID = DATA / "cmion2011-android"
 INVITE = DATA / "cmion2011-invite"
-#: Every folder of CMION-shaped files: the committed copy of the 2011 originals and our own.
-FOLDERS = sorted(p for p in DATA.iterdir() if p.is_dir() and p.name.startswith("cmion2011"))
-CONFIGURATIONS = [
-    DATA / "cmion2011" / "ArchitectureConfiguration.xml",
-    INTHEWILD / "ArchitectureConfiguration.xml",
-    ANDROID / "architectureconfiguration_migrationsend.xml",
-    INVITE / "ArchitectureConfigurationMigrationByInviteSend.xml",
-    INVITE / "ArchitectureConfigurationMigrationByInviteReceive.xml",
-]
+#: Every folder of CMION-shaped files, found rather than listed so that none is left out: the
+#: committed copy of the 2011 originals and our own.
+FOLDERS = sorted({p.parent for p in DATA.rglob("*.xml")})
+#: Every architecture configuration among them.
+CONFIGURATIONS = [p for p in sorted(DATA.rglob("*.xml")) if "<ArchitectureConfiguration" in p.read_text(errors="replace")]
 
 #: Every class named in CMION 2011's real configuration files (protocols.md section 5), the
 #: generic bases and the test competencies.
@@ -111,7 +107,16 @@ def test_port_map_document_is_generated_from_the_table() -> None:
 # --- every CMION file ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("folder", FOLDERS, ids=lambda p: p.name)
+def data_id(path: Path) -> str:
+    return path.relative_to(DATA).as_posix()
+
+
+def test_the_data_is_all_found() -> None:
+    assert len(FOLDERS) >= 6 and DATA / "invite" / "send" in FOLDERS and DATA / "cmion2011" in FOLDERS
+    assert len(CONFIGURATIONS) >= 7 and DATA / "invite" / "receive" / "ArchitectureConfiguration.xml" in CONFIGURATIONS
+
+
+@pytest.mark.parametrize("folder", FOLDERS, ids=data_id)
 def test_every_file_validates(folder: Path) -> None:
     files = sorted(str(p) for p in folder.glob("*.xml"))
     reports = validate_paths(files)
@@ -131,7 +136,7 @@ def test_validate_takes_the_whole_test_data_tree_in_one_run() -> None:
     assert "(migrationconfig)" in out and "(ArchitectureConfiguration" in out
 
 
-@pytest.mark.parametrize("config", CONFIGURATIONS, ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("config", CONFIGURATIONS, ids=data_id)
 def test_each_configuration_starts(config: Path, tmp_path: Path, mesh: str) -> None:
     name = re.sub(r"[^A-Za-z0-9_-]", "-", config.stem)  # the invitation pair shares a folder: one name each
     with MemoryTransport(MemoryNetwork(), "local") as transport, \
