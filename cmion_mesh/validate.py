@@ -9,9 +9,9 @@ rules use is provided by the library). Problems are collected (``diagnostics``),
 a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
 naming file and line.
 
-An architecture configuration is checked with the files it references: when those files are
-validated in the same run they are not checked again alone, and its problems are reported under
-the file they are in.
+An architecture configuration is checked with the files it references (and the device table its
+library's Migration competency names): when those files are validated in the same run they are
+not checked again alone, so each problem is reported once, under the file it is in.
 
 A new file kind is one ``KINDS`` entry: its root element -> ``Kind(schema, check)``, where
 ``check(path, diagnostics, options)`` reports every problem of the (schema-valid) file.
