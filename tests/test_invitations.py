@@ -99,6 +99,7 @@ def test_every_invitation_gets_a_definite_answer(bodies: Bodies, client: MeshCli
     bodies.add("B", knows=("A",))
     bodies.add("C")
     wait_for(lambda: a.inhabitant == "spirit" and listener.awake, 5, "spirit born on A")
+    seen_alive(a, "B", "C")  # only a live embodiment invites: A must have seen them join
     # a stranger: not in A's device table
     assert invite(client, "A", "C") == ("rejected", "'C' is not in 'A''s device table A.xml (known: B)", Code.INVALID)
     # an empty receiver
@@ -211,6 +212,7 @@ def test_the_planner_follows_invitations_as_its_spec_says(bodies: Bodies, client
     b = bodies.add("B", minds=(PlannerMind("mind"),))  # its policy comes with the companion
     bodies.add("C")
     wait_for(lambda: a.inhabitant == "spirit" and mind.awake, 5, "spirit born on A")
+    seen_alive(a, "B", "C")
     assert client.invite("C", ["A"], timeout=10)["accepted_by"] == ["A"]  # the body passes it on...
     wait_for(lambda: any(e["kind"] == "invitation_declined" for e in mind.memory), 5, "...the mind declines it")
     declined = next(e for e in mind.memory if e["kind"] == "invitation_declined")
@@ -263,6 +265,8 @@ def test_the_by_invite_mind_invites_where_it_sleeps(bodies: Bodies, client: Mesh
     a = bodies.add("A", companion="simple", knows=("B",), minds=(supersimple.SuperSimpleMigratingByInviteMind(),))
     b = bodies.add("B", knows=("A",), minds=(supersimple.SuperSimpleMigratingByInviteMind(),))
     wait_for(lambda: a.inhabitant == "simple", 5, "born on A")
+    seen_alive(a, "B")
+    seen_alive(b, "A")
     # an entity where the companion is not: B invites, A's mind follows
     client.write("B", "wm", AddContainer("", "User", "agent"))
     wait_for(lambda: b.inhabitant == "simple", 10, "the companion came to B")
