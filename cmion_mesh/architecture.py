@@ -57,11 +57,14 @@ class Architecture:
     companion: str | None = None
     admit: dict[str, bytes | None] | None = None
 
-    def build_components(self, diagnostics: Diagnostics | None = None, *, construct_them: bool = True) -> list[Component]:
+    def build_components(self, diagnostics: Diagnostics | None = None) -> list[Component]:
         """The components, built in file order: ported or Python classes, inert stand-ins for Java
         classes with no equivalent (each warned about). With ``diagnostics`` every problem is
         reported there and the faulty components left out; without, the first error raises.
-        ``construct_them=False`` (``validate``) imports the classes but builds only the stand-ins."""
+
+        ``validate`` builds them too, so that a constructor refusing its parameters is found before
+        ``up``: building one has no effect outside it (servers bind in ``attach``), and the
+        components the embodiment builds itself (``built_by_embodiment``) are refused unbuilt."""
         diag = Diagnostics.raising() if diagnostics is None else diagnostics
         where = str(self.path)
         built: list[Component] = []
@@ -83,22 +86,30 @@ class Architecture:
                 built.append(standin)
                 continue
             try:
-                if construct_them:
-                    component = construct(resolved.target, Component, resolved.parameters, path=where, line=spec.line)
-                    names.add(component.name)
-                    built.append(component)
-                else:
-                    import_class(resolved.target, Component, path=where, line=spec.line)
+                cls = import_class(resolved.target, Component, path=where, line=spec.line)
+                if cls.built_by_embodiment:
+                    raise ConfigError(f"{resolved.target} is built by every embodiment itself (one per embodiment): "
+                                      "remove it from the configuration", path=where, line=spec.line)
+                component = construct(resolved.target, Component, resolved.parameters, path=where, line=spec.line)
             except ConfigError as exc:
                 diag.problem(_ported(exc, resolved.class_name, resolved.target))
+                continue
+            if component.name in names:  # the embodiment would refuse the second one when adding it
+                diag.error(f"{resolved.label}: a component named {component.name!r} is already in this configuration "
+                           "(give it another name)", where, spec.line)
+                continue
+            names.add(component.name)
+            built.append(component)
         return built
 
 
 def _ported(exc: ConfigError, class_name: str, target: str) -> ConfigError:
-    """Name the configured Java class too when its cmion-mesh equivalent failed."""
+    """Name the configured Java class too when its cmion-mesh equivalent failed (once: not the
+    target's name again after it)."""
     if class_name == target:
         return exc
-    return ConfigError(f"{class_name} (ported as {target}): {exc.detail}", path=exc.path, line=exc.line)
+    detail = exc.detail.removeprefix(f"{target}: ")
+    return ConfigError(f"{class_name} (ported as {target}): {detail}", path=exc.path, line=exc.line)
 
 
 def load_architecture(path: str | os.PathLike[str], *, name: str | None = None) -> Architecture:

@@ -41,14 +41,18 @@ def import_class(spec: str, base: type[T] | None = None, *, path: str | None = N
 
 
 def construct(spec: str, base: type[T], parameters: Sequence[str] = (), *, path: str | None = None, line: int | None = None) -> T:
-    """Import and build ``spec`` with string parameters; every failure a ``ConfigError`` at the line."""
+    """Import and build ``spec`` with string parameters; every failure a ``ConfigError`` at the line.
+
+    ``validate`` builds what it checks, so a constructor must have no effect outside its object:
+    sockets, threads, files and subscriptions belong in ``attach`` / ``start``."""
     cls = import_class(spec, base, path=path, line=line)
     try:
         instance: Any = cls(*parameters)
-    except TypeError as exc:
-        raise ConfigError(f"cannot construct {spec} with parameters {list(parameters)}: {exc}", path=path, line=line) from None
     except MeshError as exc:
         raise ConfigError(f"{spec}: {exc}", path=path, line=line) from None
+    except Exception as exc:  # a wrong number of parameters (TypeError), a bad value, a bug: the entry's fault either way
+        raise ConfigError(f"cannot construct {spec} with parameters {list(parameters)}: {type(exc).__name__}: {exc}",
+                          path=path, line=line) from None
     built: T = instance
     return built
 

@@ -269,14 +269,18 @@ def cmd_up(args: argparse.Namespace) -> int:
         rules = rules or (str(arch.rules) if arch.rules else None)
         library = library or (str(arch.library) if arch.library else None)
         world_model = world_model or (str(arch.world_model) if arch.world_model else None)
-        table = devices.table_for_library(library) if library else None
-        name = args.name or devices.embodiment_name(table, arch)
+        table = devices.table_for_library(library, found) if library else None
+        try:
+            name = args.name or devices.embodiment_name(table, arch)
+        except ConfigError as exc:
+            found.problem(exc)
+            name = arch.embodiment
         companion = companion or devices.birth(table, arch.companion)
         admitted = arch.admit if admitted is None else {**(arch.admit or {}), **admitted}
     else:
-        table = devices.table_for_library(library) if library else None
+        table = devices.table_for_library(library, found) if library else None
         name = args.name or (table.name if table is not None else None)
-        if not name:
+        if not name and not found.errors:  # else the table's problems say why it has none
             raise ConfigError("give an architecture configuration (PATH) or at least --name")
         companion = companion or devices.birth(table, None)
     if table is not None:
@@ -285,8 +289,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         args.connect, args.listen = list(filled.connect), list(filled.listen)
     ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
                                              check_types=arch is None or library is not None)
-    if arch is not None:  # built only when all else is right; otherwise only checked, so that every problem is listed
-        components = arch.build_components(found, construct_them=not found.errors)
+    if arch is not None:
+        components = arch.build_components(found)
     for item in found:
         print(render(item), file=sys.stderr, flush=True)
     if found.errors:

@@ -44,6 +44,7 @@ from pathlib import Path
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.architecture import Architecture
+from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport import TransportConfig
 
@@ -123,9 +124,29 @@ def _int(value: str | None) -> int | None:
 
 
 def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
-    """Read and check a ``migrationconfig`` file; ``ConfigError`` naming file and line otherwise."""
+    """Read and check a ``migrationconfig`` file; one ``ConfigError`` at the first problem's file and
+    line otherwise, its text listing every problem."""
+    found = Diagnostics()
+    table = read_device_table(path, found)
+    found.raise_if_errors()
+    assert table is not None  # None only after reporting why
+    return table
+
+
+def read_device_table(path: str | os.PathLike[str], diagnostics: Diagnostics) -> DeviceTable | None:
+    """``load_device_table`` reporting every problem to ``diagnostics``; None when there is one."""
     name = os.fspath(path)
-    root = xmlsafe.load(name, SCHEMA).getroot()
+    tree = load_xml(name, SCHEMA, diagnostics)
+    if tree is None:
+        return None
+    root = tree.getroot()
+    usable = True
+
+    def problem(message: str, line: int | None) -> None:
+        nonlocal usable
+        usable = False
+        diagnostics.error(message, name, line)
+
     config = root.find("configuration")
     assert config is not None  # the schema requires it
     listen = config.find("listenport")
@@ -134,7 +155,9 @@ def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
     devicename = config.find("devicename")
     embodiment = devicename.get("value", "") if devicename is not None else ""
     if embodiment:
-        _check(embodiment, "devicename", name, xmlsafe.sourceline(devicename))
+        why = _invalid(embodiment, "devicename")
+        if why:
+            problem(why, xmlsafe.sourceline(devicename))
     invite = config.find("inviteport")
     devices: list[Device] = []
     seen: dict[str, int | None] = {}
@@ -142,26 +165,34 @@ def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
     assert devices_el is not None
     for el in devices_el.iter("device"):
         line = xmlsafe.sourceline(el)
-        device = _check(el.get("name", ""), "device name", name, line)
-        if device in seen:
-            raise ConfigError(f"device {device!r} is listed twice (first at line {seen[device]})", path=name, line=line)
-        if device == embodiment:
-            raise ConfigError(f"device {device!r} is this embodiment's own devicename", path=name, line=line)
-        seen[device] = line
+        device = el.get("name", "")
+        why = _invalid(device, "device name")
+        if why:
+            problem(why, line)
+        elif device in seen:
+            problem(f"device {device!r} is listed twice (first at line {seen[device]})", line)
+        elif device == embodiment:
+            problem(f"device {device!r} is this embodiment's own devicename", line)
+        else:
+            seen[device] = line
         port = _int(el.get("port"))
         assert port is not None
         devices.append(Device(device, el.get("host", "").strip(), port, _int(el.get("inviteport")), line))
     listen_port = _int(listen.get("value"))
     assert listen_port is not None
+    if not usable:
+        return None
     return DeviceTable(Path(name), embodiment or None, listen_port, _int(invite.get("value")) if invite is not None else None,
                        agent.get("active", "").lower() == "true", tuple(devices))
 
 
-def _check(value: str, what: str, path: str, line: int | None) -> str:
+def _invalid(value: str, what: str) -> str:
+    """Why ``value`` cannot be a name, or ``""``."""
     try:
-        return keys.check_name(value, what)
+        keys.check_name(value, what)
     except InvalidName as exc:
-        raise ConfigError(str(exc), path=path, line=line) from None
+        return str(exc)
+    return ""
 
 
 def is_migration_class(class_name: str) -> bool:
@@ -178,25 +209,39 @@ def resolve_table(library: str | os.PathLike[str], parameter: str, class_name: s
     return candidate
 
 
-def table_for_library(library: str | os.PathLike[str]) -> DeviceTable | None:
+def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics | None = None) -> DeviceTable | None:
     """The device table the library's Migration competency names, or None when it names none.
-    ``ConfigError`` at the library's line if the table is missing or invalid, or if two
-    Migration competencies name different tables."""
+    Errors (reported to ``diagnostics``, every one; without it one ``ConfigError`` lists them all):
+    the table is missing (at the library's line), invalid (at its own lines), or two Migration
+    competencies name different tables."""
+    found = Diagnostics() if diagnostics is None else diagnostics
+    path = named_table(library, found)
+    table = read_device_table(path, found) if path is not None else None
+    if diagnostics is None:
+        found.raise_if_errors()
+    return table
+
+
+def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
+    """Where the library's Migration competency says its device table is (not read); None when it
+    names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
     from cmion_mesh.competency import read_library  # competency imports the mesh client: keep this module light
 
     lib = os.fspath(library)
     found: tuple[Path, int | None] | None = None
-    for entry in read_library(lib):
+    for entry in read_library(lib, diagnostics):
         if not is_migration_class(entry.class_name) or not entry.parameters or not entry.parameters[0]:
             continue
         path = resolve_table(lib, entry.parameters[0], entry.class_name)
         if found is not None and found[0] != path:
-            raise ConfigError(f"two Migration competencies name different device tables ({found[0].name} at line "
-                              f"{found[1]}, {path.name})", path=lib, line=entry.line)
+            diagnostics.error(f"two Migration competencies name different device tables ({found[0].name} at line "
+                       f"{found[1]}, {path.name})", lib, entry.line)
+            return None
         if not path.is_file():
-            raise ConfigError(f"device table {entry.parameters[0]!r} not found (looked at {path})", path=lib, line=entry.line)
+            diagnostics.error(f"device table {entry.parameters[0]!r} not found (looked at {path})", lib, entry.line)
+            return None
         found = (path, entry.line)
-    return load_device_table(found[0]) if found is not None else None
+    return found[0] if found is not None else None
 
 
 def embodiment_name(table: DeviceTable | None, arch: Architecture) -> str:

@@ -140,7 +140,7 @@ class Embodiment:
                 self.migration = MigrationManager(state_dir, companion=companion, admit=admit)
                 self.sim.add(self.migration)
                 self.sim.on_event(self._carry_persistent, component=self.migration.name)
-                self.invitations = Invitations(self.migration, devices)
+                self.invitations = Invitations(self.migration, devices, presence=self.presence)
                 self.sim.add(self.invitations)
         except BaseException:
             self.close()
@@ -307,6 +307,7 @@ class Describer(Component):
     """Answers ``.../rq/embodiment/describe`` for discovery."""
 
     requests = {"describe": Describe}
+    built_by_embodiment = True
 
     def __init__(self, embodiment: Embodiment) -> None:
         super().__init__("embodiment")

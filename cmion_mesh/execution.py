@@ -70,6 +70,7 @@ class PlanRun:
 
 class ExecutionSystem(Component):
     requests = {"status": ExecutionStatus}
+    built_by_embodiment = True
 
     def __init__(self, competencies: Iterable[Competency] = (), name: str = "execution") -> None:
         super().__init__(name)

@@ -3,9 +3,12 @@
 The ``invitation`` component of every embodiment that can host a companion does both sides:
 
 **Receiving** (``.../rq/invitation/invite/<inviter>``, ``Invite``): the answer is definite.
-Rejected, with a ``Code``, when the inviter sends faster than ``INVITE_BURST`` / ``INVITE_RATE``
-allow (``busy``: a flood never reaches the mind), when no companion lives here (``not_found``),
-when this embodiment has a device table that does not list the inviter (``invalid``), or while the
+Rejected, with a ``Code``, when the inviter is not the key's sender (``invalid``), when it is not
+alive in the mesh as this embodiment sees it (``not_found``: only a live embodiment invites), when
+the inviter sends faster than ``INVITE_BURST`` / ``INVITE_RATE`` allow or all inviters together
+faster than ``HOST_BURST`` / ``HOST_RATE`` (``busy``: however many names a flood uses, the mind
+sees at most the host's budget), when no companion lives here (``not_found``), when this
+embodiment has a device table that does not list the inviter (``invalid``), or while the
 companion is migrating (``busy``). Otherwise the invitation becomes the remote action
 ``MigrationInvitation`` for the companion's mind(s): a ``RemoteAction`` event (``name``
 ``MigrationInvitation``, ``subject`` the inviter as CMION set it, and the inviter as parameter 1,
@@ -31,6 +34,7 @@ import functools
 import logging
 import threading
 import uuid
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -47,9 +51,16 @@ from cmion_mesh.transport import Closeable
 log = logging.getLogger(__name__)
 
 #: Invitations one inviter may send in a burst, and how many more per second, before it is
-#: answered ``busy``: the mind sees at most this many.
+#: answered ``busy``.
 INVITE_BURST = 3
 INVITE_RATE = 0.5
+#: The same for all inviters together: the most invitations the mind sees. In plain mode a name is
+#: only a claim, so the per-inviter budget alone would not bound a flood sent under many names.
+HOST_BURST = 10
+HOST_RATE = 1.0
+#: Inviters whose budget is remembered; beyond it the least recently seen is forgotten (it starts
+#: again with a full budget, which the host's budget still bounds).
+MAX_INVITERS = 1024
 #: The remote action an accepted invitation becomes.
 INVITATION_ACTION = "MigrationInvitation"
 #: The ION event that asks this embodiment to invite (CMION's ``InviteMigration``).
@@ -64,28 +75,35 @@ class Invitations(Component):
     requests = {"invite": Invite, "send": SendInvitations}
     # The inviter is known from the key: in secure mode only its certificate may invite as it.
     sender_requests = frozenset({"invite"})
+    built_by_embodiment = True
 
-    def __init__(self, migration: MigrationManager, devices: DeviceTable | None = None, *, request_timeout: float = 5.0) -> None:
+    def __init__(self, migration: MigrationManager, devices: DeviceTable | None = None, *, request_timeout: float = 5.0,
+                 presence: Presence | None = None) -> None:
+        """``presence``: the embodiment's view of who is alive, already current when it has joined
+        the mesh; without it the component watches liveliness itself from ``attach`` on."""
         super().__init__("invitation")
         self.migration = migration
         self.devices = devices
         self.request_timeout = request_timeout
-        self._buckets: dict[str, TokenBucket] = {}  # inviter -> its budget (loop)
+        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()  # inviter -> its budget, least recent first (loop)
+        self._host_bucket = TokenBucket(HOST_BURST, HOST_RATE)  # every inviter's (loop)
         self._round: str | None = None  # the round under way from here (loop)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
-        self._presence: Presence | None = None
+        self._presence = presence
+        self._own_presence: Presence | None = None
         self._watch: Closeable | None = None
 
     # --- life cycle (loop) ----------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
-        self._presence = Presence(sim.transport, sim.mesh)
+        if self._presence is None:
+            self._presence = self._own_presence = Presence(sim.transport, sim.mesh)
         self._watch = sim.on_event(self._on_invite_event, event=INVITE_EVENT)
 
     def detach(self) -> None:
-        for handle in (self._watch, self._presence):
+        for handle in (self._watch, self._own_presence):
             if handle is not None:
                 handle.close()
         self._stop.set()
@@ -119,11 +137,14 @@ class Invitations(Component):
         me = self.sim.embodiment
         if requester != inviter:
             return Outcome("rejected", f"{requester!r} cannot invite on behalf of {inviter!r}", code=Code.INVALID)
-        bucket = self._buckets.setdefault(inviter, TokenBucket(INVITE_BURST, INVITE_RATE))
-        if len(self._buckets) > 1024:
-            self._buckets = {inviter: bucket}  # bounded: forget strangers, keep the one asking
-        if not bucket.take():
+        if inviter != me and inviter not in self.alive():
+            # Only a live embodiment can take the companion in: a ghost's invitation would send it nowhere.
+            return Outcome("rejected", f"{inviter!r} is not alive in mesh {self.sim.mesh!r}: only a live embodiment invites",
+                           code=Code.NOT_FOUND)
+        if not self._budget(inviter).take():
             return Outcome("rejected", f"busy: too many invitations from {inviter!r}; try again later", code=Code.BUSY)
+        if not self._host_bucket.take():
+            return Outcome("rejected", f"busy: too many invitations to {me!r} from all inviters; try again later", code=Code.BUSY)
         companion = self.migration.inhabitant
         if companion is None:
             return Outcome("rejected", f"{me!r} hosts no companion", code=Code.NOT_FOUND)
@@ -140,6 +161,16 @@ class Invitations(Component):
         self.raise_event("RemoteAction", {"name": INVITATION_ACTION, "subject": inviter, "parameters": [inviter],
                                           "companion": companion})
         return Outcome("accepted", "", {"companion": companion, "host": me, "minds": minds})
+
+    def _budget(self, inviter: str) -> TokenBucket:
+        bucket = self._buckets.get(inviter)
+        if bucket is None:
+            if len(self._buckets) >= MAX_INVITERS:
+                self._buckets.popitem(last=False)
+            bucket = self._buckets[inviter] = TokenBucket(INVITE_BURST, INVITE_RATE)
+        else:
+            self._buckets.move_to_end(inviter)
+        return bucket
 
     # --- sending a round (loop, then a round thread) --------------------------------------------
 

@@ -121,6 +121,9 @@ class Component:
     #: the sender (``IncomingRequest.requester``) is then known from the key, which access
     #: control ties to the sender's certificate in secure mode.
     sender_requests: frozenset[str] = frozenset()
+    #: One per embodiment, built by the embodiment itself from what it holds (its stores, its
+    #: state folder): an architecture configuration cannot name it.
+    built_by_embodiment: bool = False
 
     def __init__(self, name: str) -> None:
         self.name = keys.check_name(name, "component")

@@ -57,6 +57,7 @@ MAX_RUNNING = 64
 
 class CompetencyManager(Component):
     requests = {"act": Act, "cancel": CancelAction, "status": ActionStatus}
+    built_by_embodiment = True
     #: Finished actions remembered for ``status`` (a requester that missed the end event asks).
     HISTORY = 1024
 

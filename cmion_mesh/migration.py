@@ -126,6 +126,9 @@ class MigrationManager(Component):
                 "status": MigrateStatus, "policy": SetPolicy}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
     sender_requests = frozenset({"prepare", "commit", "abort", "status"})
+    # Its constructor opens the state folder (creates it, sweeps what a crash left): never built
+    # from a configuration, so that ``validate`` can build every component it names.
+    built_by_embodiment = True
 
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = SECTION_DEADLINE,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),

@@ -33,7 +33,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.errors import MeshError
+from cmion_mesh.errors import MeshError, RequestRejected
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import (
     Act,
@@ -84,8 +84,22 @@ class Mind(Component):
                 case MindMessage() if not self.awake:
                     request.reject(f"mind {self.name!r} is asleep", Code.BUSY)
                 case MindMessage(data=data):
-                    self.on_message(data)
-                    request.accept()
+                    self._message(request, data)
+
+    def _message(self, request: IncomingRequest, data: dict[str, Any]) -> None:
+        # Answered here, one message at a time: a message the mind refuses (or fails on) must not
+        # take the other requests of its update down with it, as it would if it reached the loop.
+        try:
+            self.on_message(data)
+        except RequestRejected as exc:
+            request.answer(Outcome("rejected", exc.reason or str(exc), code=exc.code or Code.INVALID))
+        except MeshError as exc:
+            request.reject(str(exc), Code.INVALID)
+        except Exception as exc:
+            log.exception("mind %s failed on a message", self.name)
+            request.reject(f"mind {self.name!r} failed on a message: {type(exc).__name__}: {exc}", Code.HANDLER_FAILED)
+        else:
+            request.accept()
 
     def sleep(self) -> None:
         if self.awake:

@@ -25,6 +25,7 @@ relative to the file naming the class, ``NAME.xml`` for an Android raw-resource 
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from typing import Literal
 
@@ -178,6 +179,23 @@ def lookup(class_name: str) -> Port | None:
     return PORT_MAP.get(class_name)
 
 
+def close_match(class_name: str) -> str | None:
+    """The known class ``class_name`` is probably a misspelling of, if any. Compared without case
+    (``FatimaConnector``), and the class's own name too: names of one package share a long
+    prefix, so the whole names alone would offer a known class for every unknown one beside it."""
+    if class_name in PORT_MAP:
+        return None
+    by_lower = {name.lower(): name for name in PORT_MAP}
+    wanted = class_name.lower()
+    if wanted in by_lower:
+        return by_lower[wanted]
+    short = wanted.rpartition(".")[2]
+    for close in difflib.get_close_matches(wanted, list(by_lower), n=3, cutoff=0.85):
+        if difflib.SequenceMatcher(None, short, close.rpartition(".")[2]).ratio() >= 0.8:
+            return by_lower[close]
+    return None
+
+
 def markdown() -> str:
     """``docs/portmap.md``: the table, for people."""
     lines = [
@@ -194,12 +212,14 @@ def markdown() -> str:
         "- **base class**: abstract in CMION too: naming it is an error; subclass the cmion-mesh class instead;",
         "- **stand-in**: no equivalent. It loads as a stand-in reported unavailable: `validate` and `up` warn",
         "  with the file, line, class and the rule types depending on it; the embodiment runs, and an action",
-        "  whose plan needs it fails naming the class. A `cmion.` name not in this table is a stand-in too.",
+        "  whose plan needs it fails naming the class. A `cmion.` name not in this table is a stand-in too",
+        "  (the warning names the class of this table it is probably a misspelling of, if one is close).",
         "",
         "A stand-in competency provides the types listed below (CMION's own type where known), else the",
-        "class's short name (CMION's usual convention). A competency type that rules use and no competency",
-        "of the library provides is attributed to that library's stand-ins, since one of them provided it",
-        "in CMION. `validate --strict` makes every stand-in an error.",
+        "class's short name (CMION's usual convention), and no other: a competency type that rules use and",
+        "nothing provides is an error, stand-ins or not (with the closest type that is provided), so a",
+        "misspelt type is not mistaken for a class with no equivalent. `validate --strict` makes every",
+        "stand-in an error.",
         "",
         "| CMION class | kind | cmion-mesh | types | note |",
         "|---|---|---|---|---|",

@@ -239,11 +239,17 @@ class RuleSet:
             raise problems[0]
 
     def type_problems(self, available: Collection[str]) -> list[ConfigError]:
-        """Every step (file order) whose type no competency in ``available`` provides, as errors at its line."""
-        have = set(available)
+        """Every step (file order) whose type no competency in ``available`` provides, as errors at
+        its line, with the closest available type (a misspelling, most often)."""
+        have = sorted(set(available))
+
+        def hint(missing: str) -> str:
+            close = difflib.get_close_matches(missing, have, n=1)
+            return f" (did you mean {close[0]!r}?)" if close else ""
+
         return [
             ConfigError(f"rule {rule.describe()!r}, plan {number}: step {s.id} needs competency type {s.type!r}, "
-                        "which no available competency provides", path=self.path, line=s.line)
+                        f"which no available competency provides{hint(s.type)}", path=self.path, line=s.line)
             for rule in self.rules for number, plan in enumerate(rule.plans, start=1) for s in plan.steps if s.type not in have
         ]
 

@@ -5,8 +5,8 @@ A configuration naming a robot head, a Kinect or Greta still starts: each such c
 ``describe``.
 
 * A **stand-in competency** is in the library under the competency types the port map knows for
-  the class (else its short name, CMION's usual convention; plus the rule types no competency of
-  its library provides, see ``validate.check_embodiment``). It is never available, so a plan step
+  the class (else its short name, CMION's usual convention), and under no other: a rule type
+  that nothing provides is an error (``validate.check_embodiment``). It is never available, so a plan step
   of its type fails with a reason naming the class: "competency type 'GretaBMLSender' is provided
   only by stand-in cmion.inTheWild.competencies.GretaBMLSender (no cmion-mesh equivalent; see
   docs/portmap.md)".
@@ -43,7 +43,8 @@ def unavailable_reason(stand_ins: Sequence[StandIn]) -> str:
 def why_standin(java: str, port: Port | None) -> str:
     """How warnings say why a class is a stand-in: ``cmion.x.Y (what it did) has no cmion-mesh equivalent``."""
     if port is None:
-        return f"{java} is not in the port map"
+        close = portmap.close_match(java)
+        return f"{java} is not in the port map" + (f" (did you mean {close!r}?)" if close else "")
     return f"{java} ({port.note}) has no cmion-mesh equivalent"
 
 
@@ -64,11 +65,9 @@ class StandInCompetency(StandIn, Competency):
     """Never available; runs nothing (no worker thread)."""
 
     def __init__(self, java: str, port: Port | None, *, name: str, type: str, parameters: Sequence[str] = (),
-                 where: str = "", samgar_port: str | None = None, attributed: bool = False) -> None:
+                 where: str = "", samgar_port: str | None = None) -> None:
         super().__init__(*parameters, name=name, type=type)
         self.java, self.port, self.where, self.samgar_port = java, port, where, samgar_port
-        #: Entered under a rule type that no competency of its library provides (not known from the port map).
-        self.attributed = attributed
         self.available = False
 
     def start(self, sim: Simulation) -> None:

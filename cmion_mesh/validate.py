@@ -4,14 +4,14 @@ Each file is read through ``xmlsafe`` (safe parsing), checked against the XSD of
 root element, ``KINDS``; every schema violation is reported), then for meaning: rules
 (dependency graphs, parameters), libraries (every class imports and is a competency, CMION Java
 names through the port map), world models (unique names, typed values), architecture
-configurations (the referenced files, the component classes, and that every competency type the
+configurations (the referenced files, the components, built as ``up`` builds them, and that every competency type the
 rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
 a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
 naming file and line.
 
-An architecture configuration is checked with the files it references: when those files are
-validated in the same run they are not checked again alone, and its problems are reported under
-the file they are in.
+An architecture configuration is checked with the files it references (and the device table its
+library's Migration competency names): when those files are validated in the same run they are
+not checked again alone, so each problem is reported once, under the file it is in.
 
 A new file kind is one ``KINDS`` entry: its root element -> ``Kind(schema, check)``, where
 ``check(path, diagnostics, options)`` reports every problem of the (schema-valid) file.
@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmion_mesh import xmlsafe
-from cmion_mesh.architecture import read_architecture
+from cmion_mesh.architecture import Architecture, read_architecture
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
-from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.errors import ConfigError
 from cmion_mesh.portmap import DOC
 from cmion_mesh.resources import data_dir
 from cmion_mesh.rules import SCHEMA as RULES_SCHEMA
@@ -80,23 +80,23 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
         return
     check_embodiment(arch.rules, arch.library, arch.world_model, remote_types=options.remote_types, diagnostics=diagnostics,
                      check_types=arch.library is not None)
-    arch.build_components(diagnostics, construct_them=False)
+    arch.build_components(diagnostics)  # built, not attached: a constructor refusing its parameters is found here
     if arch.library is not None:
         from cmion_mesh.devices import embodiment_name, table_for_library
 
-        try:  # the device table its Migration competency names: what ``up`` will read
-            embodiment_name(table_for_library(arch.library), arch)
+        # The device table its Migration competency names, as ``up`` reads it (``validate_paths``
+        # then does not check that file alone: each of its problems is reported once).
+        table = table_for_library(arch.library, diagnostics)
+        try:
+            embodiment_name(table, arch)
         except ConfigError as exc:
             diagnostics.problem(exc)
 
 
 def _migrationconfig(path: str, diagnostics: Diagnostics, options: Options) -> None:
-    from cmion_mesh.devices import load_device_table
+    from cmion_mesh.devices import read_device_table
 
-    try:
-        load_device_table(path)
-    except ConfigError as exc:
-        diagnostics.problem(exc)
+    read_device_table(path, diagnostics)
 
 
 #: Root element -> the schema and the semantic check run after the schema passed.
@@ -129,10 +129,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     every competency type the rules use is provided by the library or named in ``remote_types``
     (served by another process, ``serve-competency``). Returns the rules and the competencies.
 
-    Stand-ins: a type the rules use that no competency of the library provides is attributed to
-    the library's stand-ins, if it has any (one of them provided it in CMION): each then also
-    stands under that type, and the rules needing it fail naming the classes; without stand-ins
-    it is an error. Each stand-in is warned about with the rule types depending on it.
+    A stand-in competency provides the types the port map knows for its class (else its short
+    name): a rule needing one of them fails naming the class, and the stand-in is warned about
+    with the rule types depending on it. A type that nothing provides is an error, stand-ins or
+    not (a typo must not pass for a class with no equivalent), with the closest provided type.
     Without ``diagnostics`` the first error raises its ``ConfigError`` (warnings are logged)."""
     diag = Diagnostics.raising() if diagnostics is None else diagnostics
     ruleset = _load_rules(rules, diag) if rules is not None else None
@@ -140,41 +140,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     if world_model is not None and load_xml(world_model, "WorldModel.xsd", diag) is not None:
         _collected(diag, lambda problems: load_world_model_init(world_model, problems))
     if ruleset is not None and check_types:
-        provided = {c.type for c in competencies} | set(remote_types)
-        missing = ruleset.type_problems(provided)
-        standins = [c for c in competencies if isinstance(c, StandInCompetency)]
-        if standins and missing:
-            competencies += _attribute(ruleset, provided, standins, os.fspath(library or ""), diag)
-        else:
-            for problem in missing:
-                diag.problem(problem)
+        for problem in ruleset.type_problems({c.type for c in competencies} | set(remote_types)):
+            diag.problem(problem)
     _report_standins(competencies, ruleset, diag)
     return ruleset, competencies
-
-
-def _attribute(ruleset: RuleSet, provided: set[str], standins: list[StandInCompetency], library: str,
-               diagnostics: Diagnostics) -> list[Competency]:
-    """Stand-ins entered under the rule types nothing provides (one per stand-in class and type)."""
-    from cmion_mesh.standin import unique
-
-    added: list[Competency] = []
-    names = {c.name for c in standins}
-    classes = {s.java: s for s in standins}
-    for competency_type, lines in ruleset.type_lines().items():
-        if competency_type in provided:
-            continue
-        try:
-            for java, first in classes.items():
-                added.append(StandInCompetency(java, first.port, name=unique(f"{first.name}-{competency_type}", names),
-                                               type=competency_type, parameters=first.constructor_parameters, where=first.where,
-                                               samgar_port=first.samgar_port, attributed=True))
-        except MeshError as exc:  # an invalid type name: the rule's problem
-            diagnostics.error(f"competency type {competency_type!r} cannot be a competency's type: {exc}", ruleset.path, lines[0])
-            continue
-        diagnostics.warning(f"competency type {competency_type!r} is provided by no competency of {os.path.basename(library)}: "
-                            f"attributed to its stand-ins ({', '.join(classes)}), so actions needing it fail naming them",
-                            ruleset.path, lines[0])
-    return added
 
 
 def _report_standins(competencies: list[Competency], ruleset: RuleSet | None, diagnostics: Diagnostics) -> None:
@@ -262,8 +231,8 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
         found = Diagnostics()
         check_file(report.path, found, options)
         arch = read_architecture(report.path, Diagnostics())
-        for referenced in (arch.rules, arch.library, arch.world_model) if arch is not None else ():
-            other = by_real.get(os.path.realpath(referenced)) if referenced is not None else None
+        for referenced in _referenced(arch):
+            other = by_real.get(os.path.realpath(referenced))
             if other is not None and other is not report and other.kind is not None:
                 other.checked_with = report.path
         _distribute(found, report, by_real)
@@ -274,6 +243,16 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
                 KINDS[report.kind].check(report.path, found, options)
             _distribute(found, report, by_real)
     return reports
+
+
+def _referenced(arch: Architecture | None) -> list[Path]:
+    """The files checked with a configuration: its rules, library, world model and device table."""
+    if arch is None:
+        return []
+    from cmion_mesh.devices import named_table
+
+    table = named_table(arch.library, Diagnostics()) if arch.library is not None else None
+    return [p for p in (arch.rules, arch.library, arch.world_model, table) if p is not None]
 
 
 def _distribute(found: Diagnostics, owner: FileReport, by_real: dict[str, FileReport]) -> None:

@@ -40,15 +40,11 @@ ROOT = Path(__file__).resolve().parent.parent
 INTHEWILD = DATA / "cmion2011-inthewild"
 ANDROID = DATA / "cmion2011-android"
 INVITE = DATA / "cmion2011-invite"
-#: Every folder of CMION-shaped files: the committed copy of the 2011 originals and our own.
-FOLDERS = sorted(p for p in DATA.iterdir() if p.is_dir() and p.name.startswith("cmion2011"))
-CONFIGURATIONS = [
-    DATA / "cmion2011" / "ArchitectureConfiguration.xml",
-    INTHEWILD / "ArchitectureConfiguration.xml",
-    ANDROID / "architectureconfiguration_migrationsend.xml",
-    INVITE / "ArchitectureConfigurationMigrationByInviteSend.xml",
-    INVITE / "ArchitectureConfigurationMigrationByInviteReceive.xml",
-]
+#: Every folder of CMION-shaped files, found rather than listed so that none is left out: the
+#: committed copy of the 2011 originals and our own.
+FOLDERS = sorted({p.parent for p in DATA.rglob("*.xml")})
+#: Every architecture configuration among them.
+CONFIGURATIONS = [p for p in sorted(DATA.rglob("*.xml")) if "<ArchitectureConfiguration" in p.read_text(errors="replace")]
 
 #: Every class named in CMION 2011's real configuration files (protocols.md section 5), the
 #: generic bases and the test competencies.
@@ -111,7 +107,16 @@ def test_port_map_document_is_generated_from_the_table() -> None:
 # --- every CMION file ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("folder", FOLDERS, ids=lambda p: p.name)
+def data_id(path: Path) -> str:
+    return path.relative_to(DATA).as_posix()
+
+
+def test_the_data_is_all_found() -> None:
+    assert len(FOLDERS) >= 6 and DATA / "invite" / "send" in FOLDERS and DATA / "cmion2011" in FOLDERS
+    assert len(CONFIGURATIONS) >= 7 and DATA / "invite" / "receive" / "ArchitectureConfiguration.xml" in CONFIGURATIONS
+
+
+@pytest.mark.parametrize("folder", FOLDERS, ids=data_id)
 def test_every_file_validates(folder: Path) -> None:
     files = sorted(str(p) for p in folder.glob("*.xml"))
     reports = validate_paths(files)
@@ -131,7 +136,7 @@ def test_validate_takes_the_whole_test_data_tree_in_one_run() -> None:
     assert "(migrationconfig)" in out and "(ArchitectureConfiguration" in out
 
 
-@pytest.mark.parametrize("config", CONFIGURATIONS, ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("config", CONFIGURATIONS, ids=data_id)
 def test_each_configuration_starts(config: Path, tmp_path: Path, mesh: str) -> None:
     name = re.sub(r"[^A-Za-z0-9_-]", "-", config.stem)  # the invitation pair shares a folder: one name each
     with MemoryTransport(MemoryNetwork(), "local") as transport, \
@@ -167,8 +172,7 @@ def test_unknown_java_classes_load_as_standins_and_are_listed(inthewild: tuple[E
     assert listed["cmion.inTheWild.ai.DIAgent"]["kind"] == "mind connector"
     assert listed["cmion.inTheWild.ai.DIAgent"]["where"].endswith("ArchitectureConfiguration.xml:15")
     assert listed["cmion.inTheWild.competencies.KinectTrackerConnector"]["samgar_port"] == "Kinect"
-    assert listed["cmion.inTheWild.competencies.GretaBMLSender"]["types"] == ["GretaBMLSender", "Gaze"], \
-        "its own type, and the rule type nothing provides"
+    assert listed["cmion.inTheWild.competencies.GretaBMLSender"]["types"] == ["GretaBMLSender"], "its own type, no other"
     assert listed["cmion.inTheWild.competencies.MoodLamp"]["kind"] == "not in the port map"
     components = {c.name: c for c in body.sim.components}
     assert isinstance(components["DIAgent"], StandInComponent) and components["DIAgent"].parameters == ("5228", "dialogue.xml")
@@ -184,8 +188,8 @@ def test_an_action_needing_a_standin_fails_naming_the_class(inthewild: tuple[Emb
     assert ("competency type 'GretaBMLCreator' is provided only by stand-in cmion.inTheWild.competencies.GretaBMLCreator "
             "(no cmion-mesh equivalent; see docs/portmap.md)") in talk.reason, talk.reason
     look = client.act(body.name, "look", ["door"], timeout=20)
-    assert look.status == "failed" and "cmion.inTheWild.competencies.MoodLamp" in look.reason
-    assert "not in the port map" in look.reason and "no cmion-mesh equivalent" in look.reason
+    assert look.status == "failed"
+    assert "stand-in cmion.inTheWild.competencies.MoodLamp (not in the port map; see docs/portmap.md)" in look.reason, look.reason
     remember = client.act(body.name, "Remember", ["note"], timeout=20)
     assert remember.status == "succeeded", remember.reason
 
@@ -272,6 +276,46 @@ def test_up_refuses_on_errors_and_lists_them_all(tmp_path: Path, mesh: str) -> N
     assert "up in mesh" not in out
 
 
+def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) -> None:
+    """A constructor refusing its parameters fails ``validate`` as it fails ``up``, at the entry's
+    line, naming the class; building them opens nothing (a component that would is refused unbuilt)."""
+    (tmp_path / "r.xml").write_text("<CompetencyManagerRules/>")
+    (tmp_path / "l.xml").write_text("<CompetencyLibrary/>")
+    state = tmp_path / "never-made"
+    (tmp_path / "ArchitectureConfiguration.xml").write_text(
+        '<ArchitectureConfiguration Embodiment="x" CompetencyManagerRulesFile="r.xml" CompetencyLibraryConfigurationFile="l.xml">\n'
+        '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, bogus"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,nowhere.json"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.supersimple:SuperSimpleMind" ConstructorParameters="too,many"/>\n'
+        f'<ArchitectureComponent ClassName="cmion_mesh.migration:MigrationManager" ConstructorParameters="{state}"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
+        '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, port:0"/>\n'
+        "</ArchitectureConfiguration>")
+    config = str(tmp_path / "ArchitectureConfiguration.xml")
+    expected = [
+        (2, "cmion.level3.fatima.FAtiMAConnector (ported as cmion_mesh.fatima:FAtiMAConnector): unknown option 'bogus'"),
+        (3, "cmion_mesh.planner:PlannerMind: "),
+        (4, "cannot construct cmion_mesh.supersimple:SuperSimpleMind with parameters ['too', 'many']: TypeError"),
+        (5, "cmion_mesh.migration:MigrationManager is built by every embodiment itself"),
+        (7, "cmion_mesh.mind:Mind: a component named 'twin' is already in this configuration"),
+    ]
+    code, out, err = run_cli("validate", config, "--json")
+    assert code == 1
+    [report] = json.loads(out)
+    errors = [(d["line"], d["message"]) for d in report["diagnostics"] if d["severity"] == "error"]
+    assert len(errors) == len(expected), errors
+    for (line, message), (want_line, words) in zip(errors, expected, strict=True):
+        assert line == want_line and message.startswith(words), (line, message)
+    assert "nowhere.json" in errors[1][1]
+    assert not state.exists(), "validate opened nothing"
+    code, out, err = run_cli("up", config, "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "state"))
+    assert code == 2 and "up in mesh" not in out
+    for line, words in expected:
+        assert f"error: {config}:{line}: {words}" in err, (line, words, err)
+    assert not state.exists()
+
+
 # --- what CMION's loaders read -----------------------------------------------------------------------------------
 
 
@@ -336,21 +380,55 @@ def test_embodiment_name_falls_back_to_a_valid_folder_name(tmp_path: Path) -> No
     assert load_architecture(folder / "ArchitectureConfiguration.xml", name="fine").embodiment == "fine"
 
 
-def test_rule_types_attributed_only_to_a_library_with_standins(tmp_path: Path) -> None:
-    (tmp_path / "r.xml").write_text('<CompetencyManagerRules>\n<Rule><MindAction Name="Fly"/><CompetencyExecutionPlan>\n'
-                                    '<Competency ID="1" Type="Wings"/>\n</CompetencyExecutionPlan></Rule>\n</CompetencyManagerRules>')
-    (tmp_path / "plain.xml").write_text("<CompetencyLibrary/>")
+def test_a_rule_type_nothing_provides_is_an_error_beside_standins_too(tmp_path: Path) -> None:
+    """A stand-in provides the types the port map knows for its class, and no other: a misspelt
+    type is an error with the closest provided type, not a warning blamed on the stand-ins."""
+    (tmp_path / "r.xml").write_text('<CompetencyManagerRules>\n<Rule><MindAction Name="Say"/><CompetencyExecutionPlan>\n'
+                                    '<Competency ID="1" Type="Speek"/>\n</CompetencyExecutionPlan></Rule>\n'
+                                    '<Rule><MindAction Name="Talk"/><CompetencyExecutionPlan>\n'
+                                    '<Competency ID="1" Type="Speak"/>\n</CompetencyExecutionPlan></Rule>\n</CompetencyManagerRules>')
     (tmp_path / "robot.xml").write_text('<CompetencyLibrary>\n<Competency ClassName="cmion.TeamBuddy.competencies.Speak"/>\n'
-                                        "</CompetencyLibrary>")
-    found = Diagnostics()
-    check_embodiment(tmp_path / "r.xml", tmp_path / "plain.xml", diagnostics=found)
-    assert [d.line for d in found.errors] == [3]
+                                        '<Competency ClassName="cmion.inTheWild.competencies.MoodLamp"/>\n</CompetencyLibrary>')
     found = Diagnostics()
     _, competencies = check_embodiment(tmp_path / "r.xml", tmp_path / "robot.xml", diagnostics=found)
+    assert {c.type for c in competencies} == {"Speak", "MoodLamp"}, "the port map's type, and the unknown class's short name"
+    [error] = found.errors
+    assert (error.path, error.line) == (str(tmp_path / "r.xml"), 3)
+    assert "needs competency type 'Speek', which no available competency provides (did you mean 'Speak'?)" in error.message
+    assert any("rule types depending on it: Speak (r.xml:6)" in d.message and d.line == 2 for d in found.warnings)
+    assert any("no rule uses its types (MoodLamp)" in d.message and d.line == 3 for d in found.warnings)
+    # with --remote-type, the type is served by another process: no error
+    found = Diagnostics()
+    check_embodiment(tmp_path / "r.xml", tmp_path / "robot.xml", remote_types=["Speek"], diagnostics=found)
     assert not found.errors
-    assert {c.type for c in competencies} == {"Speak", "Wings"}
-    assert any("'Wings' is provided by no competency of robot.xml" in d.message and d.line == 3 for d in found.warnings)
-    assert any("rule types depending on it: Wings (r.xml:3)" in d.message and d.line == 2 for d in found.warnings)
+
+
+def test_a_misspelt_java_class_is_named_with_the_one_meant(tmp_path: Path, mesh: str) -> None:
+    """A ``cmion.`` name close to one of the port map is a stand-in (as any unknown class), and
+    ``validate`` and ``up`` say which class it probably meant."""
+    (tmp_path / "r.xml").write_text("<CompetencyManagerRules/>")
+    (tmp_path / "l.xml").write_text('<CompetencyLibrary>\n<Competency ClassName="cmion.level2.competencies.test.TestCompetecy1"/>\n'
+                                    "</CompetencyLibrary>")
+    config = tmp_path / "ArchitectureConfiguration.xml"
+    config.write_text('<ArchitectureConfiguration Embodiment="x" CompetencyManagerRulesFile="r.xml" '
+                      'CompetencyLibraryConfigurationFile="l.xml">\n'
+                      '<ArchitectureComponent ClassName="cmion.level3.fatima.FatimaConnector"/>\n</ArchitectureConfiguration>')
+    meant = [(config, 2, "cmion.level3.fatima.FatimaConnector is not in the port map "
+                         "(did you mean 'cmion.level3.fatima.FAtiMAConnector'?)"),
+             (tmp_path / "l.xml", 2, "cmion.level2.competencies.test.TestCompetecy1 is not in the port map "
+                                     "(did you mean 'cmion.level2.competencies.test.TestCompetency1'?)")]
+    code, _, err = run_cli("validate", str(tmp_path))
+    assert code == 0, err
+    for path, line, words in meant:
+        assert f"warning: {path}:{line}: {words}" in err, (words, err)
+    assert run_cli("validate", "--strict", str(tmp_path))[0] == 1
+    code, _, err = run_cli("validate", str(INTHEWILD / "CompetencyLibraryInTheWild.xml"))
+    assert code == 0 and "cmion.inTheWild.competencies.MoodLamp is not in the port map: " in err, "nothing close: no guess"
+    with Daemon(cli_argv("up", str(config), "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "state")),
+                name="misspelt") as daemon:
+        daemon.wait_line("up in mesh", 30)
+        for path, line, words in meant:
+            assert any(f"warning: {path}:{line}: {words}" in text for text in daemon.lines), (words, daemon.lines)
 
 
 # --- the real daemon ---------------------------------------------------------------------------------------------

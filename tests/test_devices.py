@@ -3,6 +3,7 @@ one, what they give an embodiment (name, endpoints, birth), and ``validate``."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ from cmion_mesh import devices
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.cli import main
 from cmion_mesh.client import MeshClient
+from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
@@ -75,6 +77,64 @@ def test_malformed_tables_are_refused_at_their_line(tmp_path: Path, config: str,
     with pytest.raises(ConfigError) as caught:
         devices.load_device_table(path)
     assert str(caught.value).startswith(f"{path}:{line}: ") and words in str(caught.value)
+
+
+BROKEN_DEVICES = ('    <device name="B" host="h" port="1"/>\n    <device name="B" host="i" port="2"/>\n'
+                  '    <device name="A" host="h" port="3"/>\n    <device name="a/b" host="h" port="4"/>')
+#: (line, words) of every problem of a table with GOOD_CONFIG and BROKEN_DEVICES.
+BROKEN_LINES = [(10, "'B' is listed twice (first at line 9)"), (11, "own devicename"), (12, "'/'")]
+
+
+def test_every_problem_of_a_table_is_reported(tmp_path: Path) -> None:
+    path = tmp_path / "MigrationConfig.xml"
+    path.write_text(table_xml(config=GOOD_CONFIG, devices_xml=BROKEN_DEVICES))
+    found = Diagnostics()
+    assert devices.read_device_table(path, found) is None
+    assert [(d.path, d.line) for d in found.errors] == [(str(path), line) for line, _ in BROKEN_LINES]
+    assert all(words in d.message for d, (_, words) in zip(found.errors, BROKEN_LINES, strict=True))
+    with pytest.raises(ConfigError) as caught:
+        devices.load_device_table(path)
+    text = str(caught.value)
+    assert text.startswith(f"{path}:10: ") and all(f"{path}:{line}: " in text for line, _ in BROKEN_LINES[1:]), text
+    # and every schema problem, not the first one only
+    path.write_text(table_xml(config='    <listenport value="70000"/>\n    <agent active="yes"/>'))
+    found = Diagnostics()
+    assert devices.read_device_table(path, found) is None
+    assert [d.line for d in found.errors] == [4, 5]
+
+
+def broken_table_configuration(tmp_path: Path) -> Path:
+    """The invitation pair's sending side, its table broken in three places and a rule file broken too."""
+    folder = configuration_copy(INVITE / "send", tmp_path / "send")
+    table_path = folder / "MigrationConfig.xml"
+    table_path.write_text(table_xml(config=GOOD_CONFIG, devices_xml=BROKEN_DEVICES))
+    rules = folder / "CompManagerRules.xml"
+    rules.write_text(rules.read_text().replace('Type="Migration"', 'Type="Migraton"'))
+    return folder
+
+
+def test_validate_reports_each_table_problem_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The table is checked with the configuration naming it (as ``up`` reads it), not again alone."""
+    folder = broken_table_configuration(tmp_path)
+    assert main(["validate", str(folder)]) == 1
+    err = capsys.readouterr().err
+    for line, words in BROKEN_LINES:
+        assert err.count(f"MigrationConfig.xml:{line}: ") == 1 and words in err, (line, err)
+    assert "did you mean 'Migration'?" in err
+    assert main(["validate", str(folder), "--json"]) == 1
+    [table] = [r for r in json.loads(capsys.readouterr().out) if r["kind"] == "migrationconfig"]
+    assert table["checked_with"] == str(folder / "ArchitectureConfiguration.xml") and len(table["diagnostics"]) == 3
+
+
+def test_up_lists_the_tables_problems_with_the_others(tmp_path: Path, mesh: str, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = broken_table_configuration(tmp_path)
+    assert main(["up", str(folder), "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "state")]) == 2
+    captured = capsys.readouterr()
+    errors = [line for line in captured.err.splitlines() if line.startswith("error: ")]
+    for line, words in BROKEN_LINES:
+        assert any(f"{folder / 'MigrationConfig.xml'}:{line}: " in e and words in e for e in errors), (line, errors)
+    assert any("CompManagerRules.xml" in e and "'Migraton'" in e for e in errors), "the other files' problems too"
+    assert len(errors) == 4 and "up in mesh" not in captured.out
 
 
 def test_element_order_is_free_and_optional_parts_may_be_left_out(tmp_path: Path) -> None:

@@ -6,12 +6,13 @@ from __future__ import annotations
 import json
 import subprocess
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from cmion_mesh import devices, invitation, supersimple
+from cmion_mesh import devices, invitation, keys, supersimple
 from cmion_mesh.client import MeshClient
 from cmion_mesh.devices import DeviceTable
 from cmion_mesh.embodiment import Embodiment
@@ -98,6 +99,7 @@ def test_every_invitation_gets_a_definite_answer(bodies: Bodies, client: MeshCli
     bodies.add("B", knows=("A",))
     bodies.add("C")
     wait_for(lambda: a.inhabitant == "spirit" and listener.awake, 5, "spirit born on A")
+    seen_alive(a, "B", "C")  # only a live embodiment invites: A must have seen them join
     # a stranger: not in A's device table
     assert invite(client, "A", "C") == ("rejected", "'C' is not in 'A''s device table A.xml (known: B)", Code.INVALID)
     # an empty receiver
@@ -119,10 +121,46 @@ def test_every_invitation_gets_a_definite_answer(bodies: Bodies, client: MeshCli
     assert done["accepted_by"] == ["A"] and done["answers"]["A"]["status"] == "accepted"
 
 
-def test_a_flood_of_invitations_does_not_flood_the_mind(bodies: Bodies, client: MeshClient) -> None:
+@contextmanager
+def alive(network: MemoryNetwork, mesh: str, *names: str) -> Iterator[None]:
+    """``names`` alive in the mesh (their liveliness tokens), as inviters need to be."""
+    with MemoryTransport(network, "tokens") as transport:
+        tokens = [transport.declare_token(keys.alive_key(mesh, name)) for name in names]
+        try:
+            yield
+        finally:
+            for token in tokens:
+                token.close()
+
+
+def seen_alive(body: Embodiment, *names: str) -> None:
+    assert body.presence is not None
+    presence = body.presence
+    wait_for(lambda: set(names) <= presence.alive(), 5, f"{', '.join(names)} alive as {body.name} sees it")
+
+
+def test_an_invitation_from_a_ghost_is_refused(bodies: Bodies, client: MeshClient) -> None:
+    """Only an embodiment alive in the mesh invites: a ghost's name is refused before any budget."""
     listener = Listener()
     a = bodies.add("A", companion="spirit", minds=(listener,))
     wait_for(lambda: a.inhabitant == "spirit" and listener.awake, 5, "spirit born on A")
+    for _ in range(invitation.INVITE_BURST + 2):
+        assert invite(client, "A", "ghost") == ("rejected", f"'ghost' is not alive in mesh {bodies.mesh!r}: only a live "
+                                                            "embodiment invites", Code.NOT_FOUND)
+    with alive(bodies.network, bodies.mesh, "ghost"):
+        seen_alive(a, "ghost")
+        assert invite(client, "A", "ghost")[0] == "accepted", "refusals spent none of its budget"
+        wait_for(lambda: listener.heard, 5, "the invitation reaches the hosting mind")
+    assert listener.heard == [MindAction("MigrationInvitation", ("ghost",), "ghost")]
+
+
+def test_a_flood_of_invitations_does_not_flood_the_mind(bodies: Bodies, client: MeshClient) -> None:
+    listener = Listener()
+    a = bodies.add("A", companion="spirit", minds=(listener,))
+    bodies.add("B")
+    bodies.add("C")
+    wait_for(lambda: a.inhabitant == "spirit" and listener.awake, 5, "spirit born on A")
+    seen_alive(a, "B", "C")
     answers = [invite(client, "A", "B") for _ in range(20)]
     accepted = [a for a in answers if a[0] == "accepted"]
     assert invitation.INVITE_BURST <= len(accepted) <= invitation.INVITE_BURST + 1  # +1: a token may refill meanwhile
@@ -133,12 +171,48 @@ def test_a_flood_of_invitations_does_not_flood_the_mind(bodies: Bodies, client: 
     wait_for(lambda: len(listener.heard) == len(accepted) + 1, 5, "every accepted invitation reaches the mind")
 
 
+def test_a_flood_under_many_names_is_bounded_by_the_hosts_budget(bodies: Bodies, client: MeshClient,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(invitation, "HOST_RATE", 1e-6)  # no refill while the test runs: exact counts
+    listener = Listener()
+    a = bodies.add("A", companion="spirit", minds=(listener,))
+    wait_for(lambda: a.inhabitant == "spirit" and listener.awake, 5, "spirit born on A")
+    names = [f"n{i}" for i in range(invitation.HOST_BURST + 5)]
+    with alive(bodies.network, bodies.mesh, *names):
+        seen_alive(a, *names)
+        answers = [invite(client, "A", name) for name in names]
+    assert [s for s, _, _ in answers] == ["accepted"] * invitation.HOST_BURST + ["rejected"] * 5
+    assert answers[-1][1:] == ("busy: too many invitations to 'A' from all inviters; try again later", Code.BUSY)
+    wait_for(lambda: len(listener.heard) == invitation.HOST_BURST, 5, "the accepted ones reach the mind")
+
+
+def test_inviters_budgets_are_forgotten_least_recent_first(bodies: Bodies, client: MeshClient,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The store of budgets is bounded without forgetting them all at once: a full store forgets the
+    inviter seen longest ago, never the one that keeps asking."""
+    monkeypatch.setattr(invitation, "MAX_INVITERS", 2)
+    monkeypatch.setattr(invitation, "INVITE_RATE", 1e-6)  # no refill while the test runs: exact counts
+    a = bodies.add("A", companion="spirit", minds=(Listener(),))
+    wait_for(lambda: a.inhabitant == "spirit", 5, "spirit born on A")
+    with alive(bodies.network, bodies.mesh, "X", "Y", "Z"):
+        seen_alive(a, "X", "Y", "Z")
+        assert [invite(client, "A", "X")[0] for _ in range(invitation.INVITE_BURST + 1)] == \
+            ["accepted"] * invitation.INVITE_BURST + ["rejected"]
+        assert invite(client, "A", "Y")[0] == "accepted"
+        assert invite(client, "A", "X")[2] == Code.BUSY  # X is now the most recent
+        assert invite(client, "A", "Z")[0] == "accepted"  # the store is full: Y, seen longest ago, is forgotten
+        assert invite(client, "A", "X")[2] == Code.BUSY, "X's spent budget is remembered"
+        assert invite(client, "A", "Y")[0] == "accepted", "Y starts again (and Z, least recent now, is forgotten)"
+        assert invite(client, "A", "X")[2] == Code.BUSY
+
+
 def test_the_planner_follows_invitations_as_its_spec_says(bodies: Bodies, client: MeshClient) -> None:
     mind = PlannerMind("mind", invitations=InvitationPolicy(follow=True, accept_from=("B",)))
     a = bodies.add("A", companion="spirit", minds=(mind,))
     b = bodies.add("B", minds=(PlannerMind("mind"),))  # its policy comes with the companion
     bodies.add("C")
     wait_for(lambda: a.inhabitant == "spirit" and mind.awake, 5, "spirit born on A")
+    seen_alive(a, "B", "C")
     assert client.invite("C", ["A"], timeout=10)["accepted_by"] == ["A"]  # the body passes it on...
     wait_for(lambda: any(e["kind"] == "invitation_declined" for e in mind.memory), 5, "...the mind declines it")
     declined = next(e for e in mind.memory if e["kind"] == "invitation_declined")
@@ -191,6 +265,8 @@ def test_the_by_invite_mind_invites_where_it_sleeps(bodies: Bodies, client: Mesh
     a = bodies.add("A", companion="simple", knows=("B",), minds=(supersimple.SuperSimpleMigratingByInviteMind(),))
     b = bodies.add("B", knows=("A",), minds=(supersimple.SuperSimpleMigratingByInviteMind(),))
     wait_for(lambda: a.inhabitant == "simple", 5, "born on A")
+    seen_alive(a, "B")
+    seen_alive(b, "A")
     # an entity where the companion is not: B invites, A's mind follows
     client.write("B", "wm", AddContainer("", "User", "agent"))
     wait_for(lambda: b.inhabitant == "simple", 10, "the companion came to B")

@@ -10,10 +10,11 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh.errors import ClosedError, MeshError
+from cmion_mesh.errors import ClosedError, MeshError, RequestRejected
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import Code, Event, Message, Outcome, decode
+from cmion_mesh.messages import Code, Event, Message, MindMessage, MindState, Outcome, decode
+from cmion_mesh.mind import Mind
 from cmion_mesh.testing.wait import wait_for
 
 pytestmark = pytest.mark.timeout(30)
@@ -291,3 +292,37 @@ def test_runaway_event_storm_is_carried_over_not_dropped(sim: Simulation) -> Non
     wait_for(lambda: count[0] == 25_000, 20, "all storm events handled")
     assert sim.updates - start >= 3, "spread over several updates"
     assert os.getpid()
+
+
+class Picky(Mind):
+    """Refuses messages it cannot take, with the reason (as the FAtiMA connector does)."""
+
+    def __init__(self) -> None:
+        super().__init__("picky")
+        self.taken: list[Any] = []
+
+    def on_message(self, data: dict[str, Any]) -> None:
+        if "refuse" in data:
+            raise MeshError(f"mind {self.name!r} cannot take {data['refuse']!r}")
+        if "busy" in data:
+            raise RequestRejected("not now", reason="not now", code=Code.BUSY)
+        if "crash" in data:
+            raise RuntimeError("mind bug")
+        self.taken.append(data["note"])
+
+
+def test_a_message_the_mind_refuses_fails_alone(stepped: Simulation) -> None:
+    """Each message of one update gets its own answer: one the mind refuses (or fails on) does not
+    reject the others of its batch."""
+    mind = stepped.add(Picky())
+    stepped.run_once()
+    futures = [stepped.request("picky", "message", MindMessage(data)) for data in
+               ({"note": 1}, {"refuse": "x"}, {"busy": True}, {"crash": True}, {"note": 2})]
+    state = stepped.request("picky", "state", MindState())
+    assert stepped.run_once() == 6, "one update: the six requests are one batch"
+    outcomes = [f.result(5) for f in futures]
+    assert [o.status for o in outcomes] == ["accepted", "rejected", "rejected", "rejected", "accepted"]
+    assert (outcomes[1].reason, outcomes[1].code) == ("mind 'picky' cannot take 'x'", Code.INVALID)
+    assert (outcomes[2].reason, outcomes[2].code) == ("not now", Code.BUSY)
+    assert "RuntimeError: mind bug" in outcomes[3].reason and outcomes[3].code == Code.HANDLER_FAILED
+    assert state.result(5).status == "accepted" and isinstance(mind, Picky) and mind.taken == [1, 2]
