@@ -110,7 +110,7 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 def install() -> None:
     from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
     from cmion_mesh.migration import MigrationManager
-    from cmion_mesh.records import Records
+    from cmion_mesh.records import Records, SectionStore
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
         kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
@@ -121,8 +121,11 @@ def install() -> None:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(handshake, "unpack", "unpack(parse+XSD)")
-    wrap(identity.Identity, "pack", "pack(JSON+XML)")
+    wrap(SectionStore, "write", "write+fsync:sections")
+    wrap(SectionStore, "read_many", "read+check sections held")
+    wrap(handshake, "read_manifest", "read_manifest(parse+XSD)")
+    wrap(identity, "decode_section", "decode_section(msgpack)")
+    wrap(identity.Identity, "pack_sections", "pack_sections(msgpack+sha256+XML)")
     wrap(signing, "sign", "sign(ed25519)")
     wrap(custody, "verify_chain", "verify custody chain")
     wrap(migration, "send_request", request_label)
@@ -135,7 +138,9 @@ def install() -> None:
     for method, label in (("_start", "on loop:_start(checks)"), ("_maybe_pack", "on loop:_maybe_pack"),
                           ("_refresh_sections", "on loop:mind.state()"), ("_on_prepare", "on loop:_on_prepare(target)"),
                           ("_on_commit", "on loop:_on_commit(target)"), ("_inhabit", "on loop:_inhabit(restore+wake)"),
-                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)")):
+                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)"),
+                          ("_send_missing", "on a worker:_send_missing(have+chunks)"), ("_prepare", "on a worker:_prepare"),
+                          ("_on_have", "on loop:_on_have(target)"), ("_on_sections", "on loop:_on_sections(target)")):
         wrap(MigrationManager, method, label)
 
 
@@ -167,6 +172,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
             mig.once()
             windows: list[tuple[int, int, float]] = []
             for _ in range(count):
+                mig.tell_mind({"size": max(0, size - OVERHEAD)})  # a fresh blob: the whole document travels
                 start = time.perf_counter_ns()
                 occurred, _released = mig.once()
                 windows.append((start, time.perf_counter_ns(), occurred))
