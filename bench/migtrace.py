@@ -109,6 +109,7 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 
 def install() -> None:
     from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
+    from cmion_mesh import records as records_module
     from cmion_mesh.migration import MigrationManager
     from cmion_mesh.records import Records, SectionStore
 
@@ -121,6 +122,8 @@ def install() -> None:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
+    wrap(records_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
+    wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
     wrap(SectionStore, "write", "write+fsync:sections")
     wrap(SectionStore, "read_many", "read+check sections held")
     wrap(handshake, "read_manifest", "read_manifest(parse+XSD)")

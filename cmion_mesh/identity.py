@@ -111,7 +111,7 @@ class SectionMemo:
     since (compared byte for byte, far cheaper than hashing it again) keeps its hash."""
 
     def __init__(self) -> None:
-        self._last: dict[str, tuple[bytes, str]] = {}
+        self._last: dict[str, tuple[bytes | bytearray | memoryview, str]] = {}
 
     def digest(self, component: str, data: bytes) -> str:
         last = self._last.get(component)
@@ -121,7 +121,7 @@ class SectionMemo:
         self._last[component] = (data, digest)
         return digest
 
-    def remember(self, component: str, data: bytes, digest: str) -> None:
+    def remember(self, component: str, data: bytes | bytearray | memoryview, digest: str) -> None:
         self._last[component] = (data, digest)
 
     def keep_only(self, components: set[str]) -> None:

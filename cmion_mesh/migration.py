@@ -39,7 +39,6 @@ SIGKILL right after writing that record: the crash tests use it.
 from __future__ import annotations
 
 import functools
-import hashlib
 import logging
 import os
 import signal
@@ -47,7 +46,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -73,7 +72,7 @@ from cmion_mesh.messages import (
     SetPolicy,
 )
 from cmion_mesh.mind import Mind
-from cmion_mesh.records import HOSTING, Record, Records
+from cmion_mesh.records import HOSTING, Bytes, IncomingSection, Record, Records
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -90,6 +89,8 @@ SECTION_DEADLINE = 5.0
 INLINE = 256 * 1024
 #: Bytes of sections per ``migrate_sections`` request: a large section goes in chunks of this size.
 CHUNK = 4 * 1024 * 1024
+#: ``migrate_sections`` requests in flight at once.
+IN_FLIGHT = 2
 #: Pins of the section store held by the attempt being staged here.
 _STAGING = "staging"
 
@@ -120,38 +121,19 @@ class _Outgoing:
 
 
 @dataclass(eq=False)
-class _Partial:
-    """Target: a section being received, its chunks in order, hashed as they come."""
-
-    ref: SectionRef
-    chunks: list[bytes] = field(default_factory=list)
-    received: int = 0
-    hasher: Any = field(default_factory=hashlib.sha256)
-
-    def add(self, offset: int, data: bytes) -> str:
-        """Take a chunk; "" or why it does not fit. A chunk received before (sent again when its
-        answer was lost) is ignored: the hash of the whole says whether the bytes are right."""
-        if offset + len(data) <= self.received:
-            return ""
-        if offset != self.received:
-            return f"chunk at offset {offset}, expected {self.received} (each section's chunks come in order)"
-        if offset + len(data) > self.ref.size:
-            return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
-        self.chunks.append(data)
-        self.hasher.update(data)
-        self.received += len(data)
-        return ""
-
-
-@dataclass(eq=False)
 class _Staging:
     """Target: the sections gathered for one attempt between its ``have`` and its prepare (loop)."""
 
     attempt: str
     source: str
     refs: dict[str, SectionRef]  # sha256 -> section, as the manifest offered names them
-    data: dict[str, bytes] = field(default_factory=dict)  # checked bytes: held here already, or received
-    partial: dict[str, _Partial] = field(default_factory=dict)
+    data: dict[str, Bytes] = field(default_factory=dict)  # checked bytes: held here already, or received
+    partial: dict[str, IncomingSection] = field(default_factory=dict)
+
+    def abandon(self) -> None:
+        for incoming in self.partial.values():
+            incoming.abandon()
+        self.partial.clear()
 
 
 @dataclass(frozen=True)
@@ -321,6 +303,7 @@ class MigrationManager(Component):
             watch.close()
         self._watches = []
         self._stop.set()
+        self._unstage()
         with self._threads_lock:
             threads, self._threads = self._threads, []
         for thread in threads:
@@ -623,13 +606,14 @@ class MigrationManager(Component):
                 stored.append(exc)
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
+        together: dict[str, bytes] = {}
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
                 writer.start()
                 inline = self._send_missing(out, message, packed, refs)
             else:
-                writer.run()  # nothing to overlap it with
+                together = packed.data  # nothing to overlap with: written with the record
         except (_Refused, OutcomeUnknown) as exc:
             if writer.is_alive():
                 writer.join()
@@ -641,7 +625,11 @@ class MigrationManager(Component):
         if stored:
             self._post(self._abandon, out, f"cannot store the identity here: {stored[0]}")
             return
-        prepared = self.records.put(prepared, document=packed.manifest)
+        try:
+            prepared = self.records.put(prepared, document=packed.manifest, sections=together)
+        except OSError as exc:
+            self._post(self._abandon, out, f"cannot store the identity here: {exc}")
+            return
         crash_point("source:prepared")
         reply, unknown = self._prepare(out, message, packed, inline)
         after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
@@ -711,20 +699,27 @@ class MigrationManager(Component):
         while missing and missing[0].size <= budget:
             budget -= missing[0].size
             inline.append(missing.pop(0))
-        chunks: list[SectionChunk] = []
+        batches: list[list[SectionChunk]] = [[]]
         size = 0
         for ref in missing:
             data = memoryview(packed.data[ref.sha256])
             for offset in range(0, max(1, ref.size), CHUNK):
                 piece = data[offset:offset + CHUNK]
-                if chunks and size + len(piece) > CHUNK:
-                    self._send_chunks(out, message, chunks)
-                    chunks, size = [], 0
-                chunks.append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
+                if batches[-1] and size + len(piece) > CHUNK:
+                    batches.append([])
+                    size = 0
+                batches[-1].append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
                 size += len(piece)
             out.transfer["sections_sent"] += 1
-        if chunks:
-            self._send_chunks(out, message, chunks)
+        batches = [b for b in batches if b]
+        if len(batches) > 1:
+            # Two requests in flight: the target checks and writes one while the next is on its way.
+            with ThreadPoolExecutor(IN_FLIGHT, thread_name_prefix=f"migration-chunks-{out.companion}") as pool:
+                for _ in pool.map(functools.partial(self._send_chunks, out, message), batches):
+                    pass
+        elif batches:
+            self._send_chunks(out, message, batches[0])
+        out.transfer["sent"] += sum(len(c.data) for batch in batches for c in batch)
         return inline
 
     def _send_chunks(self, out: _Outgoing, message: MigratePrepare, chunks: list[SectionChunk]) -> None:
@@ -738,7 +733,6 @@ class MigrationManager(Component):
                     raise
         if reply.status != "accepted":
             raise _Refused(reply.reason)
-        out.transfer["sent"] += sum(len(c.data) for c in chunks)
 
     def _aborted(self, out: _Outgoing, reason: str) -> None:
         self._abandon(out, reason)
@@ -908,6 +902,7 @@ class MigrationManager(Component):
 
     def _unstage(self, attempt: str | None = None) -> None:
         if self._staging is not None and (attempt is None or self._staging.attempt == attempt):
+            self._staging.abandon()
             self._staging = None
             self.records.sections.unpin(_STAGING)
 
@@ -939,7 +934,8 @@ class MigrationManager(Component):
             request.reject(f"the sections of {msg.companion!r} missing at {self.sim.embodiment!r} total {missing} bytes, "
                            f"over its section cache of {store.max_cache} bytes", Code.INVALID)
             return
-        staging.data = found
+        staging.data = dict(found)
+        self._unstage()  # one attempt staged at a time: a newer have replaces it
         self._staging = staging
         store.pin(_STAGING, staging.refs)
         request.accept({"have": sorted(found)})
@@ -952,43 +948,45 @@ class MigrationManager(Component):
             request.reject(f"no have of attempt {msg.attempt} from {msg.source!r} at {self.sim.embodiment!r}: "
                            "sections are sent after it", Code.NOT_FOUND)
             return
-        complete: dict[str, bytes] = {}
+        complete: list[str] = []
         problems: list[str] = []
+        store = self.records.sections
         for chunk in msg.chunks:
             ref = staging.refs.get(chunk.sha256)
             if ref is None:
                 problems.append(f"section {chunk.sha256} is not in the manifest of attempt {msg.attempt}")
                 break
-            if chunk.sha256 in staging.data or chunk.sha256 in complete:
+            if chunk.sha256 in staging.data:
                 continue
-            partial = staging.partial.setdefault(chunk.sha256, _Partial(ref))
-            problem = partial.add(chunk.offset, chunk.data)
+            incoming = staging.partial.get(chunk.sha256)
+            if incoming is None:
+                incoming = staging.partial[chunk.sha256] = store.receive(ref)
+            problem = incoming.add(chunk.offset, chunk.data)
+            if not problem and incoming.complete:
+                del staging.partial[chunk.sha256]
+                problem = incoming.finish()  # replaces a damaged file of that name, if any
+                if not problem:
+                    staging.data[chunk.sha256] = incoming.data
+                    complete.append(chunk.sha256)
             if problem:
                 problems.append(f"section {ref.component!r} of {msg.companion!r}: {problem}")
                 break
-            if partial.received == ref.size:
-                del staging.partial[chunk.sha256]
-                digest = partial.hasher.hexdigest()
-                if digest != ref.sha256:
-                    problems.append(f"section {ref.component!r} of {msg.companion!r}: the {ref.size} bytes received hash "
-                                    f"to {digest}, not {ref.sha256}")
-                    break
-                complete[ref.sha256] = partial.chunks[0] if len(partial.chunks) == 1 else b"".join(partial.chunks)
-        self.records.sections.write(complete, replace=True)  # sent because missing here, or damaged
-        staging.data.update(complete)
+        if complete:
+            store.sync()
         if problems:
             request.reject("; ".join(problems), Code.INVALID)
         else:
             request.accept({"stored": sorted(complete)})
+        log.debug("sections of attempt %s: %d stored", msg.attempt, len(complete))
 
-    def _sections_for(self, msg: MigratePrepare, carried: dict[str, bytes]) -> handshake.SectionSource:
+    def _sections_for(self, msg: MigratePrepare, carried: dict[str, Bytes]) -> handshake.SectionSource:
         """Where a prepare's sections are: inside it (those used are put in ``carried``), staged since
         its ``have``, or on this disk."""
 
-        def find(refs: Sequence[SectionRef]) -> dict[str, bytes]:
-            inline = {sha256_hex(data): data for data in msg.sections}
+        def find(refs: Sequence[SectionRef]) -> dict[str, Bytes]:
+            inline: dict[str, Bytes] = {sha256_hex(data): data for data in msg.sections}
             staging = self._staged(msg.attempt, msg.source)
-            found: dict[str, bytes] = {}
+            found: dict[str, Bytes] = {}
             for ref in refs:
                 data = inline.get(ref.sha256)
                 if data is not None:
@@ -1018,7 +1016,7 @@ class MigrationManager(Component):
             request.reject(f"busy: too many prepares from {msg.source!r}; try again later")
             return
         holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
-        carried: dict[str, bytes] = {}
+        carried: dict[str, Bytes] = {}
         decision = handshake.on_prepare(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit,
                                         live_claims=holders, sections=self._sections_for(msg, carried))
         if decision.record is None:
@@ -1027,14 +1025,14 @@ class MigrationManager(Component):
             request.answer(decision.outcome)
             return
         assert decision.key is not None and decision.identity is not None and decision.manifest is not None
-        self.records.sections.write(carried, replace=True)  # sent because missing here, or damaged
-        self.records.put_key(msg.companion, decision.key)
-        incoming = self.records.put(decision.record, document=decision.document)
+        # The sections it carried were sent because they are missing here, or damaged: written anew.
+        incoming = self.records.put(decision.record, document=decision.document, sections=carried, key=decision.key,
+                                    replace=True)
         crash_point("target:incoming")
         self._unstage()
         for ref in decision.manifest.refs:
             if decision.sections is not None:
-                self._memo.remember(ref.component, bytes(decision.sections[ref.sha256]), ref.sha256)
+                self._memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256)
         self._claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
         self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
         request.answer(decision.outcome)

@@ -27,10 +27,10 @@ import os
 import re
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import msgspec
 
@@ -57,6 +57,7 @@ SECTIONS = "sections"
 #: Sections at least this large are read and checked on threads of their own (hashing frees the GIL).
 _PARALLEL_READ = 1024 * 1024
 Bytes = bytes | bytearray | memoryview
+T = TypeVar("T")
 
 
 def _fsync_folder(folder: Path) -> None:
@@ -65,6 +66,50 @@ def _fsync_folder(folder: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _at_once(fn: Callable[[T], object], items: Sequence[T]) -> None:
+    """``fn`` on every item, on threads of their own when there are several: fsyncs of several
+    files wait for the disk together (the file system commits them as one)."""
+    if len(items) <= 1:
+        for item in items:
+            fn(item)
+        return
+    with ThreadPoolExecutor(min(4, len(items)), thread_name_prefix="fsync") as pool:
+        for _ in pool.map(fn, items):
+            pass
+
+
+def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | None = None) -> None:
+    """Write ``files`` durably, together, and then ``last`` (a record naming them): each through a
+    temporary file, fsync, rename; every folder holding one of ``files`` is fsynced before ``last``
+    is renamed, so a crash leaves ``last`` old, or new with all it names on disk. The temporary
+    names carry the process and thread, as ``statedir.write_atomic``'s do."""
+    entries = [*files, *([last] if last is not None else [])]
+    tmps = [path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp") for path, _ in entries]
+
+    def write(i: int) -> None:
+        fd = os.open(tmps[i], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            view = memoryview(entries[i][1])
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    try:
+        _at_once(write, range(len(entries)))
+        for tmp, (path, _) in zip(tmps, files, strict=False):
+            os.replace(tmp, path)
+        _at_once(_fsync_folder, sorted({path.parent for path, _ in files}))
+        if last is not None:
+            os.replace(tmps[-1], last[0])
+            _fsync_folder(last[0].parent)
+    except BaseException:
+        for tmp in tmps:
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 class SectionStore:
@@ -155,38 +200,47 @@ class SectionStore:
     def write(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[str]:
         """Store each section (sha256 -> bytes, hashed by the caller) not here yet, or with ``replace``
         every one (bytes that came because the file here is damaged); return those written."""
-        written: list[str] = []
-        if sections and not self._made:
-            self.dir.mkdir(exist_ok=True, mode=0o700)
-            _fsync_folder(self.dir.parent)
-            self._made = True
+        files = self.files(sections, replace=replace)
+        write_files(files)
+        return [path.name for path, _ in files]
+
+    def files(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[tuple[Path, Bytes]]:
+        """The (path, bytes) of the sections to write for ``write`` (those not here yet), counted as
+        stored: for a caller that writes them with other files (``write_files``)."""
+        if sections:
+            self._make()
+        files: list[tuple[Path, Bytes]] = []
         for digest, data in sections.items():
             path = self.path(digest)
             try:
                 size = path.stat().st_size
                 if size == len(data) and not replace:
-                    os.utime(path)
+                    os.utime(path)  # recently used: evicted last
                     continue
-                with self._lock:
-                    self._bytes -= size
             except FileNotFoundError:
-                pass
-            tmp = path.with_name(f".{digest}.{os.getpid()}.{threading.get_ident()}.tmp")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            try:
-                view = memoryview(data)
-                while view:
-                    view = view[os.write(fd, view):]
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            os.replace(tmp, path)
-            written.append(digest)
-            with self._lock:
-                self._bytes += len(data)
-        if written:
-            _fsync_folder(self.dir)
-        return written
+                size = 0
+            files.append((path, data))
+            self._added(len(data) - size)
+        return files
+
+    def receive(self, ref: SectionRef) -> IncomingSection:
+        """A section to be received in chunks (``IncomingSection``)."""
+        self._make()
+        return IncomingSection(self, ref)
+
+    def _make(self) -> None:
+        if not self._made:
+            self.dir.mkdir(exist_ok=True, mode=0o700)
+            _fsync_folder(self.dir.parent)
+            self._made = True
+
+    def _added(self, size: int) -> None:
+        with self._lock:
+            self._bytes += size
+
+    def sync(self) -> None:
+        """Make the names given to sections by ``IncomingSection.finish`` durable."""
+        _fsync_folder(self.dir)
 
     def pin(self, owner: str, digests: Iterable[str]) -> None:
         with self._lock:
@@ -225,6 +279,80 @@ class SectionStore:
         if removed:
             log.info("section cache over %d bytes: removed %d unused sections", self.max_cache, len(removed))
         return removed
+
+
+class IncomingSection:
+    """A section received in chunks, in any order: each is written at its offset of a temporary
+    file at once, and the kernel is asked to start writing it out (so that the fsync at the end
+    has little left to do), and the bytes are hashed as far as they are contiguous. ``finish``
+    checks the hash, fsyncs and gives the file its name; the bytes stay at hand in ``data``."""
+
+    def __init__(self, store: SectionStore, ref: SectionRef) -> None:
+        self.store = store
+        self.ref = ref
+        self.data = bytearray(ref.size)
+        self._hasher = hashlib.sha256()
+        self._hashed = 0
+        self._ahead: dict[int, int] = {}  # offset -> length of chunks received beyond the hashed prefix
+        self._path = store.path(ref.sha256)
+        self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
+        self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+
+    @property
+    def complete(self) -> bool:
+        return self._hashed == self.ref.size
+
+    def add(self, offset: int, data: Bytes) -> str:
+        """Take a chunk; "" or why it does not fit. A chunk received before (sent again when its
+        answer was lost) is ignored: the hash of the whole says whether the bytes are right."""
+        end = offset + len(data)
+        if end > self.ref.size:
+            return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
+        if not data or end <= self._hashed or self._ahead.get(offset) == len(data):
+            return ""
+        if offset < self._hashed or any(offset < o + n and o < end for o, n in self._ahead.items()):
+            return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
+        assert self._fd is not None
+        self.data[offset:end] = data
+        os.pwrite(self._fd, data, offset)
+        try:
+            os.posix_fadvise(self._fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
+        except (AttributeError, OSError):
+            pass
+        self._ahead[offset] = len(data)
+        view = memoryview(self.data)
+        while self._hashed in self._ahead:
+            size = self._ahead.pop(self._hashed)
+            self._hasher.update(view[self._hashed:self._hashed + size])
+            self._hashed += size
+        return ""
+
+    def finish(self) -> str:
+        """Once complete: "" with the section stored under its name (fsync; the folder is the
+        caller's to fsync), or why not (its bytes hash to something else: nothing is kept)."""
+        digest = self._hasher.hexdigest()
+        if digest != self.ref.sha256:
+            self.abandon()
+            return f"the {self.ref.size} bytes received hash to {digest}, not {self.ref.sha256}"
+        assert self._fd is not None
+        fd, self._fd = self._fd, None
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        try:
+            replaced = self._path.stat().st_size
+        except FileNotFoundError:
+            replaced = 0
+        os.replace(self._tmp, self._path)
+        self.store._added(self.ref.size - replaced)
+        return ""
+
+    def abandon(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)
+            self._tmp.unlink(missing_ok=True)
 
 
 class Record(msgspec.Struct, frozen=True):
@@ -311,29 +439,39 @@ class Records:
     def _write(self, name: str, data: bytes) -> None:
         write_atomic(self.dir / name, data)
 
+    def _write_all(self, files: list[tuple[Path, Bytes]], name: str, data: bytes) -> None:
+        """``files``, then the record ``name`` (``write_files``)."""
+        if files:
+            write_files(files, (self.dir / name, data))
+        else:
+            self._write(name, data)
+
     def get(self, companion: str) -> Record | None:
         with self._lock:
             return self._cache.get(companion)
 
-    def put(self, record: Record, document: bytes | None = None, sections: Mapping[str, Bytes] | None = None) -> Record:
-        """Write ``record`` (and first the ``sections`` it names, then ``document``, named by its hash,
-        sealed with this embodiment's custody key); then remove the document and key the previous
+    def put(self, record: Record, document: bytes | None = None, sections: Mapping[str, Bytes] | None = None,
+            key: bytes | None = None, *, replace: bool = False) -> Record:
+        """Write ``record``, and first, together, the ``sections`` it names (with ``replace``, even
+        those of a name already here), this embodiment's custody ``key`` and ``document`` (named by
+        its hash, sealed with the custody key); then remove the document and key the previous
         record held and this one does not."""
         companion = keys.check_name(record.companion, "companion")
-        if sections:
-            self.sections.write(sections)
         with self._lock:
+            files = self.sections.files(sections, replace=replace) if sections else []
+            if key is not None:
+                files.append((self.dir / f"{companion}.key", key))
             if document is not None:
                 digest = custody.digest(document).hex()
-                self._write(f"{companion}.{digest}.identity.xml", document)
-                private = self.key(companion)
+                files.append((self.dir / f"{companion}.{digest}.identity.xml", document))
+                private = key if key is not None else self.key(companion)
                 seal = custody.sign_seal(private, companion, document) if private else b""
                 record = msgspec.structs.replace(record, document=digest, seal=seal)
             if record.state not in HOSTING:
                 record = msgspec.structs.replace(record, document="", seal=b"")  # nothing to keep once it is gone
             record = msgspec.structs.replace(record, updated=time.time())
             previous = self._cache.get(companion)
-            self._write(f"{companion}.record.json", msgspec.json.encode(record))
+            self._write_all(files, f"{companion}.record.json", msgspec.json.encode(record))
             self._cache[companion] = record
             if previous is not None and previous.document and previous.document != record.document:
                 (self.dir / f"{companion}.{previous.document}.identity.xml").unlink(missing_ok=True)

@@ -262,15 +262,19 @@ def test_the_target_asks_for_what_it_lacks_and_checks_every_chunk(screen: tuple[
     assert asked.status == "accepted" and asked.value == {"have": []}
     spoofed = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk]), sender="phone")
     assert spoofed.status == "rejected" and "on behalf of 'robot'" in spoofed.reason
-    skipping = SectionChunk(big.sha256, 2000, packed.data[big.sha256][2000:3000])
-    out_of_order = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [skipping]))
-    assert out_of_order.status == "rejected" and "expected 0" in out_of_order.reason and "'big'" in out_of_order.reason
     wrong = bytes(b ^ 1 for b in packed.data[big.sha256])
     bad = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [SectionChunk(big.sha256, 0, wrong)]))
     assert bad.status == "rejected" and "hash" in bad.reason and "'big'" in bad.reason
+    data = packed.data[big.sha256]
+    ahead = SectionChunk(big.sha256, 100_000, data[100_000:200_000])  # chunks may come in any order
+    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [ahead])).status == "accepted"
+    across = SectionChunk(big.sha256, 150_000, data[150_000:250_000])
+    overlapping = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [across]))
+    assert overlapping.status == "rejected" and "overlaps" in overlapping.reason and "'big'" in overlapping.reason
+    past = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [SectionChunk(big.sha256, len(data), b"x")]))
+    assert past.status == "rejected" and "runs past" in past.reason
     stranger = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [SectionChunk("0" * 64, 0, b"x")]))
     assert stranger.status == "rejected" and "not in the manifest" in stranger.reason
-    data = packed.data[big.sha256]
     for offset in range(0, len(data), 100_000):
         piece = SectionChunk(big.sha256, offset, data[offset:offset + 100_000])
         answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [piece]))
