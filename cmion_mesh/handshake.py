@@ -61,7 +61,7 @@ import msgspec
 from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link, Offer
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.identity import Identity, Manifest, MissingSections, SectionRef, read_manifest
+from cmion_mesh.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
 
@@ -81,7 +81,6 @@ class Decision:
     sections: Mapping[str, Bytes] | None = None  # an accepted prepare's section bytes (sha256 -> bytes)
 
 
-Bytes = bytes | bytearray | memoryview
 #: Finds the bytes of sections (sha256 -> bytes, each checked against its hash), those it can.
 SectionSource = Callable[[Sequence[SectionRef]], Mapping[str, Bytes]]
 

@@ -51,6 +51,7 @@ MAX_SECTION_ENV = "CMION_MESH_MAX_SECTION"
 #: MessagePack carries bytes up to 4 GiB - 1 in one value.
 _SECTION_CEILING = 2**32 - 1
 ENCODINGS = ("msgpack", "json")
+Bytes = bytes | bytearray | memoryview
 
 _msgpack = msgspec.msgpack.Encoder()
 _json = msgspec.json.Encoder()
@@ -70,7 +71,7 @@ def max_section() -> int:
     return value
 
 
-def sha256_hex(data: bytes | bytearray | memoryview) -> str:
+def sha256_hex(data: Bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
@@ -98,7 +99,7 @@ class Packed:
 
     manifest: bytes
     refs: tuple[SectionRef, ...]
-    data: dict[str, bytes]
+    data: dict[str, Bytes]
 
     @property
     def size(self) -> int:
@@ -106,23 +107,39 @@ class Packed:
         return len(self.manifest) + sum(len(b) for b in self.data.values())
 
 
+_NOTHING = object()
+#: Values that cannot change once made: the same object is the same section.
+_IMMUTABLE = (str, int, float, bool, type(None))
+
+
 class SectionMemo:
-    """The last bytes packed for each component, with their hash: a section that did not change
-    since (compared byte for byte, far cheaper than hashing it again) keeps its hash."""
+    """The last bytes packed or received for each component, with their hash: a section that did
+    not change since keeps its hash (compared byte for byte, far cheaper than hashing it again),
+    and when its value is the very same immutable object (a mind's large string, kept as it
+    arrived), its bytes too, without encoding it again."""
 
     def __init__(self) -> None:
-        self._last: dict[str, tuple[bytes | bytearray | memoryview, str]] = {}
+        self._last: dict[str, tuple[object, Bytes, str]] = {}
 
-    def digest(self, component: str, data: bytes) -> str:
+    def known(self, component: str, value: object) -> tuple[Bytes, str] | None:
         last = self._last.get(component)
-        if last is not None and len(last[0]) == len(data) and last[0] == data:
-            return last[1]
-        digest = sha256_hex(data)
-        self._last[component] = (data, digest)
+        if last is not None and last[0] is value and isinstance(value, _IMMUTABLE):
+            return last[1], last[2]
+        return None
+
+    def digest(self, component: str, data: Bytes, value: object = _NOTHING) -> str:
+        last = self._last.get(component)
+        same = last is not None and len(last[1]) == len(data) and last[1] == data
+        digest = last[2] if last is not None and same else sha256_hex(data)
+        self._last[component] = (value, data, digest)
         return digest
 
-    def remember(self, component: str, data: bytes | bytearray | memoryview, digest: str) -> None:
-        self._last[component] = (data, digest)
+    def held(self) -> dict[str, Bytes]:
+        """The bytes held here, by their SHA-256 (hex)."""
+        return {digest: data for _value, data, digest in self._last.values()}
+
+    def remember(self, component: str, data: Bytes, digest: str, value: object = _NOTHING) -> None:
+        self._last[component] = (value, data, digest)
 
     def keep_only(self, components: set[str]) -> None:
         self._last = {c: v for c, v in self._last.items() if c in components}
@@ -157,17 +174,23 @@ class Identity:
         limit = max_section()
         root = etree.Element("Identity", SchemaVersion=str(SCHEMA_VERSION), Companion=self.companion, Epoch=str(self.epoch))
         refs: list[SectionRef] = []
-        data: dict[str, bytes] = {}
+        data: dict[str, Bytes] = {}
         for name in sorted(self.sections):
             keys.check_name(name, "section")
-            try:
-                encoded = _msgpack.encode(check_value(self.sections[name]))
-            except (ValueError, TypeError, OverflowError) as exc:
-                raise ValueError(f"section {name!r} of {self.companion!r}: not plain data: {exc}") from None
+            value = self.sections[name]
+            known = memo.known(name, value) if memo is not None else None
+            if known is not None:
+                encoded, digest = known
+            else:
+                try:
+                    encoded = _msgpack.encode(check_value(value))
+                except (ValueError, TypeError, OverflowError) as exc:
+                    raise ValueError(f"section {name!r} of {self.companion!r}: not plain data: {exc}") from None
             if len(encoded) > limit:
                 raise ValueError(f"section {name!r} of {self.companion!r} is {len(encoded)} bytes; the most a section "
                                  f"may hold is {limit} ({MAX_SECTION_ENV})")
-            digest = memo.digest(name, encoded) if memo is not None else sha256_hex(encoded)
+            if known is None:
+                digest = memo.digest(name, encoded, value) if memo is not None else sha256_hex(encoded)
             refs.append(SectionRef(name, digest, len(encoded)))
             data[digest] = encoded
             etree.SubElement(root, "Section", Component=name, Encoding="msgpack", Sha256=digest, Size=str(len(encoded)))
@@ -191,7 +214,7 @@ class Manifest:
     def missing(self, have: Mapping[str, Any]) -> list[SectionRef]:
         return [ref for ref in self.refs if ref.sha256 not in have]
 
-    def identity(self, sections: Mapping[str, bytes | bytearray | memoryview] | None = None) -> Identity:
+    def identity(self, sections: Mapping[str, Bytes] | None = None) -> Identity:
         """The identity, each version 2 section decoded from ``sections`` (SHA-256 hex -> bytes, already
         checked against their hash by whoever holds them). ``MissingSections`` lists those not given;
         ``ConfigError`` names a section whose bytes are not plain data or not its size."""
@@ -208,7 +231,7 @@ class Manifest:
         return Identity(self.companion, self.epoch, decoded, self.schema_version)
 
 
-def decode_section(ref: SectionRef, data: bytes | bytearray | memoryview, *, name: str = "<identity>") -> Any:
+def decode_section(ref: SectionRef, data: Bytes, *, name: str = "<identity>") -> Any:
     if len(data) != ref.size:
         raise ConfigError(f"section {ref.component!r} ({ref.sha256}) is {len(data)} bytes, the manifest says {ref.size}",
                           path=name)
@@ -276,7 +299,7 @@ def _number(raw: str, attribute: str, name: str, line: int | None) -> int:
 
 
 def unpack(data: bytes, *, name: str = "<identity>",
-           sections: Mapping[str, bytes | bytearray | memoryview] | None = None) -> Identity:
+           sections: Mapping[str, Bytes] | None = None) -> Identity:
     """Parse and validate a document; version 2 sections are decoded from ``sections`` (SHA-256 hex
     -> bytes). ``XmlError``/``ConfigError`` naming ``name`` and line on any fault; ``MissingSections``."""
     return read_manifest(data, name=name).identity(sections)

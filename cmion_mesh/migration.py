@@ -56,7 +56,7 @@ from cmion_mesh import custody, handshake, keys, signing
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
 from cmion_mesh.handshake import POLICY_SECTION, refuses
-from cmion_mesh.identity import Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
+from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import (
     Code,
@@ -72,7 +72,7 @@ from cmion_mesh.messages import (
     SetPolicy,
 )
 from cmion_mesh.mind import Mind
-from cmion_mesh.records import HOSTING, Bytes, IncomingSection, Record, Records
+from cmion_mesh.records import HOSTING, IncomingSection, Record, Records
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -606,7 +606,7 @@ class MigrationManager(Component):
                 stored.append(exc)
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        together: dict[str, bytes] = {}
+        together: dict[str, Bytes] = {}
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
@@ -925,7 +925,7 @@ class MigrationManager(Component):
             return
         staging = _Staging(msg.attempt, msg.source, {ref.sha256: ref for ref in decision.manifest.refs})
         store = self.records.sections
-        found, errors = store.read_many(ref for ref in staging.refs.values() if store.holds(ref))
+        found, errors = store.read_many((ref for ref in staging.refs.values() if store.holds(ref)), self._memo.held())
         for error in errors.values():
             log.warning("%s; fetching it again from %s", error, msg.source)
         # What nobody names yet is bounded by the cache: a larger offer would fill the disk.
@@ -1032,7 +1032,8 @@ class MigrationManager(Component):
         self._unstage()
         for ref in decision.manifest.refs:
             if decision.sections is not None:
-                self._memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256)
+                self._memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
+                                    decision.identity.sections.get(ref.component))
         self._claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
         self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
         request.answer(decision.outcome)

@@ -37,7 +37,7 @@ import msgspec
 from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.identity import MAX_DOCUMENT, Identity, Manifest, SectionMemo, SectionRef, read_manifest
+from cmion_mesh.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, SectionRef, read_manifest
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,6 @@ MAX_CACHE = 1024 * 1024 * 1024
 SECTIONS = "sections"
 #: Sections at least this large are read and checked on threads of their own (hashing frees the GIL).
 _PARALLEL_READ = 1024 * 1024
-Bytes = bytes | bytearray | memoryview
 T = TypeVar("T")
 
 
@@ -150,9 +149,10 @@ class SectionStore:
         except OSError:
             return False
 
-    def read(self, ref: SectionRef) -> bytes:
+    def read(self, ref: SectionRef, known: Bytes | None = None) -> Bytes:
         """The section's bytes, checked against its hash; ``ConfigError`` naming the file and the
-        component if it is missing, unreadable or altered."""
+        component if it is missing, unreadable or altered. ``known``: bytes already checked against
+        that hash (kept in memory since): the file is compared with them, cheaper than hashing it."""
         path = self.path(ref.sha256)
         try:
             with open(path, "rb") as f:
@@ -164,7 +164,8 @@ class SectionStore:
         if len(data) != ref.size:
             raise ConfigError(f"section {ref.component!r} was altered at rest: {len(data)} bytes, its manifest says "
                               f"{ref.size}", path=str(path))
-        if hashlib.sha256(data).hexdigest() != ref.sha256:
+        same = data == known if known is not None and len(known) == ref.size else None
+        if not (same if same is not None else hashlib.sha256(data).hexdigest() == ref.sha256):
             raise ConfigError(f"section {ref.component!r} was altered at rest (its bytes do not hash to its name)",
                               path=str(path))
         try:
@@ -173,15 +174,17 @@ class SectionStore:
             pass
         return data
 
-    def read_many(self, refs: Iterable[SectionRef]) -> tuple[dict[str, bytes], dict[str, str]]:
-        """The sections of ``refs`` that are here and intact (sha256 -> bytes), and why each other one is not."""
+    def read_many(self, refs: Iterable[SectionRef], known: Mapping[str, Bytes] | None = None,
+                  ) -> tuple[dict[str, Bytes], dict[str, str]]:
+        """The sections of ``refs`` that are here and intact (sha256 -> bytes), and why each other one
+        is not; ``known`` as for ``read`` (sha256 -> bytes)."""
         wanted = list({ref.sha256: ref for ref in refs}.values())
-        found: dict[str, bytes] = {}
+        found: dict[str, Bytes] = {}
         errors: dict[str, str] = {}
 
         def one(ref: SectionRef) -> None:
             try:
-                found[ref.sha256] = self.read(ref)
+                found[ref.sha256] = self.read(ref, known.get(ref.sha256) if known else None)
             except ConfigError as exc:
                 errors[ref.sha256] = str(exc)
 
@@ -561,10 +564,11 @@ class Records:
         found, errors = self.sections.read_many(manifest.refs)
         if errors:
             raise ConfigError(f"the identity of {companion!r} cannot be read: " + "; ".join(errors.values()))
+        identity = manifest.identity(found)
         if memo is not None:
             for ref in manifest.refs:
-                memo.remember(ref.component, found[ref.sha256], ref.sha256)
-        return manifest.identity(found)
+                memo.remember(ref.component, found[ref.sha256], ref.sha256, identity.sections.get(ref.component))
+        return identity
 
     def damaged(self) -> dict[str, str]:
         """The companions held here whose stored identity is unusable (document or section altered at

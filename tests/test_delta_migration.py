@@ -23,7 +23,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.handshake import have
-from cmion_mesh.identity import Identity, SectionRef, max_section, read_manifest
+from cmion_mesh.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
 from cmion_mesh.migration import INLINE
@@ -327,6 +327,9 @@ def test_sections_are_checked_on_every_read_and_the_cache_evicts_the_oldest_unna
     store.path(refs[1].sha256).write_bytes(bytes([9]) * 100)
     with pytest.raises(ConfigError, match=rf"{refs[1].sha256}: section 'c1' was altered at rest"):
         store.read(refs[1])
+    with pytest.raises(ConfigError, match="altered at rest"):  # compared with bytes known to hash right
+        store.read(refs[1], known=bytes([1]) * 100)
+    assert store.read(refs[0], known=bytes([0]) * 100) == bytes([0]) * 100
     store.path(refs[2].sha256).unlink()
     found, errors = store.read_many(refs)
     assert set(found) == {refs[0].sha256} and "missing" in errors[refs[2].sha256]
@@ -354,6 +357,18 @@ def test_a_version_1_identity_at_rest_still_loads_and_is_rewritten_as_version_2(
     again.put(record, document=packed.manifest, sections=packed.data)
     assert Records(tmp_path).identity(COMPANION) == Identity(COMPANION, 3, old.sections, 2)
     assert Records(tmp_path).damaged() == {}
+
+
+def test_an_unchanged_section_is_neither_encoded_nor_hashed_again() -> None:
+    memo = SectionMemo()
+    blob = "z" * 100_000
+    first = Identity("s", 1, {"blob": blob, "mind": {"n": 1}}).pack_sections(memo)
+    again = Identity("s", 1, {"blob": blob, "mind": {"n": 2}}).pack_sections(memo)
+    sha = next(r.sha256 for r in first.refs if r.component == "blob")
+    assert again.data[sha] is first.data[sha], "the very same string: its bytes are reused"
+    copy = Identity("s", 1, {"blob": "".join(["z" * 50_000, "z" * 50_000]), "mind": {"n": 2}}).pack_sections(memo)
+    assert copy.manifest == again.manifest and copy.data[sha] == first.data[sha]
+    assert memo.held()[sha] == first.data[sha]
 
 
 def test_manifest_faults_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
