@@ -118,10 +118,12 @@ def link_of_text(text: Any) -> Link:
 
 def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Record | None,
                admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int],
-               new_key: Callable[[], bytes] = signing.new_key, sections: SectionSource | None = None) -> Decision:
+               new_key: Callable[[], bytes] = signing.new_key, sections: SectionSource | None = None,
+               values: Mapping[str, Any] | None = None) -> Decision:
     """A prepare at T. ``held``: the record of a companion T holds, if any; ``live_claims``: the other
     embodiments that say in the mesh they hold the companion, and at which epoch (custody tokens);
-    ``sections``: where T finds the bytes of the sections a version 2 document names."""
+    ``sections``: where T finds the bytes of the sections a version 2 document names; ``values``:
+    immutable values T holds already decoded, by their bytes' hash (``identity.SectionMemo.values``)."""
     checked = _check_offer(msg, msg.document, record, me=me, held=held, admit=admit, live_claims=live_claims)
     if isinstance(checked, Decision):
         return checked
@@ -132,7 +134,7 @@ def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Rec
     try:
         manifest = read_manifest(msg.document, name=f"identity of {msg.companion} from {msg.source}")
         found = sections(manifest.refs) if sections is not None and manifest.refs else {}
-        identity = manifest.identity(found)
+        identity = manifest.identity(found, values)
     except MissingSections as exc:
         missing = sorted({ref.sha256 for ref in exc.missing})
         return Decision(Outcome("rejected", f"{me!r} lacks {len(missing)} section(s) of {msg.companion!r}: {exc.detail}",

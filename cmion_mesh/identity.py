@@ -134,6 +134,10 @@ class SectionMemo:
         self._last[component] = (value, data, digest)
         return digest
 
+    def values(self) -> dict[str, Any]:
+        """The immutable values held here with their bytes, by the bytes' SHA-256 (hex)."""
+        return {digest: value for value, _data, digest in self._last.values() if isinstance(value, _IMMUTABLE)}
+
     def held(self) -> dict[str, Bytes]:
         """The bytes held here, by their SHA-256 (hex)."""
         return {digest: data for _value, data, digest in self._last.values()}
@@ -214,10 +218,11 @@ class Manifest:
     def missing(self, have: Mapping[str, Any]) -> list[SectionRef]:
         return [ref for ref in self.refs if ref.sha256 not in have]
 
-    def identity(self, sections: Mapping[str, Bytes] | None = None) -> Identity:
+    def identity(self, sections: Mapping[str, Bytes] | None = None, values: Mapping[str, Any] | None = None) -> Identity:
         """The identity, each version 2 section decoded from ``sections`` (SHA-256 hex -> bytes, already
-        checked against their hash by whoever holds them). ``MissingSections`` lists those not given;
-        ``ConfigError`` names a section whose bytes are not plain data or not its size."""
+        checked against their hash by whoever holds them), or taken from ``values`` (SHA-256 hex ->
+        the immutable value those bytes decode to, ``SectionMemo.values``). ``MissingSections`` lists
+        those not given; ``ConfigError`` names a section whose bytes are not plain data or not its size."""
         if self.schema_version < 2:
             return Identity(self.companion, self.epoch, dict(self.inline), self.schema_version)
         given = sections or {}
@@ -227,7 +232,10 @@ class Manifest:
             raise MissingSections(f"sections not at hand: {listed}", missing, path=self.name)
         decoded: dict[str, Any] = {}
         for ref in self.refs:
-            decoded[ref.component] = decode_section(ref, given[ref.sha256], name=self.name)
+            if values and ref.sha256 in values and len(given[ref.sha256]) == ref.size:
+                decoded[ref.component] = values[ref.sha256]
+            else:
+                decoded[ref.component] = decode_section(ref, given[ref.sha256], name=self.name)
         return Identity(self.companion, self.epoch, decoded, self.schema_version)
 
 

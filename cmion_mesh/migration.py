@@ -1018,7 +1018,7 @@ class MigrationManager(Component):
         holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
         carried: dict[str, Bytes] = {}
         decision = handshake.on_prepare(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit,
-                                        live_claims=holders, sections=self._sections_for(msg, carried))
+                                        live_claims=holders, sections=self._sections_for(msg, carried), values=self._memo.values())
         if decision.record is None:
             if decision.outcome.code != Code.MISSING_SECTIONS:
                 self._unstage(msg.attempt)

@@ -366,9 +366,13 @@ def test_an_unchanged_section_is_neither_encoded_nor_hashed_again() -> None:
     again = Identity("s", 1, {"blob": blob, "mind": {"n": 2}}).pack_sections(memo)
     sha = next(r.sha256 for r in first.refs if r.component == "blob")
     assert again.data[sha] is first.data[sha], "the very same string: its bytes are reused"
-    copy = Identity("s", 1, {"blob": "".join(["z" * 50_000, "z" * 50_000]), "mind": {"n": 2}}).pack_sections(memo)
+    joined = "".join(["z" * 50_000, "z" * 50_000])  # equal, another object: encoded, its hash kept
+    copy = Identity("s", 1, {"blob": joined, "mind": {"n": 2}}).pack_sections(memo)
     assert copy.manifest == again.manifest and copy.data[sha] == first.data[sha]
     assert memo.held()[sha] == first.data[sha]
+    arrived = read_manifest(again.manifest).identity(again.data, memo.values())
+    assert arrived.sections["blob"] is joined, "a string held here already is not decoded again"
+    assert arrived.sections["mind"] == {"n": 2}
 
 
 def test_manifest_faults_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
