@@ -4,10 +4,13 @@ The decisions (what each record accepts, what it answers, how a side resolves) a
 for why they keep exactly one host are in ``handshake``; custody (who may hand a companion on) is
 in ``custody``; the durable records in ``records``. This module moves messages and threads:
 
-* the loop thread runs request handlers, ``_start``, packing and inhabiting (the ``Component`` API);
+* the loop thread runs request handlers (a target's section checks and writes among them), ``_start``,
+  collecting sections and inhabiting (the ``Component`` API);
 * one thread per handshake in flight sends the prepare and the commit (``_send``,
   ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
   these threads touch only the records (locked) and hand everything else to the loop (``_post``);
+  while sending sections, ``_send`` has one short-lived thread write this side's copy of them and
+  two send chunks, all joined before it goes on;
 * the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
   ``_on_custody``), under ``_watch_lock``.
 
