@@ -201,8 +201,9 @@ class SectionStore:
         return found, errors
 
     def write(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[str]:
-        """Store each section (sha256 -> bytes, hashed by the caller) not here yet, or with ``replace``
-        every one (bytes that came because the file here is damaged); return those written."""
+        """Store each section (sha256 -> bytes, hashed by the caller) not here yet; with ``replace``,
+        also those whose file here holds other bytes (it is damaged: they came for that). Return
+        those written."""
         files = self.files(sections, replace=replace)
         write_files(files)
         return [path.name for path, _ in files]
@@ -217,7 +218,7 @@ class SectionStore:
             path = self.path(digest)
             try:
                 size = path.stat().st_size
-                if size == len(data) and not replace:
+                if size == len(data) and (not replace or self._holds_bytes(path, data)):
                     os.utime(path)  # recently used: evicted last
                     continue
             except FileNotFoundError:
@@ -225,6 +226,14 @@ class SectionStore:
             files.append((path, data))
             self._added(len(data) - size)
         return files
+
+    @staticmethod
+    def _holds_bytes(path: Path, data: Bytes) -> bool:
+        try:
+            with open(path, "rb") as f:
+                return f.read(len(data) + 1) == data
+        except OSError:
+            return False
 
     def receive(self, ref: SectionRef) -> IncomingSection:
         """A section to be received in chunks (``IncomingSection``)."""
