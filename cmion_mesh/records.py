@@ -295,9 +295,10 @@ class SectionStore:
 
 class IncomingSection:
     """A section received in chunks, in any order: each is written at its offset of a temporary
-    file at once, and the kernel is asked to start writing it out (so that the fsync at the end
-    has little left to do), and the bytes are hashed as far as they are contiguous. ``finish``
-    checks the hash, fsyncs and gives the file its name; the bytes stay at hand in ``data``."""
+    file at once (on a thread of its own, while the bytes are hashed as far as they are contiguous),
+    and the kernel is asked to start writing it out, so that the fsync at the end has little left
+    to do. ``finish`` checks the hash, fsyncs and gives the file its name; the bytes stay at hand
+    in ``data``. ``finish`` or ``abandon`` ends it (its file and thread)."""
 
     def __init__(self, store: SectionStore, ref: SectionRef) -> None:
         self.store = store
@@ -309,6 +310,7 @@ class IncomingSection:
         self._path = store.path(ref.sha256)
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._writer: ThreadPoolExecutor | None = None
 
     @property
     def complete(self) -> bool:
@@ -324,20 +326,28 @@ class IncomingSection:
             return ""
         if offset < self._hashed or any(offset < o + n and o < end for o, n in self._ahead.items()):
             return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
-        assert self._fd is not None
+        fd = self._fd
+        assert fd is not None
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(1, thread_name_prefix="section-write")
+        written = self._writer.submit(self._write_out, fd, offset, data)
         self.data[offset:end] = data
-        os.pwrite(self._fd, data, offset)
-        try:
-            os.posix_fadvise(self._fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
-        except (AttributeError, OSError):
-            pass
         self._ahead[offset] = len(data)
         view = memoryview(self.data)
         while self._hashed in self._ahead:
             size = self._ahead.pop(self._hashed)
             self._hasher.update(view[self._hashed:self._hashed + size])
             self._hashed += size
+        written.result()
         return ""
+
+    @staticmethod
+    def _write_out(fd: int, offset: int, data: Bytes) -> None:
+        os.pwrite(fd, data, offset)
+        try:
+            os.posix_fadvise(fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
+        except (AttributeError, OSError):
+            pass
 
     def finish(self) -> str:
         """Once complete: "" with the section stored under its name (fsync; the folder is the
@@ -346,6 +356,7 @@ class IncomingSection:
         if digest != self.ref.sha256:
             self.abandon()
             return f"the {self.ref.size} bytes received hash to {digest}, not {self.ref.sha256}"
+        self._stop_writer()
         assert self._fd is not None
         fd, self._fd = self._fd, None
         try:
@@ -360,7 +371,13 @@ class IncomingSection:
         self.store._added(self.ref.size - replaced)
         return ""
 
+    def _stop_writer(self) -> None:
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.shutdown(wait=True)
+
     def abandon(self) -> None:
+        self._stop_writer()
         fd, self._fd = self._fd, None
         if fd is not None:
             os.close(fd)
