@@ -23,6 +23,7 @@ import shutil
 import tempfile
 import threading
 import time
+import typing
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -228,9 +229,33 @@ def decodes_cleanly(data: bytes, *, tolerate: tuple[type[BaseException], ...] = 
         except tolerate:
             continue
         assert isinstance(message, Message)
-        for field in msgspec.structs.fields(message):
-            if field.type is not bytes:
-                check_value(getattr(message, field.name))
+        _check_fields(message)
+
+
+def _check_fields(struct: msgspec.Struct) -> None:
+    """Each field is what its type says: bytes where bytes are declared (also inside lists and nested
+    Structs, as the section chunks carry them), plain data everywhere else."""
+    for field in msgspec.structs.fields(struct):
+        _check_typed(field.type, getattr(struct, field.name))
+
+
+def _check_typed(kind: Any, value: Any) -> None:
+    if typing.get_origin(kind) is typing.Annotated:
+        kind = typing.get_args(kind)[0]
+    if kind is bytes:
+        assert isinstance(value, bytes)
+    elif typing.get_origin(kind) is list and typing.get_args(kind)[0] is not Any and value is not None:
+        item = typing.get_args(kind)[0]
+        if item is bytes or (isinstance(item, type) and issubclass(item, msgspec.Struct)):
+            for element in value:
+                _check_typed(item, element)
+        else:
+            check_value(value)
+    elif isinstance(kind, type) and issubclass(kind, msgspec.Struct):
+        assert isinstance(value, kind)
+        _check_fields(value)
+    else:
+        check_value(value)
 
 
 @FUZZ
