@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.daemons import Node, client_config, stop_and_report
-from bench.migration import COMPANION, OVERHEAD, SIZES, A, B, Migrations, size_name
+from bench.migration import COMPANION, DELTA_SCRATCH, OVERHEAD, SIZES, A, B, Migrations, size_name
 from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
@@ -142,7 +142,8 @@ def install() -> None:
                           ("_refresh_sections", "on loop:mind.state()"), ("_on_prepare", "on loop:_on_prepare(target)"),
                           ("_on_commit", "on loop:_on_commit(target)"), ("_inhabit", "on loop:_inhabit(restore+wake)"),
                           ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)"),
-                          ("_send_missing", "on a worker:_send_missing(have+chunks)"), ("_prepare", "on a worker:_prepare"),
+                          ("_ask_have", "on a worker:_ask_have"), ("_send_bulk", "on a worker:_send_bulk(chunks)"),
+                          ("_prepare", "on a worker:_prepare"),
                           ("_on_have", "on loop:_on_have(target)"), ("_on_sections", "on loop:_on_sections(target)")):
         wrap(MigrationManager, method, label)
 
@@ -170,12 +171,21 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
         mig = Migrations(client, nodes)
         stack.callback(mig.close)
-        for size in SIZES:
-            mig.tell_mind({"size": max(0, size - OVERHEAD)})
+        # (name, metric suffix, message setting the mind up, message before each traced migration)
+        cases: list[tuple[str, str, dict[str, int], dict[str, int] | None]] = [
+            (size_name(size), str(size), {"size": max(0, size - OVERHEAD)}, {"size": max(0, size - OVERHEAD)})
+            for size in SIZES]
+        big = SIZES[-1]
+        cases.append(("10 MiB delta return", "delta", {"size": max(0, big - OVERHEAD - DELTA_SCRATCH), "scratch": DELTA_SCRATCH},
+                      None))
+        for name, suffix, setup, fresh in cases:
+            mig.tell_mind(setup)
+            mig.once()
             mig.once()
             windows: list[tuple[int, int, float]] = []
             for _ in range(count):
-                mig.tell_mind({"size": max(0, size - OVERHEAD)})  # a fresh blob: the whole document travels
+                if fresh is not None:
+                    mig.tell_mind(fresh)  # a fresh blob: the whole document travels
                 start = time.perf_counter_ns()
                 occurred, _released = mig.once()
                 windows.append((start, time.perf_counter_ns(), occurred))
@@ -191,12 +201,12 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                         sums[label] += d
                 for label, total in sums.items():
                     per_label[label].append(total / 1e9)
-            name = size_name(size)
-            rows.append(Row(f"trace_total_{size}", f"{name}: command -> awake at target (whole)", summarize([w[2] for w in windows])))
+            rows.append(Row(f"trace_total_{suffix}", f"{name}: command -> awake at target (whole)", summarize([w[2] for w in windows])))
             for label in sorted(per_label, key=lambda k: -sorted(per_label[k])[len(per_label[k]) // 2]):
                 values = per_label[label] + [0.0] * (count - len(per_label[label]))
-                rows.append(Row(f"trace_{label}_{size}", f"{name}: {label} (sum per migration)", summarize(values)))
+                rows.append(Row(f"trace_{label}_{suffix}", f"{name}: {label} (sum per migration)", summarize(values)))
             log(f"{name}: {count} traced migrations")
+        mig.tell_mind({"scratch": 0})
     return rows
 
 

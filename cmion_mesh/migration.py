@@ -48,7 +48,7 @@ import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -609,14 +609,15 @@ class MigrationManager(Component):
                 stored.append(exc)
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        together: dict[str, Bytes] = {}
+        together: Mapping[str, Bytes] = packed.data  # this side's copy, with the record when nothing is sent apart
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
-                writer.start()
-                inline = self._send_missing(out, message, packed, refs)
-            else:
-                together = packed.data  # nothing to overlap with: written with the record
+                inline, bulk = self._ask_have(out, message, refs)
+                if bulk:
+                    together = {}
+                    writer.start()
+                    self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
             if writer.is_alive():
                 writer.join()
@@ -681,16 +682,17 @@ class MigrationManager(Component):
             inline = wanted
             if sum(ref.size for ref in wanted) > INLINE:
                 try:
-                    inline = self._send_missing(out, message, packed, wanted)
+                    inline, bulk = self._ask_have(out, message, wanted)
+                    self._send_bulk(out, message, packed, bulk)
                 except (_Refused, OutcomeUnknown) as exc:
                     unknown = str(exc)
                     break
         return reply, unknown
 
-    def _send_missing(self, out: _Outgoing, message: MigratePrepare, packed: Packed,
-                      refs: list[SectionRef]) -> list[SectionRef]:
-        """``have``, then the sections the target lacks in ``migrate_sections`` chunks, except small
-        ones: those (at most ``INLINE`` bytes together) are returned, for the prepare to carry."""
+    def _ask_have(self, out: _Outgoing, message: MigratePrepare,
+                  refs: list[SectionRef]) -> tuple[list[SectionRef], list[SectionRef]]:
+        """``have``: of the sections the target lacks, the small ones (at most ``INLINE`` bytes
+        together), for the prepare to carry, and the others, to send apart (``_send_bulk``)."""
         reply = self._request(out.target, "have", handshake.have(message))
         if reply.status != "accepted":
             raise _Refused(reply.reason)
@@ -702,6 +704,10 @@ class MigrationManager(Component):
         while missing and missing[0].size <= budget:
             budget -= missing[0].size
             inline.append(missing.pop(0))
+        return inline, missing
+
+    def _send_bulk(self, out: _Outgoing, message: MigratePrepare, packed: Packed, missing: list[SectionRef]) -> None:
+        """The sections ``missing`` in ``migrate_sections`` chunks, two requests in flight."""
         batches: list[list[SectionChunk]] = [[]]
         size = 0
         for ref in missing:
@@ -723,7 +729,6 @@ class MigrationManager(Component):
         elif batches:
             self._send_chunks(out, message, batches[0])
         out.transfer["sent"] += sum(len(c.data) for batch in batches for c in batch)
-        return inline
 
     def _send_chunks(self, out: _Outgoing, message: MigratePrepare, chunks: list[SectionChunk]) -> None:
         request = MigrateSections(message.companion, message.attempt, message.source, message.target, chunks)
