@@ -111,7 +111,7 @@ def install() -> None:
     from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
     from cmion_mesh import records as records_module
     from cmion_mesh.migration import MigrationManager
-    from cmion_mesh.records import Records, SectionStore
+    from cmion_mesh.records import IncomingSection, Records, SectionStore
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
         kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
@@ -125,6 +125,9 @@ def install() -> None:
     wrap(records_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
     wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
     wrap(SectionStore, "write", "write+fsync:sections")
+    wrap(IncomingSection, "add", "section chunk: copy+hash (write beside)")
+    wrap(IncomingSection, "_write_out", "section chunk: pwrite+fadvise (beside)")
+    wrap(IncomingSection, "finish", "section received: fsync+rename")
     wrap(SectionStore, "read_many", "read+check sections held")
     wrap(handshake, "read_manifest", "read_manifest(parse+XSD)")
     wrap(identity, "decode_section", "decode_section(msgpack)")

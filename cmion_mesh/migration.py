@@ -609,15 +609,14 @@ class MigrationManager(Component):
                 stored.append(exc)
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        together: Mapping[str, Bytes] = packed.data  # this side's copy, with the record when nothing is sent apart
+        together: Mapping[str, Bytes] = packed.data  # a small identity: this side's copy goes with its record
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
+                together = {}
+                writer.start()  # from now on, beside have and the chunks
                 inline, bulk = self._ask_have(out, message, refs)
-                if bulk:
-                    together = {}
-                    writer.start()
-                    self._send_bulk(out, message, packed, bulk)
+                self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
             if writer.is_alive():
                 writer.join()

@@ -303,10 +303,11 @@ class IncomingSection:
     def __init__(self, store: SectionStore, ref: SectionRef) -> None:
         self.store = store
         self.ref = ref
-        self.data = bytearray(ref.size)
+        self.data: Bytes = b""  # the whole section, once finished
+        self._chunks: dict[int, Bytes] = {}  # offset -> chunk
         self._hasher = hashlib.sha256()
         self._hashed = 0
-        self._ahead: dict[int, int] = {}  # offset -> length of chunks received beyond the hashed prefix
+        self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
         self._path = store.path(ref.sha256)
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -322,27 +323,25 @@ class IncomingSection:
         end = offset + len(data)
         if end > self.ref.size:
             return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
-        if not data or end <= self._hashed or self._ahead.get(offset) == len(data):
+        if not data or end <= self._hashed or (offset in self._ahead and len(self._ahead[offset]) == len(data)):
             return ""
-        if offset < self._hashed or any(offset < o + n and o < end for o, n in self._ahead.items()):
+        if offset < self._hashed or any(offset < o + len(c) and o < end for o, c in self._ahead.items()):
             return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
         fd = self._fd
         assert fd is not None
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="section-write")
         written = self._writer.submit(self._write_out, fd, offset, data)
-        self.data[offset:end] = data
-        self._ahead[offset] = len(data)
-        view = memoryview(self.data)
+        self._chunks[offset] = data
+        self._ahead[offset] = data
         while self._hashed in self._ahead:
-            size = self._ahead.pop(self._hashed)
-            self._hasher.update(view[self._hashed:self._hashed + size])
-            self._hashed += size
+            chunk = self._ahead.pop(self._hashed)
+            self._hasher.update(chunk)
+            self._hashed += len(chunk)
         written.result()
         return ""
 
-    @staticmethod
-    def _write_out(fd: int, offset: int, data: Bytes) -> None:
+    def _write_out(self, fd: int, offset: int, data: Bytes) -> None:
         os.pwrite(fd, data, offset)
         try:
             os.posix_fadvise(fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
@@ -369,6 +368,9 @@ class IncomingSection:
             replaced = 0
         os.replace(self._tmp, self._path)
         self.store._added(self.ref.size - replaced)
+        chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
+        self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
+        self._chunks.clear()
         return ""
 
     def _stop_writer(self) -> None:
