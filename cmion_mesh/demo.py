@@ -63,13 +63,14 @@ class Scenario:
     hops: list[Hop] = field(default_factory=list)
 
 
-def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = ()) -> Scenario:
+def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = (), per_body: dict[str, tuple[str, ...]] | None = None) -> Scenario:
+    """The three daemons, each with ``extra`` arguments and its own from ``per_body``."""
     ports = {name: free_port() for name in BODIES}
     scenario = Scenario(mesh, {name: f"tcp/127.0.0.1:{port}" for name, port in ports.items()})
     try:
         for name in BODIES:
             argv = ["up", name, "--mesh", mesh, "--listen", scenario.endpoints[name], "--no-multicast",
-                    "--state-dir", str(state / name), *extra]
+                    "--state-dir", str(state / name), *extra, *(per_body or {}).get(name, ())]
             for other in BODIES:
                 if other != name:
                     argv += ["--connect", scenario.endpoints[other]]
@@ -80,6 +81,12 @@ def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = ()) -> Scen
         stop_bodies(scenario)
         raise
     return scenario
+
+
+def web_address(daemon: Daemon, timeout: float = 30.0) -> str:
+    """The address of the page a daemon started with ``--web`` serves (it prints it before it is up)."""
+    line = daemon.wait_line("web body of", timeout)
+    return line.split(" at ", 1)[1].split()[0]
 
 
 def stop_bodies(scenario: Scenario) -> None:

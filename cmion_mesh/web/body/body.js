@@ -61,6 +61,10 @@ function render(next) {
   else if (t && t.kind === "leaving") line = `${next.companion} is leaving for ${t.to}`;
   else if (t && t.kind === "left") line = `the companion went to ${t.to}`;
   $("transition").textContent = line;
+  if (t && t.kind === "arriving" && !(before && before.transition && before.transition.at === t.at)) {
+    // The arrival is news for a moment; the empty body's "went to" stays, it says why it is empty.
+    setTimeout(() => { if (state && state.transition && state.transition.at === t.at) $("transition").textContent = ""; }, 4000);
+  }
 
   const asking = next.asking;
   $("question").hidden = !asking;
