@@ -637,7 +637,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.demo import run_demo
 
-    return run_demo(mesh=args.mesh)
+    def until_interrupted() -> None:
+        with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the daemons are stopped on the way out
+            threading.Event().wait()
+
+    return run_demo(mesh=args.mesh, web=args.web, wait=until_interrupted)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -916,6 +920,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")
+    p.add_argument("--web", action="store_true",
+                   help="the screen and the phone serve their pages (addresses printed): answer the companion on the screen's page")
     p.set_defaults(func=cmd_demo)
     return parser
 

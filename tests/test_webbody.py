@@ -10,6 +10,7 @@ the phone). Screenshots of each moment are written to tests/screenshots/.
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 from collections.abc import Iterator
@@ -57,6 +58,8 @@ def wm(client: MeshClient, embodiment: str, entity: str, prop: str) -> Any:
 
 def test_the_screen_shows_the_companion_arriving_and_yes_answers_its_question(chromium_browser: Any, bodies: Scenario,
                                                                               client: MeshClient) -> None:
+    if speech.engine() is None:
+        pytest.skip("no speech engine for the speaking body: install espeak-ng (apt-get install espeak-ng; .ci/run does it when it can)")
     screen_url, phone_url = web_address(bodies.daemons["screen"]), web_address(bodies.daemons["phone"])
     wide = chromium_browser.new_context(viewport={"width": 1280, "height": 800})
     narrow = chromium_browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
@@ -157,3 +160,26 @@ def test_up_refuses_a_bad_web_address_as_a_usage_error(mesh: str, tmp_path: Path
                                    "--web", "screen:80"), capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 2
     assert "bad web address 'screen:80'" in done.stderr
+
+
+def test_demo_web_prints_the_pages_and_a_yes_on_the_screen_moves_the_companion_on(chromium_browser: Any) -> None:
+    demo = Daemon(cli_argv("demo", "--web"), name="demo")
+    context = chromium_browser.new_context()
+    try:
+        screen_url = demo.wait_line("] screen: http://", WAIT).split("screen: ", 1)[1].strip()
+        phone_url = demo.wait_line("] phone: http://", WAIT).split("phone: ", 1)[1].strip()
+        assert screen_url.startswith("http://127.0.0.1:") and phone_url.startswith("http://127.0.0.1:")
+        page = context.new_page()
+        page.goto(screen_url)
+        page.wait_for_selector("#question:not([hidden])", timeout=WAIT_MS)
+        demo.wait_line("answer yes or no on the screen's page", WAIT)
+        page.keyboard.press("y")
+        demo.wait_line("Guest answered yes", WAIT)
+        demo.wait_line("journey: robot -> screen -> phone -> robot", WAIT)
+        demo.wait_line("the pages stay open until Ctrl-C", WAIT)
+        assert demo.proc.poll() is None
+        assert demo.stop(signal.SIGINT) == 0
+        assert demo.lines[-1].endswith("done")
+    finally:
+        context.close()
+        demo.stop()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
-from cmion_mesh.competencies.spirit import SELF, Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection
+from cmion_mesh.competencies.spirit import SELF, Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection, _seconds
 from cmion_mesh.competency import RunContext
 from cmion_mesh.speech import SpeechUnavailable, duration, synthesize
 from cmion_mesh.webbody import WebBody, web_body
@@ -111,17 +111,24 @@ class WebAnimation(Animation):
 
 
 class WebGestureDetect(WebSense, GestureDetect):
-    """``GestureDetect`` answered on the page: yes/no buttons or keys while the question waits."""
+    """``GestureDetect`` answered on the page: yes/no buttons or keys while the question waits.
+    Constructor parameters: the default timeout when simulated (``10``), and when a person
+    answers on the page (``120``: people read, hesitate, walk up to the screen); a ``Timeout`` run
+    parameter wins over both."""
 
     sense = "answer"
 
-    def __init__(self, timeout: str = "10", *, name: str | None = None) -> None:
+    def __init__(self, timeout: str = "10", page_timeout: str = "120", *, name: str | None = None) -> None:
         super().__init__(timeout, name=name or "GestureDetect")
+        self.constructor_parameters = (timeout, page_timeout)
+        self.page_timeout = _seconds(page_timeout, "WebGestureDetect: timeout on a page")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
         body = _body(self)
         if body is None:
             return super().run(parameters, ctx)
+        if "Timeout" not in parameters:
+            parameters = {**parameters, "Timeout": self.page_timeout}
         body.begin_ask(str(parameters.get("PersonID", "")).strip())
         try:
             return super().run(parameters, ctx)
