@@ -329,6 +329,13 @@ def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
         else:
             bodies.append(WebBody(args.web))
             components.append(bodies[-1])
+    if args.certs:
+        import secrets
+
+        # An authenticated mesh: what a page senses becomes world-model writes, so only the holder
+        # of the printed address (its key) may act there; others may watch.
+        for body in bodies:
+            body.key = body.key or secrets.token_urlsafe(18)
     return bodies
 
 
@@ -356,8 +363,8 @@ def _run_daemon(args: argparse.Namespace, embodiment: Any, table: Any, companion
                 typed = f"; types {', '.join(s['types'])}" if s.get("types") else ""
                 print(f"  {s['class']} ({s['kind']}{typed}) at {s['where']}", flush=True)
         for body in web:
-            print(f"web body of {embodiment.name!r} at {body.url} (senses: {', '.join(body.snapshot()['senses']) or 'none'})",
-                  flush=True)
+            print(f"web body of {embodiment.name!r} at {body.address} (senses: {', '.join(body.snapshot()['senses']) or 'none'}"
+                  + ("; without its key the page only watches)" if body.key else ")"), flush=True)
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
               f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
               flush=True)
@@ -816,7 +823,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "agent active gives birth to the configuration's Companion, or 'companion')")
     p.add_argument("--web", metavar="[HOST:]PORT",
                    help="serve the body's web page (face, voice, visitor, yes/no, commands) on this address, loopback unless "
-                        "HOST says otherwise, e.g. 127.0.0.1:8080 (port 0: any free port; the address is printed)")
+                        "HOST says otherwise, e.g. 127.0.0.1:8080 (port 0: any free port; the address is printed; with --certs "
+                        "it carries a key, without which the page only watches)")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
     _common(p, json_output=False)

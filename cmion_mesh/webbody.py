@@ -19,6 +19,12 @@ What the page senses comes back on the same WebSocket: a visitor present or gone
 a typed command. Each goes to the competencies that sense it (they wake at once) and from there
 into the same world-model and blackboard writes the simulated sensors make.
 
+Who may act: anyone who can open the page, in plain mode (it is bound to loopback unless told
+otherwise). With a ``key`` (``up --certs`` makes one, and prints the page's address with it), the
+page is read-only unless opened with ``?key=<key>``: watching stays open, but only the holder of
+the printed address may play a visitor, answer or type a command, since these become world-model
+writes on an authenticated mesh.
+
 Threads: events reach the body on the update loop, competencies call it from their threads, the
 page talks to it on the web server's asyncio loop. State is guarded by one lock held only to
 copy or change it; the loops are crossed with ``WebServer.call_soon`` (never blocking).
@@ -28,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 import itertools
 import json
 import logging
@@ -84,8 +91,9 @@ class _Page:
 class WebBody(Component):
     """The web page body of an embodiment. A context manager: ``__enter__`` serves the page."""
 
-    def __init__(self, address: str = "127.0.0.1:0", layout: str = "auto", *, name: str = "web") -> None:
+    def __init__(self, address: str = "127.0.0.1:0", layout: str = "auto", *, name: str = "web", key: str | None = None) -> None:
         super().__init__(name)
+        self.key = key
         self.host, self.port = parse_bind(address)
         if layout not in LAYOUTS:
             raise MeshError(f"web body layout {layout!r}: expected one of {', '.join(LAYOUTS)}")
@@ -114,6 +122,11 @@ class WebBody(Component):
         if self._server is None:
             raise MeshError(f"web body {self.name!r} is not serving (enter it first)")
         return self._server.url
+
+    @property
+    def address(self) -> str:
+        """The page's address to give a person: with its key, when it has one."""
+        return self.url + (f"/?key={self.key}" if self.key else "")
 
     def __enter__(self) -> WebBody:
         if self._server is None:
@@ -162,7 +175,9 @@ class WebBody(Component):
 
     async def _socket(self, socket: WebSocket) -> None:
         await socket.accept()
+        may_act = self.key is None or hmac.compare_digest(socket.query_params.get("key", ""), self.key)
         page = _Page()
+        page.replies.append({"type": "access", "act": may_act})
         page.latest = self.snapshot()
         page.ready.set()
         self._pages.add(page)
@@ -170,7 +185,8 @@ class WebBody(Component):
         try:
             while True:
                 text = await socket.receive_text()
-                reply = self._on_input(text)
+                reply = self._on_input(text) if may_act else {
+                    "type": "error", "error": "this page is read-only: open the address the daemon printed, with its key"}
                 if reply is not None:
                     page.replies.append(reply)
                     page.ready.set()

@@ -97,3 +97,24 @@ def test_without_a_page_the_web_competencies_are_the_simulations(transport: Memo
         assert embodiment.blackboard.get("speech", "last") == "Hello, Alice."
         client.set_property("screen", keys.BLACKBOARD, "sim", "userPresent", "Bob")
         wait_for(lambda: embodiment.world_model.get("Bob", "present") is True, WAIT, "the simulated input still works")
+
+
+def test_with_a_key_only_its_holder_may_act_others_watch(transport: MemoryTransport, mesh: str) -> None:
+    """What ``up --certs`` does: the page's inputs become world-model writes on an authenticated mesh."""
+    with WebBody("127.0.0.1:0", key="s3cret") as body:
+        embodiment = Embodiment.from_architecture(embodiment_dir("screen") / "ArchitectureConfiguration.xml", mesh=mesh,
+                                                  transport=transport)
+        embodiment.add(body)
+        assert body.address == body.url + "/?key=s3cret"
+        with embodiment:
+            visitor = json.dumps({"type": "visitor", "name": "Eve", "present": True})
+            with connect(body.url.replace("http", "ws") + "/ws?key=wrong") as ws:
+                assert receive(ws, lambda m: m["type"] == "access", "the page's access") == {"type": "access", "act": False}
+                assert receive(ws, lambda m: m["type"] == "state", "the state")["embodiment"] == "screen"  # watching is open
+                ws.send(visitor)
+                assert "read-only" in receive(ws, lambda m: m["type"] == "error", "the input refused")["error"]
+            with connect(body.url.replace("http", "ws") + "/ws?key=s3cret") as ws:
+                assert receive(ws, lambda m: m["type"] == "access", "the page's access") == {"type": "access", "act": True}
+                ws.send(visitor)
+                assert receive(ws, lambda m: m["type"] in ("ok", "error"), "the reply") == {"type": "ok", "input": "visitor"}
+            wait_for(lambda: embodiment.world_model.get("Eve", "present") is True, WAIT, "Eve.present from the key holder")

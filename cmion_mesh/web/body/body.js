@@ -19,7 +19,8 @@ const layout = params.get("layout");
 
 function connect() {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  socket = new WebSocket(`${scheme}://${location.host}/ws`);
+  const key = params.get("key");
+  socket = new WebSocket(`${scheme}://${location.host}/ws` + (key ? `?key=${encodeURIComponent(key)}` : ""));
   socket.onopen = () => { body.dataset.connected = "true"; $("status").textContent = "connected"; retry = 500; };
   socket.onclose = () => {
     body.dataset.connected = "false";
@@ -32,6 +33,10 @@ function connect() {
     if (data.type === "state") render(data);
     else if (data.type === "error") notice(data.error);
     else if (data.type === "ok") notice("");
+    else if (data.type === "access") {
+      body.dataset.act = data.act ? "true" : "false";
+      if (!data.act) notice("watching only: the daemon's printed address (with its key) lets a visitor act here");
+    }
   };
 }
 
