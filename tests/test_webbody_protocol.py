@@ -118,3 +118,19 @@ def test_with_a_key_only_its_holder_may_act_others_watch(transport: MemoryTransp
                 ws.send(visitor)
                 assert receive(ws, lambda m: m["type"] in ("ok", "error"), "the reply") == {"type": "ok", "input": "visitor"}
             wait_for(lambda: embodiment.world_model.get("Eve", "present") is True, WAIT, "Eve.present from the key holder")
+
+
+def test_a_command_typed_on_the_robots_page_reaches_its_world_model(transport: MemoryTransport, mesh: str) -> None:
+    with WebBody(":0") as body:
+        robot = Embodiment.from_architecture(embodiment_dir("robot") / "ArchitectureConfiguration.xml", mesh=mesh,
+                                             transport=transport)
+        robot.add(body)
+        with robot, connect(body.url.replace("http", "ws") + "/ws") as ws:
+            assert receive(ws, lambda m: m["type"] == "state", "the state")["senses"] == ["command"]
+            ws.send(json.dumps({"type": "command", "text": "  greet   Guest "}))
+            assert receive(ws, lambda m: m["type"] in ("ok", "error"), "the reply") == {"type": "ok", "input": "command"}
+            wait_for(lambda: robot.world_model.get("Command", "verb") == "greet", WAIT, "the command perceived")
+            assert robot.world_model.get("Command", "text") == "greet Guest"
+            assert robot.world_model.get("Command", "greet") == "Guest"
+            ws.send(json.dumps({"type": "command", "text": "x" * 201}))
+            assert "1 to 200 characters" in receive(ws, lambda m: m["type"] == "error", "a too long command")["error"]
