@@ -272,8 +272,8 @@ class WebBody(Component):
             changes: dict[str, Any] = {"companion": companion, "senses": self._senses()}
             if transition is not None or event.name in ("CompanionResumed", "MigrationFailed"):
                 changes["transition"] = transition
-            if companion is None:
-                changes.update(speech=None, asking=None, animation=None)
+            if companion is None:  # an empty body: nothing of the companion stays on it
+                changes.update(speech=None, asking=None, animation=None, said=[])
             self._changed(**changes)
         elif event.name == "Emotion":
             try:
