@@ -66,8 +66,6 @@ log = logging.getLogger(__name__)
 KEEP_UTTERANCES = 8
 #: Longest typed command accepted from a page (characters).
 MAX_COMMAND = 200
-#: Seconds the arrival (and the departure) is shown before the page settles.
-TRANSITION_SECONDS = 1.5
 #: Valence beyond which the face shows the mind's mood rather than a neutral look.
 MOOD_THRESHOLD = 0.15
 LAYOUTS = ("auto", "screen", "phone")
