@@ -172,6 +172,12 @@ BENCHMARKS: list[Benchmark] = [
         "a legitimate action's latency during a flood of 20,000 action requests, vs a raw zenoh get in the same moment",
     ),
     Benchmark(
+        "webbody",
+        "bench.webbody:run",
+        ("web",),
+        "migration -> the companion's face shown on the target's page (headless Chromium); an open idle page's daemon CPU",
+    ),
+    Benchmark(
         "growth",
         "bench.growth:run",
         ("fanout", "wildcard", "convergence"),
