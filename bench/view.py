@@ -10,13 +10,15 @@ put that event's row in its table (``performance.timeOrigin + performance.now()`
 clock), and the difference is the latency. The baseline is the same events received by a plain
 subscriber in this process (``MeshClient.events``: zenoh plus decoding), in the same run.
 
-Idle cost: the daemon's CPU over a window before the view exists, then over a window with the
-view connected and its page open but nothing happening (the page never polls, nor does the view:
-the daemon should see no difference), and the view process's own CPU meanwhile.
+Idle cost: the daemon's CPU over a window alone, then with a plain session connected (what any
+one more peer costs it), then with that session, the view connected and its page open but
+nothing happening (the page never polls, nor does the view: the daemon should see no difference
+from the plain session), and the view process's own CPU meanwhile.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import tempfile
@@ -50,7 +52,7 @@ def chromium() -> str:
 
 
 def cpu_rows(prefix: str, who: str, samples: list[Any]) -> Row:
-    values = [cpu_percent(a, b) for a, b in zip(samples, samples[1:], strict=False)]
+    values = [cpu_percent(a, b) for a, b in itertools.pairwise(samples)]
     return Row(prefix, who, summarize(values or [0.0], 1.0), unit="%",
                extra={"window_cpu_percent": cpu_percent(samples[0], samples[-1]) if len(samples) > 1 else 0.0})
 
@@ -75,6 +77,16 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         threading.Event().wait(window)
         alone.stop()
 
+        # A plain session connected to the daemon: what any one more peer costs it (keep-alives),
+        # so that the view's own cost is told apart from that.
+        transport = stack.enter_context(ZenohTransport(client_config(node.listen)))
+        client = stack.enter_context(MeshClient(transport, mesh))
+        client.join("robot")
+        threading.Event().wait(settle)
+        peer = Sampler({"daemon": node.daemon.proc.pid}, interval).start()
+        threading.Event().wait(window)
+        peer.stop()
+
         view = Stamped(cli_argv("view", "--mesh", mesh, "--web", "127.0.0.1:0", "--no-multicast", "--connect", node.listen),
                        name="view")
         stack.callback(stop_child, view)
@@ -96,15 +108,11 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         threading.Event().wait(window)
         idle.stop()
 
-        transport = stack.enter_context(ZenohTransport(client_config(node.listen)))
-        client = stack.enter_context(MeshClient(transport, mesh))
-
         def on_event(event: Event) -> None:
             if event.name == "PropertyChanged":
                 raw[event.seq] = time.time() - event.time
 
         stack.enter_context(client.events(on_event, embodiment="robot", component="bb"))
-        client.join("robot")
         log(f"{writes} blackboard writes, each once the page drew the previous one")
         for i in range(writes):
             client.set_property("robot", "bb", "", "bench_view", i)
@@ -121,9 +129,10 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         Row("view_event_received", "event at the daemon -> received by the view process", summarize(view_latency)),
         Row("raw_event_received", "event at the daemon -> received by a plain subscriber here", summarize(list(raw.values()))),
         cpu_rows("daemon_cpu_alone", "daemon idle, no view (CPU % of one core)", alone.samples["daemon"]),
-        cpu_rows("daemon_cpu_idle_page", "daemon idle, view connected and page open", idle.samples["daemon"]),
+        cpu_rows("daemon_cpu_peer", "daemon idle, a plain session connected", peer.samples["daemon"]),
+        cpu_rows("daemon_cpu_idle_page", "daemon idle, that session, the view and its page", idle.samples["daemon"]),
         cpu_rows("view_cpu_idle_page", "view process, page open, mesh idle", idle.samples["view"]),
     ]
     compare(rows, {"view_event_drawn": "raw_event_received", "view_event_received": "raw_event_received"}, None)
-    compare(rows, {"daemon_cpu_idle_page": "daemon_cpu_alone"}, None)
+    compare(rows, {"daemon_cpu_peer": "daemon_cpu_alone", "daemon_cpu_idle_page": "daemon_cpu_peer"}, None)
     return rows

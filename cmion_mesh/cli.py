@@ -534,12 +534,13 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     host, port = parse_bind(args.web)
     stop = Stopper()
-    with session(args) as client, MeshView(client, allow_actions=args.allow_actions) as view, \
+    loopback = host in ("127.0.0.1", "::1", "localhost")
+    with session(args) as client, MeshView(client, allow_actions=args.allow_actions, loopback=loopback) as view, \
             WebServer(view.app, host, port, name="view") as web:
         view.start(web.call_soon)
         mode = "actions allowed" if args.allow_actions else "read-only"
         print(f"view of mesh {args.mesh!r} at {web.url}/ ({mode}; Ctrl-C to stop)", flush=True)
-        if args.allow_actions and host not in ("127.0.0.1", "::1", "localhost"):
+        if args.allow_actions and not loopback:
             print(f"warning: anyone who reaches {web.url} may act on mesh {args.mesh!r}", file=sys.stderr, flush=True)
         stop.wait()
     return ExitCode.OK

@@ -84,6 +84,7 @@ PLAN_ENDS = {"PlanSucceeded": "succeeded", "PlanFailed": "failed", "PlanCancelle
 STEP_STATES = {"StepStarted": "running", "StepSucceeded": "succeeded", "StepFailed": "failed", "StepCancelled": "cancelled",
                "StepWaiting": "waiting"}
 STORES = (keys.BLACKBOARD, keys.WORLD_MODEL)
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
 Schedule = Callable[..., None]
 
@@ -333,8 +334,9 @@ class MeshView:
     mesh once the web server's loop runs (``schedule`` is ``WebServer.call_soon``). A context
     manager; ``close`` (idempotent) leaves the mesh and stops the thread pools."""
 
-    def __init__(self, client: MeshClient, *, allow_actions: bool = False) -> None:
+    def __init__(self, client: MeshClient, *, allow_actions: bool = False, loopback: bool = False) -> None:
         self.client = client
+        self.loopback = loopback
         self.mesh = client.mesh
         self.allow_actions = allow_actions
         self.model = Model(client.mesh)
@@ -656,14 +658,18 @@ class MeshView:
             out["trees"] = watch.message()
         return out
 
-    @staticmethod
-    def same_origin(websocket: WebSocket) -> bool:
+    def same_origin(self, websocket: WebSocket) -> bool:
         """Whether a page from this server opened the socket. A browser lets any site open a
-        WebSocket to 127.0.0.1, so a foreign page must not read the mesh (or act on it)."""
+        WebSocket to 127.0.0.1, so a foreign page must not read the mesh (or act on it); and
+        served on loopback, a page must have asked for a loopback name, or a site whose name is
+        made to resolve to 127.0.0.1 (DNS rebinding) would count as this server's own."""
+        host = websocket.headers.get("host", "").lower()
+        if self.loopback and urlsplit(f"//{host}").hostname not in LOOPBACK_NAMES:
+            return False
         origin = websocket.headers.get("origin")
         if origin is None:
             return True  # not a browser (a script, a test client): nothing to guard against here
-        return urlsplit(origin).netloc.lower() == websocket.headers.get("host", "").lower()
+        return urlsplit(origin).netloc.lower() == host
 
     async def _websocket(self, websocket: WebSocket) -> None:
         if not self.same_origin(websocket):

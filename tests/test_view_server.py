@@ -85,7 +85,7 @@ def test_plans_follow_execution_events_and_only_so_many_finished_ones_are_kept()
 def served(network: MemoryNetwork, mesh: str) -> Iterator[tuple[MeshView, str, MemoryTransport]]:
     """A view on the in-memory mesh, served on a loopback port; and a transport to publish with."""
     with MemoryTransport(network, "view") as transport, MeshClient(transport, mesh) as client, \
-            MeshView(client) as mesh_view, WebServer(mesh_view.app, name="view") as web, \
+            MeshView(client, loopback=True) as mesh_view, WebServer(mesh_view.app, name="view") as web, \
             MemoryTransport(network, "robot") as robot:
         mesh_view.start(web.call_soon)
         yield mesh_view, web.url.replace("http://", "ws://") + "/ws", robot
@@ -132,6 +132,12 @@ def test_a_page_from_another_site_may_not_open_the_socket(served: tuple[MeshView
     with pytest.raises(InvalidStatus), connect(url, origin="http://evil.example"):  # type: ignore[arg-type]
         pass
     host = url.split("/")[2]
+    # DNS rebinding: a foreign name that resolves to loopback, its page "same origin" with itself.
+    port = int(host.rsplit(":", 1)[1])
+    rebound = socket.create_connection(("127.0.0.1", port))
+    with pytest.raises(InvalidStatus), connect(f"ws://evil.example:{port}/ws", sock=rebound,
+                                               origin=f"http://evil.example:{port}"):  # type: ignore[arg-type]
+        pass
     with connect(url, origin=f"http://{host}", max_size=None) as ws:  # type: ignore[arg-type]
         assert receive(ws)["type"] == "snapshot"
 
