@@ -51,7 +51,6 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
-from cmion_mesh.resources import data_dir
 from cmion_mesh.transport import Closeable, Sample
 
 log = logging.getLogger(__name__)
@@ -90,7 +89,7 @@ Schedule = Callable[..., None]
 
 
 def static_dir() -> Path:
-    return data_dir("web") / "view"
+    return Path(__file__).resolve().parent / "web" / "view"
 
 
 def entry_json(entry: Property | Container | None) -> dict[str, Any] | None:

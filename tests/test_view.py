@@ -23,10 +23,8 @@ from cmion_mesh.testing.wait import migrate_once_seen
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
+from .browser import screenshot
 from .conftest import start_daemon
-from .view_browser import chromium_browser, screenshot
-
-__all__ = ["chromium_browser"]  # the fixture, used by name
 
 pytestmark = pytest.mark.timeout(120)
 
