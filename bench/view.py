@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import itertools
 import os
-import re
 import tempfile
 import threading
 import time
@@ -28,13 +27,14 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from bench.daemons import Node, Sampler, Stamped, client_config, cpu_percent, stop_and_report
+from bench.daemons import Node, Sampler, client_config, cpu_percent, stop_and_report
 from bench.harness import stop_child
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event
-from cmion_mesh.procs import cli_argv, unique_mesh
+from cmion_mesh.procs import unique_mesh
+from cmion_mesh.view import spawn_view
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 PAGE_WAIT_MS = 20_000
@@ -87,12 +87,8 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         threading.Event().wait(window)
         peer.stop()
 
-        view = Stamped(cli_argv("view", "--mesh", mesh, "--web", "127.0.0.1:0", "--no-multicast", "--connect", node.listen),
-                       name="view")
+        view, url = spawn_view(mesh, [node.listen])
         stack.callback(stop_child, view)
-        match = re.search(r"at (http://\S+)/ ", view.wait_line("view of mesh", 30.0))
-        assert match is not None
-        url = match.group(1)
 
         playwright = stack.enter_context(sync_playwright())
         browser = playwright.chromium.launch(executable_path=chromium(), headless=True)

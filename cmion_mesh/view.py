@@ -29,10 +29,11 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +52,7 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
+from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport import Closeable, Sample
 
 log = logging.getLogger(__name__)
@@ -86,6 +88,24 @@ STORES = (keys.BLACKBOARD, keys.WORLD_MODEL)
 LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
 Schedule = Callable[..., None]
+
+
+def spawn_view(mesh: str, connect: Iterable[str], *extra: str, web: str = "127.0.0.1:0", timeout: float = 30.0) -> tuple[Daemon, str]:
+    """``cmion-mesh view`` in a process of its own, connected to the ``connect`` endpoints only
+    (no multicast): the process (a context manager that stops it) and the page's address, once
+    it serves. For the demo's pages and the tests."""
+    endpoints = [arg for endpoint in connect for arg in ("--connect", endpoint)]
+    view = Daemon(cli_argv("view", "--mesh", mesh, "--web", web, "--no-multicast", *endpoints, *extra), name="view")
+    try:
+        line = view.wait_line("view of mesh", timeout)
+    except BaseException:
+        view.kill()
+        raise
+    match = re.search(r" at (http://\S+)/ ", line)
+    if match is None:
+        view.kill()
+        raise MeshError(f"cmion-mesh view printed no address: {line!r}")
+    return view, match.group(1)
 
 
 def static_dir() -> Path:

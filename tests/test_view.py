@@ -7,7 +7,6 @@ Every wait is on a condition in the page, with a deadline. Screenshots go to tes
 
 from __future__ import annotations
 
-import re
 import statistics
 import time
 from collections.abc import Iterator
@@ -18,9 +17,10 @@ from typing import Any
 import pytest
 
 from cmion_mesh.client import MeshClient
-from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.procs import Daemon
 from cmion_mesh.testing.wait import migrate_once_seen
 from cmion_mesh.transport import TransportConfig
+from cmion_mesh.view import spawn_view
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 from .browser import screenshot
@@ -34,16 +34,7 @@ PAGE_WAIT_MS = 20_000
 
 
 def start_view(mesh: str, endpoints: list[str], *extra: str) -> tuple[Daemon, str]:
-    connect = [arg for endpoint in endpoints for arg in ("--connect", endpoint)]
-    view = Daemon(cli_argv("view", "--mesh", mesh, "--web", "127.0.0.1:0", "--no-multicast", *connect, *extra), name="view")
-    try:
-        line = view.wait_line("view of mesh", 20)
-    except BaseException:
-        view.kill()
-        raise
-    match = re.search(r"at (http://\S+)/ ", line)
-    assert match, line
-    return view, match.group(1)
+    return spawn_view(mesh, endpoints, *extra, timeout=20)
 
 
 @pytest.fixture
