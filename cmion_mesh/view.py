@@ -81,6 +81,8 @@ REDESCRIBE = frozenset({
     "MigrationOccurred", "MigrationSucceeded", "MigrationFailed", "MigrationDropped", "CompanionResumed", "CompanionBorn",
     "CompanionDamaged", "CustodyConflict", "CompetencyAppeared", "CompetencyVanished", "MindConnected", "MindDisconnected",
 })
+#: A handshake's steps in the order they happen (``MigrationStep`` names the durable records).
+STEP_ORDER = {step: i for i, step in enumerate(("starting", "prepared", "incoming", "handed", "active", "released"))}
 PLAN_ENDS = {"PlanSucceeded": "succeeded", "PlanFailed": "failed", "PlanCancelled": "cancelled"}
 STEP_STATES = {"StepStarted": "running", "StepSucceeded": "succeeded", "StepFailed": "failed", "StepCancelled": "cancelled",
                "StepWaiting": "waiting"}
@@ -282,7 +284,12 @@ class Model:
                 self.migrations.popitem(last=False)
         migration["source"] = migration["source"] or source
         migration["target"] = migration["target"] or target
-        migration["steps"].append({"step": step, "embodiment": here, "time": event.time})
+        # The two sides' events come over different links, in either order: the handshake's own
+        # order puts each step in its place (clocks of two machines could not).
+        steps = migration["steps"]
+        rank = STEP_ORDER.get(step, len(STEP_ORDER))
+        at = next((i for i, s in enumerate(steps) if STEP_ORDER.get(s["step"], len(STEP_ORDER)) > rank), len(steps))
+        steps.insert(at, {"step": step, "embodiment": here, "time": event.time})
         if "epoch" in data:
             migration["epoch"] = data["epoch"]
         if status is not None and migration["status"] != "succeeded":

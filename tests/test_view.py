@@ -101,7 +101,7 @@ def test_view_shows_daemons_blackboard_changes_and_a_migration(
             # A migration as it happens, step by step.
             migrate_once_seen(client, "spirit", "screen")
             steps = wait_page(page, "() => { const m = [...cmionView.state.migrations.values()].find(m => "
-                                    "m.companion === 'spirit' && m.status === 'succeeded'); "
+                                    "m.companion === 'spirit' && m.status === 'succeeded' && m.steps.length === 6); "
                                     "return m && m.steps.map(s => `${s.step}@${s.embodiment}`); }", "the migration succeeded")
             assert steps == ["starting@robot", "prepared@robot", "incoming@screen", "handed@robot", "active@screen",
                              "released@robot"], steps

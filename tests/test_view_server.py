@@ -47,12 +47,13 @@ def test_a_page_too_far_behind_on_state_gets_a_snapshot_instead() -> None:
 def test_migration_steps_are_put_together_from_both_sides() -> None:
     model = Model("m")
     a = {"companion": "spirit", "attempt": "a1"}
+    # As a view may hear them: each side's in order, the two sides' interleaved any way.
     for e in (event("robot", "migration", "MigrationStarting", {**a, "target": "screen", "epoch": 1}),
               event("robot", "migration", "MigrationStep", {**a, "step": "prepared", "peer": "screen"}),
-              event("screen", "migration", "MigrationStep", {**a, "step": "incoming", "peer": "robot"}),
               event("robot", "migration", "MigrationStep", {**a, "step": "handed", "peer": "screen"}),
-              event("screen", "migration", "MigrationStep", {**a, "step": "active", "peer": "robot", "epoch": 2}),
-              event("robot", "migration", "MigrationSucceeded", {**a, "target": "screen", "epoch": 2})):
+              event("robot", "migration", "MigrationSucceeded", {**a, "target": "screen", "epoch": 2}),
+              event("screen", "migration", "MigrationStep", {**a, "step": "incoming", "peer": "robot"}),
+              event("screen", "migration", "MigrationStep", {**a, "step": "active", "peer": "robot", "epoch": 2})):
         model.migration_event(e)
     (m,) = model.migrations.values()
     assert (m["source"], m["target"], m["status"], m["epoch"]) == ("robot", "screen", "succeeded", 2)
