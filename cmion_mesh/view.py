@@ -61,6 +61,9 @@ log = logging.getLogger(__name__)
 RING = 500
 #: Stream events waiting for one page; beyond, the oldest are dropped (and counted for the page).
 PAGE_EVENTS = 1000
+#: Most events in one message to a page: a page reading slowly holds at most this much in its
+#: socket's buffers beyond its queue, and a page catching up draws in steps.
+BATCH_EVENTS = 200
 #: State changes waiting for one page; beyond, the page is sent one fresh snapshot instead.
 PAGE_CHANGES = 5000
 MIGRATIONS_KEPT = 50
@@ -747,10 +750,12 @@ class MeshView:
                     page.events.clear()
                     payload: dict[str, Any] = self._snapshot(page)
                 else:
-                    payload = {"type": "batch", "changes": page.changes, "events": list(page.events), "dropped": page.dropped,
+                    events = [page.events.popleft() for _ in range(min(BATCH_EVENTS, len(page.events)))]
+                    payload = {"type": "batch", "changes": page.changes, "events": events, "dropped": page.dropped,
                                "sent": time.time()}
                     page.changes = []
-                    page.events.clear()
+                    if page.events:
+                        page.wake.set()  # the rest in the next message
                 await websocket.send_text(msgspec.json.encode(payload).decode())
         except (WebSocketDisconnect, RuntimeError, OSError):
             pass

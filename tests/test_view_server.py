@@ -101,7 +101,7 @@ def test_a_page_that_does_not_read_holds_up_neither_the_mesh_nor_another_page(
     served: tuple[MeshView, str, MemoryTransport], mesh: str
 ) -> None:
     mesh_view, url, robot = served
-    count = 3 * view.PAGE_EVENTS + 500
+    count = 6 * view.PAGE_EVENTS  # 12 MB: more than the sockets' buffers and the queue hold
     # The page that does not read: a small receive buffer, and a client that stops reading its
     # socket once one message waits, so the view's writes to it soon block.
     small = socket.create_connection(("127.0.0.1", int(url.split(":")[2].split("/")[0])))
