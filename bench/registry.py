@@ -184,6 +184,13 @@ BENCHMARKS: list[Benchmark] = [
         "growth curves: event throughput vs subscribers, wildcard get vs blackboard size, discovery vs daemons",
     ),
     Benchmark(
+        "view",
+        "bench.view:run",
+        ("view",),
+        "event at a daemon -> drawn in the `cmion-mesh view` page (headless Chromium), and an idle page's CPU cost to the daemon",
+        default=False,
+    ),
+    Benchmark(
         "soak",
         "bench.soak:run",
         (),

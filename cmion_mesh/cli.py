@@ -575,6 +575,24 @@ def cmd_events(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from cmion_mesh.view import MeshView
+    from cmion_mesh.webserver import WebServer, parse_bind
+
+    host, port = parse_bind(args.web)
+    stop = Stopper()
+    loopback = host in ("127.0.0.1", "::1", "localhost")
+    with session(args) as client, MeshView(client, allow_actions=args.allow_actions, loopback=loopback) as view, \
+            WebServer(view.app, host, port, name="view") as web:
+        view.start(web.call_soon)
+        mode = "actions allowed" if args.allow_actions else "read-only"
+        print(f"view of mesh {args.mesh!r} at {web.url}/ ({mode}; Ctrl-C to stop)", flush=True)
+        if args.allow_actions and not loopback:
+            print(f"warning: anyone who reaches {web.url} may act on mesh {args.mesh!r}", file=sys.stderr, flush=True)
+        stop.wait()
+    return ExitCode.OK
+
+
 def cmd_migrate(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
         result = client.migrate(args.companion, args.to, timeout=args.timeout)
@@ -887,6 +905,19 @@ def build_parser() -> argparse.ArgumentParser:
     _join_timeout(p)
     _common(p)
     p.set_defaults(func=cmd_events)
+
+    p = sub.add_parser("view", help="a live view of the mesh in the browser (embodiments, companions, migrations, events, "
+                                    "blackboard, world model, plans)",
+                       description="Serve a page that shows the mesh as it happens: every embodiment alive and who "
+                                   "inhabits it, migrations with their handshake steps, the event stream, one "
+                                   "embodiment's blackboard and world model, running plans. Read-only unless "
+                                   "--allow-actions. See docs/view.md.")
+    p.add_argument("--web", default="127.0.0.1:8090", metavar="HOST:PORT",
+                   help="where to serve the page (default: %(default)s; loopback unless an address says otherwise)")
+    p.add_argument("--allow-actions", action="store_true",
+                   help="let the page send mind actions and migrations (refused otherwise)")
+    _common(p, json_output=False)
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("migrate", help="move a companion to another embodiment (waits for the handshake's end)")
     p.add_argument("companion", help="the companion to move (see `peers`: INHABITANT)")

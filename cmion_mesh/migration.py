@@ -536,6 +536,7 @@ class MigrationManager(Component):
                                             document=document, private=private)
         prepared = self.records.put(prepared, document=document)
         crash_point("source:prepared")
+        self._post(self._step, prepared)
         reply: Outcome | None = None
         unknown = ""
         for _ in range(3):  # prepare is idempotent: a lost reply may be asked again
@@ -559,8 +560,15 @@ class MigrationManager(Component):
             return
         handed = self.records.put(after)
         crash_point("source:handed")
+        self._post(self._step, handed)
         self._post(self._handed, out)
         self._commit_until_acked(handed)
+
+    def _step(self, record: Record) -> None:
+        # Loop thread. Each durable record of a handshake is one step a watcher (``cmion-mesh view``)
+        # can draw: the Migration* events alone say when it starts and ends, not how far it got.
+        self.raise_event("MigrationStep", {"companion": record.companion, "attempt": record.attempt, "step": record.state,
+                                           "peer": record.peer, "epoch": record.epoch})
 
     def _aborted(self, out: _Outgoing, reason: str) -> None:
         self._abandon(out, reason)
@@ -719,6 +727,7 @@ class MigrationManager(Component):
         self.records.put_key(msg.companion, decision.key)
         incoming = self.records.put(decision.record, document=decision.document)
         crash_point("target:incoming")
+        self._step(incoming)
         self._claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
         self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
         request.answer(decision.outcome)
@@ -735,6 +744,7 @@ class MigrationManager(Component):
     def _activate(self, active: Record) -> None:
         active = self.records.put(active)
         crash_point("target:active")
+        self._step(active)
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
             data = self.records.document(active.companion)
