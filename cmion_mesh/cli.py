@@ -665,12 +665,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.demo import run_demo
+    from cmion_mesh.signals import terminate_as_interrupt, wait_for_stop_signal
 
-    def until_interrupted() -> None:
-        with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: the daemons are stopped on the way out
-            threading.Event().wait()
-
-    return run_demo(mesh=args.mesh, web=args.web, wait=until_interrupted)
+    terminate_as_interrupt()  # killed or interrupted, the demo still stops its daemons
+    return run_demo(mesh=args.mesh, web=args.web, wait=wait_for_stop_signal)
 
 
 def cmd_router(args: argparse.Namespace) -> int:

@@ -10,10 +10,11 @@ them, and come back home to the robot, carrying its memory of the visit all the 
 The demo plays the world: the guest is at the entrance when the companion arrives there and
 answers the question with a "yes" gesture. It prints a timeline and ends by itself.
 
-``demo --web``: the screen and the phone serve their pages (``webbody``) on free loopback ports,
-whose addresses it prints; nobody plays the guest: a person at the screen's page says "I am here"
-and answers "yes" (or "no"), and watches the companion go on to the phone's page. The daemons keep
-running after the story, for a look at the pages, until Ctrl-C.
+``demo --web``: the screen and the phone serve their pages (``webbody``) and a live view of the
+mesh runs (``view``), on free loopback ports whose addresses it prints; nobody plays the guest: a
+person at the screen's page says "I am here" and answers "yes" (or "no"), and watches the companion
+go on to the phone's page. The daemons keep running after the story, for a look at the pages, until
+Ctrl-C or SIGTERM; either way the demo stops its daemons (they live in sessions of their own).
 """
 
 from __future__ import annotations
@@ -118,8 +119,11 @@ WEB_BODIES = ("screen", "phone")
 def web_pages(scenario: Scenario, stack: contextlib.ExitStack) -> dict[str, str]:
     """The pages ``demo --web`` shows, name -> address: the bodies' own, and whatever else is
     started here for the demo's mesh (closed by ``stack``)."""
+    from cmion_mesh.view import spawn_view
+
     pages = {name: web_address(scenario.daemons[name]) for name in WEB_BODIES}
-    # More pages for the same mesh (a live view of it, say) are started here and added to ``pages``.
+    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values())
+    stack.enter_context(view)
     return pages
 
 
@@ -194,7 +198,7 @@ def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event, p
     return False
 
 
-def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], None] | None = None) -> int:
+def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None) -> int:
     """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons).
     ``web``: with the pages (see the module's doc); ``wait`` blocks until the person is done looking
     (the command line's Ctrl-C)."""

@@ -168,7 +168,12 @@ def test_demo_web_prints_the_pages_and_a_yes_on_the_screen_moves_the_companion_o
     try:
         screen_url = demo.wait_line("] screen: http://", WAIT).split("screen: ", 1)[1].strip()
         phone_url = demo.wait_line("] phone: http://", WAIT).split("phone: ", 1)[1].strip()
-        assert screen_url.startswith("http://127.0.0.1:") and phone_url.startswith("http://127.0.0.1:")
+        view_url = demo.wait_line("] view: http://", WAIT).split("view: ", 1)[1].strip()
+        assert all(url.startswith("http://127.0.0.1:") for url in (screen_url, phone_url, view_url))
+        view = context.new_page()
+        view.goto(view_url)
+        for body in ("robot", "screen", "phone"):
+            view.wait_for_selector(f'.card[data-embodiment="{body}"][data-alive="true"]', timeout=WAIT_MS)
         page = context.new_page()
         page.goto(screen_url)
         page.wait_for_selector("#question:not([hidden])", timeout=WAIT_MS)
