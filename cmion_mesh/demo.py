@@ -230,7 +230,8 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
                 tl.say(f"journey: robot -> {' -> '.join(hosts)}; exactly one embodiment inhabited at every step")
                 if web and wait is not None:
                     tl.say("the pages stay open until Ctrl-C")
-                    wait()
+                    with contextlib.suppress(KeyboardInterrupt):  # a Ctrl-C just before the wait is the same stop
+                        wait()
         finally:
             tl.say("stopping the daemons")
             stop_bodies(scenario)
