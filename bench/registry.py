@@ -172,10 +172,23 @@ BENCHMARKS: list[Benchmark] = [
         "a legitimate action's latency during a flood of 20,000 action requests, vs a raw zenoh get in the same moment",
     ),
     Benchmark(
+        "webbody",
+        "bench.webbody:run",
+        ("web",),
+        "migration -> the companion's face shown on the target's page (headless Chromium); an open idle page's daemon CPU",
+    ),
+    Benchmark(
         "growth",
         "bench.growth:run",
         ("fanout", "wildcard", "convergence"),
         "growth curves: event throughput vs subscribers, wildcard get vs blackboard size, discovery vs daemons",
+    ),
+    Benchmark(
+        "view",
+        "bench.view:run",
+        ("view",),
+        "event at a daemon -> drawn in the `cmion-mesh view` page (headless Chromium), and an idle page's CPU cost to the daemon",
+        default=False,
     ),
     Benchmark(
         "soak",

@@ -241,7 +241,7 @@ def _existing(path: str | None, option: str) -> str | None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from cmion_mesh import devices, security
+    from cmion_mesh import devices
     from cmion_mesh.diagnostics import Diagnostics
     from cmion_mesh.embodiment import Embodiment
     from cmion_mesh.ion import Component
@@ -296,9 +296,58 @@ def cmd_up(args: argparse.Namespace) -> int:
     if found.errors:
         return ExitCode.USAGE
     state = args.state_dir or str(default_state_dir(args.mesh, name))
-    embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
-                            rules=ruleset, competencies=competencies, components=components, state_dir=state,
-                            companion=companion, admit=admitted, join=join_window(args), devices=table)
+    pages = contextlib.ExitStack()
+    web = _web_bodies(args, components)
+    with pages:
+        # Pages are served before the mesh is joined: an address in use is refused before anything else starts.
+        for body in web:
+            pages.enter_context(body)
+        embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
+                                rules=ruleset, competencies=competencies, components=components, state_dir=state,
+                                companion=companion, admit=admitted, join=join_window(args), devices=table)
+        _run_daemon(args, embodiment, table, companion, state, stop, web)
+    left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
+    if left:
+        print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
+        return ExitCode.FAILED
+    print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
+    sys.stderr.flush()
+    # Said only when it is true: everything is closed and on disk, so leave now rather than let
+    # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
+    os._exit(ExitCode.OK)
+
+
+def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
+    """The web bodies to serve: the configuration's ``WebBody`` components, and ``--web``'s address
+    (replacing the configuration's first one, or adding one)."""
+    if not args.web and "cmion_mesh.webbody" not in sys.modules:
+        return []  # starlette and uvicorn cost start time: imported only for a page
+    from cmion_mesh.webbody import WebBody
+    from cmion_mesh.webserver import parse_bind
+
+    bodies = [c for c in components if isinstance(c, WebBody)]
+    if args.web:
+        host, port = parse_bind(args.web)
+        if bodies:
+            bodies[0].host, bodies[0].port = host, port
+        else:
+            bodies.append(WebBody(args.web))
+            components.append(bodies[-1])
+    if args.certs:
+        import secrets
+
+        # An authenticated mesh: what a page senses becomes world-model writes, so only the holder
+        # of the printed address (its key) may act there; others may watch.
+        for body in bodies:
+            body.key = body.key or secrets.token_urlsafe(18)
+    return bodies
+
+
+def _run_daemon(args: argparse.Namespace, embodiment: Any, table: Any, companion: str | None, state: str, stop: Stopper,
+                web: list[Any]) -> None:
+    from cmion_mesh import security
+
+    name = embodiment.name
     with embodiment:
         mode = security.describe(certs_dir=args.certs, identity=args.identity, name=embodiment.name)
         print(mode, file=sys.stderr if mode.startswith("plain") else sys.stdout, flush=True)
@@ -317,19 +366,13 @@ def cmd_up(args: argparse.Namespace) -> int:
             for s in standins:
                 typed = f"; types {', '.join(s['types'])}" if s.get("types") else ""
                 print(f"  {s['class']} ({s['kind']}{typed}) at {s['where']}", flush=True)
+        for body in web:
+            print(f"web body of {embodiment.name!r} at {body.address} (senses: {', '.join(body.snapshot()['senses']) or 'none'}"
+                  + ("; without its key the page only watches)" if body.key else ")"), flush=True)
         print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
               f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
               flush=True)
         stop.wait()
-    left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
-    if left:
-        print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
-        return ExitCode.FAILED
-    print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
-    sys.stderr.flush()
-    # Said only when it is true: everything is closed and on disk, so leave now rather than let
-    # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
-    os._exit(ExitCode.OK)
 
 
 def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:
@@ -532,6 +575,24 @@ def cmd_events(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from cmion_mesh.view import MeshView
+    from cmion_mesh.webserver import WebServer, parse_bind
+
+    host, port = parse_bind(args.web)
+    stop = Stopper()
+    loopback = host in ("127.0.0.1", "::1", "localhost")
+    with session(args) as client, MeshView(client, allow_actions=args.allow_actions, loopback=loopback) as view, \
+            WebServer(view.app, host, port, name="view") as web:
+        view.start(web.call_soon)
+        mode = "actions allowed" if args.allow_actions else "read-only"
+        print(f"view of mesh {args.mesh!r} at {web.url}/ ({mode}; Ctrl-C to stop)", flush=True)
+        if args.allow_actions and not loopback:
+            print(f"warning: anyone who reaches {web.url} may act on mesh {args.mesh!r}", file=sys.stderr, flush=True)
+        stop.wait()
+    return ExitCode.OK
+
+
 def cmd_migrate(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
         result = client.migrate(args.companion, args.to, timeout=args.timeout)
@@ -604,8 +665,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.demo import run_demo
+    from cmion_mesh.signals import terminate_as_interrupt, wait_for_stop_signal
 
-    return run_demo(mesh=args.mesh)
+    terminate_as_interrupt()  # killed or interrupted, the demo still stops its daemons
+    return run_demo(mesh=args.mesh, web=args.web, wait=wait_for_stop_signal)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -778,6 +841,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none "
                                        "and no live embodiment of the mesh hosts it (default: the device table's "
                                        "agent active gives birth to the configuration's Companion, or 'companion')")
+    p.add_argument("--web", metavar="[HOST:]PORT",
+                   help="serve the body's web page (face, voice, visitor, yes/no, commands) on this address, loopback unless "
+                        "HOST says otherwise, e.g. 127.0.0.1:8080 (port 0: any free port; the address is printed; with --certs "
+                        "it carries a key, without which the page only watches)")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
     _common(p, json_output=False)
@@ -837,6 +904,19 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.set_defaults(func=cmd_events)
 
+    p = sub.add_parser("view", help="a live view of the mesh in the browser (embodiments, companions, migrations, events, "
+                                    "blackboard, world model, plans)",
+                       description="Serve a page that shows the mesh as it happens: every embodiment alive and who "
+                                   "inhabits it, migrations with their handshake steps, the event stream, one "
+                                   "embodiment's blackboard and world model, running plans. Read-only unless "
+                                   "--allow-actions. See docs/view.md.")
+    p.add_argument("--web", default="127.0.0.1:8090", metavar="HOST:PORT",
+                   help="where to serve the page (default: %(default)s; loopback unless an address says otherwise)")
+    p.add_argument("--allow-actions", action="store_true",
+                   help="let the page send mind actions and migrations (refused otherwise)")
+    _common(p, json_output=False)
+    p.set_defaults(func=cmd_view)
+
     p = sub.add_parser("migrate", help="move a companion to another embodiment (waits for the handshake's end)")
     p.add_argument("companion", help="the companion to move (see `peers`: INHABITANT)")
     p.add_argument("--to", required=True, metavar="EMBODIMENT", help="where to")
@@ -881,6 +961,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")
+    p.add_argument("--web", action="store_true",
+                   help="the screen and the phone serve their pages (addresses printed): answer the companion on the screen's page")
     p.set_defaults(func=cmd_demo)
     return parser
 

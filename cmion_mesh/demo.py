@@ -9,11 +9,20 @@ them, and come back home to the robot, carrying its memory of the visit all the 
 
 The demo plays the world: the guest is at the entrance when the companion arrives there and
 answers the question with a "yes" gesture. It prints a timeline and ends by itself.
+
+``demo --web``: the screen and the phone serve their pages (``webbody``) and a live view of the
+mesh runs (``view``), on free loopback ports whose addresses it prints; nobody plays the guest: a
+person at the screen's page says "I am here" and answers "yes" (or "no"), and watches the companion
+go on to the phone's page. The daemons keep running after the story, for a look at the pages, until
+Ctrl-C or SIGTERM; either way the demo stops its daemons (they live in sessions of their own).
 """
 
 from __future__ import annotations
 
+import contextlib
 import queue
+import signal
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -63,13 +72,14 @@ class Scenario:
     hops: list[Hop] = field(default_factory=list)
 
 
-def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = ()) -> Scenario:
+def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = (), per_body: dict[str, tuple[str, ...]] | None = None) -> Scenario:
+    """The three daemons, each with ``extra`` arguments and its own from ``per_body``."""
     ports = {name: free_port() for name in BODIES}
     scenario = Scenario(mesh, {name: f"tcp/127.0.0.1:{port}" for name, port in ports.items()})
     try:
         for name in BODIES:
             argv = ["up", name, "--mesh", mesh, "--listen", scenario.endpoints[name], "--no-multicast",
-                    "--state-dir", str(state / name), *extra]
+                    "--state-dir", str(state / name), *extra, *(per_body or {}).get(name, ())]
             for other in BODIES:
                 if other != name:
                     argv += ["--connect", scenario.endpoints[other]]
@@ -82,7 +92,17 @@ def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = ()) -> Scen
     return scenario
 
 
+def web_address(daemon: Daemon, timeout: float = 30.0) -> str:
+    """The address of the page a daemon started with ``--web`` serves (it prints it before it is up)."""
+    line = daemon.wait_line("web body of", timeout)
+    return line.split(" at ", 1)[1].split()[0]
+
+
 def stop_bodies(scenario: Scenario) -> None:
+    # All told at once, then each waited for: they stop side by side, not one after the other.
+    for daemon in scenario.daemons.values():
+        if daemon.proc.poll() is None:
+            daemon.proc.send_signal(signal.SIGTERM)
     for daemon in scenario.daemons.values():
         daemon.stop()
 
@@ -92,8 +112,25 @@ def mind_state(client: MeshClient, embodiment: str) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
-def run_scenario(client: MeshClient, scenario: Scenario, tl: Timeline, *, timeout: float = 90.0) -> None:
-    """Drive the story to its end (the companion home with the guest welcomed and accompanied)."""
+#: Bodies serving a page in ``demo --web``.
+WEB_BODIES = ("screen", "phone")
+
+
+def web_pages(scenario: Scenario, stack: contextlib.ExitStack) -> dict[str, str]:
+    """The pages ``demo --web`` shows, name -> address: the bodies' own, and whatever else is
+    started here for the demo's mesh (closed by ``stack``)."""
+    from cmion_mesh.view import spawn_view
+
+    pages = {name: web_address(scenario.daemons[name]) for name in WEB_BODIES}
+    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values())
+    stack.enter_context(view)
+    return pages
+
+
+def run_scenario(client: MeshClient, scenario: Scenario, tl: Timeline, *, timeout: float = 90.0, play: bool = True) -> None:
+    """Drive the story to its end (the companion home with the guest welcomed and accompanied).
+    ``play``: the demo plays the guest (present at the entrance, nodding yes); otherwise a person
+    does, on the screen's page."""
     events: queue.SimpleQueue[Event] = queue.SimpleQueue()
     with client.events(events.put):
         wait_for(lambda: {d.get("name"): d.get("inhabitant") for d in client.describe_all(timeout=1.0)}
@@ -110,11 +147,11 @@ def run_scenario(client: MeshClient, scenario: Scenario, tl: Timeline, *, timeou
                 event = events.get(timeout=left)
             except queue.Empty:
                 continue
-            if _react(client, scenario, tl, event):
+            if _react(client, scenario, tl, event, play):
                 return
 
 
-def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event) -> bool:
+def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event, play: bool = True) -> bool:
     """Print what matters and play the world; True once the story has ended."""
     where, data = event.embodiment, event.data if isinstance(event.data, dict) else {}
     name = event.name
@@ -136,9 +173,11 @@ def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event) -
         tl.say(f"{where}: action {data.get('name')} failed: {data.get('reason')}")
     elif name == "MigrationStarting":
         tl.say(f"{where}: migration of {data.get('companion')!r} to {data.get('target')} begins (the mind sleeps here)")
-        if data.get("target") == "screen":
+        if data.get("target") == "screen" and play:
             tl.say(f"   (a visitor is standing at the entrance: the screen's camera will see {GUEST})")
             client.set_property("screen", keys.BLACKBOARD, "sim", "userPresent", GUEST)
+        elif data.get("target") == "screen":
+            tl.say(f"   (at the screen's page: say \"I am here\" as {GUEST}, and answer its question)")
     elif name == "MigrationOccurred":
         state = mind_state(client, where)
         scenario.hops.append(Hop(where, int(data.get("epoch", 0)), state))
@@ -147,26 +186,38 @@ def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event) -
                f"{len(memory)} memories")
     elif name == "MigrationSucceeded":
         tl.say(f"{where}: handed over to {data.get('target')}; nothing of {data.get('companion')!r} runs here any more")
-    elif name == "StepStarted" and data.get("type") == "GestureDetect":
+    elif name == "StepStarted" and data.get("type") == "GestureDetect" and play:
         tl.say(f"{where}: asks {GUEST} whether they are the guest; {GUEST} nods: yes")
         client.set_property(where, keys.BLACKBOARD, "sim", "gesture", "yes")
+    elif name == "StepStarted" and data.get("type") == "GestureDetect":
+        tl.say(f"{where}: asks {GUEST} whether they are the guest: answer yes or no on the {where}'s page")
+    elif name == "RemoteAction" and data.get("name") == "Gesture" and not play:
+        tl.say(f"{where}: {data.get('subject')} answered {' '.join(data.get('parameters', []))}")
     elif name == "Spoke":
         tl.say(f"{where} says: {data.get('text')!r}")
     return False
 
 
-def run_demo(*, mesh: str | None = None) -> int:
-    """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons)."""
+def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None) -> int:
+    """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons).
+    ``web``: with the pages (see the module's doc); ``wait`` blocks until the person is done looking
+    (the command line's Ctrl-C)."""
     tl = Timeline()
     mesh = mesh if mesh and mesh != keys.DEFAULT_MESH else unique_mesh("demo")
-    with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state:
+    serve = ("--web", "127.0.0.1:0")
+    with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state, contextlib.ExitStack() as stack:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
-        scenario = start_bodies(mesh, Path(state))
+        scenario = start_bodies(mesh, Path(state), per_body=dict.fromkeys(WEB_BODIES, serve) if web else None)
         try:
             config = TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)
             with ZenohTransport(config) as transport:
                 client = MeshClient(transport, mesh)
-                run_scenario(client, scenario, tl)
+                if web:
+                    for name, address in web_pages(scenario, stack).items():
+                        tl.say(f"{name}: {address}")
+                    if sys.stdin.isatty():
+                        input("open the screen's page, then press Enter: the operator types the command ")
+                run_scenario(client, scenario, tl, play=not web, timeout=900.0 if web else 90.0)
                 final = mind_state(client, "robot")
                 kinds: dict[str, int] = {}
                 for episode in final.get("memory", []):
@@ -177,6 +228,10 @@ def run_demo(*, mesh: str | None = None) -> int:
                 tl.say(f"back on the robot; it remembers the visit: {GUEST} {facts}; {sum(kinds.values())} episodes ({episodes})")
                 hosts = [h.embodiment for h in scenario.hops]
                 tl.say(f"journey: robot -> {' -> '.join(hosts)}; exactly one embodiment inhabited at every step")
+                if web and wait is not None:
+                    tl.say("the pages stay open until Ctrl-C")
+                    with contextlib.suppress(KeyboardInterrupt):  # a Ctrl-C just before the wait is the same stop
+                        wait()
         finally:
             tl.say("stopping the daemons")
             stop_bodies(scenario)

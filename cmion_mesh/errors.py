@@ -105,6 +105,10 @@ class StorageError(MeshError):
         super().__init__(message)
 
 
+class WebServerError(MeshError):
+    """A web page server could not listen on its address or did not start."""
+
+
 class ClosedError(MeshError):
     """The object was used after ``close()``."""
 

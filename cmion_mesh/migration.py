@@ -634,6 +634,7 @@ class MigrationManager(Component):
             self._post(self._abandon, out, f"cannot store the identity here: {exc}")
             return
         crash_point("source:prepared")
+        self._post(self._step, prepared)
         reply, unknown = self._prepare(out, message, packed, inline)
         after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
             else handshake.resume(prepared)
@@ -648,6 +649,7 @@ class MigrationManager(Component):
             return
         handed = self.records.put(after)
         crash_point("source:handed")
+        self._post(self._step, handed)
         self._post(self._handed, out)
         self._commit_until_acked(handed)
 
@@ -740,6 +742,12 @@ class MigrationManager(Component):
                     raise
         if reply.status != "accepted":
             raise _Refused(reply.reason)
+
+    def _step(self, record: Record) -> None:
+        # Loop thread. Each durable record of a handshake is one step a watcher (``cmion-mesh view``)
+        # can draw: the Migration* events alone say when it starts and ends, not how far it got.
+        self.raise_event("MigrationStep", {"companion": record.companion, "attempt": record.attempt, "step": record.state,
+                                           "peer": record.peer, "epoch": record.epoch})
 
     def _aborted(self, out: _Outgoing, reason: str) -> None:
         self._abandon(out, reason)
@@ -1036,6 +1044,7 @@ class MigrationManager(Component):
         incoming = self.records.put(decision.record, document=decision.document, sections=carried, key=decision.key,
                                     replace=True)
         crash_point("target:incoming")
+        self._step(incoming)
         self._unstage()
         for ref in decision.manifest.refs:
             if decision.sections is not None:
@@ -1057,6 +1066,7 @@ class MigrationManager(Component):
     def _activate(self, active: Record) -> None:
         active = self.records.put(active)
         crash_point("target:active")
+        self._step(active)
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
             identity = self.records.identity(active.companion, self._memo) or Identity(active.companion, active.epoch, {})

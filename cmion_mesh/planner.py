@@ -167,6 +167,7 @@ class PlannerMind(Mind):
 
     def on_wake(self) -> None:
         log.info("mind %s wakes", self.name)
+        self._feel()
         # Think in the next update, not now: migration wakes a restored mind and hands it the new
         # body's world model (``on_arrived``) in one go, and acting before that would act on
         # beliefs about the old body.
@@ -569,8 +570,19 @@ class PlannerMind(Mind):
         nudge = self.emotion_config.appraisals.get(kind)
         if nudge is not None:
             decay = self.emotion_config.decay
+            before = self.emotion
             self.emotion = {"valence": round(_clamp(self.emotion["valence"] * decay + nudge.valence), 6),
                             "arousal": round(_clamp(self.emotion["arousal"] * decay + nudge.arousal), 6)}
+            if self.emotion != before:
+                self._feel()
+
+    def _feel(self) -> None:
+        """Say how the mind feels (an ``Emotion`` event): a body shows it, a face among others."""
+        if self._sim is not None and not self._sim.closed and self.awake:
+            try:
+                self.raise_event("Emotion", {"mind": self.name, **self.emotion})
+            except (MeshError, ValueError) as exc:
+                log.warning("mind %s could not raise Emotion: %s", self.name, exc)
 
     def _decide(self, decision: str, **data: Any) -> None:
         log.info("mind %s: %s %s", self.name, decision, data)

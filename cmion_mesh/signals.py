@@ -41,3 +41,38 @@ class Stopper:
         """Wake ``wait`` from any thread."""
         if self._main is not None:
             signal.pthread_kill(self._main, _WAKE)
+
+
+def terminate_as_interrupt() -> None:
+    """Make SIGTERM stop a foreground command as Ctrl-C does (``KeyboardInterrupt``), so its
+    ``finally`` blocks run: the demo's daemons live in sessions of their own and would outlive it."""
+
+    def interrupt(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def wait_for_stop_signal() -> int:
+    """Block the main thread until SIGINT or SIGTERM, whichever thread the kernel hands it to.
+
+    For commands that started threads before they wait (so ``Stopper``'s mask comes too late): a
+    signal caught by another thread only flags the main thread, which would sleep on; the wakeup
+    fd is written whichever thread catches it.
+    """
+    import socket
+
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    reader, writer = socket.socketpair()
+    writer.setblocking(False)
+    old_fd = signal.set_wakeup_fd(writer.fileno())
+    try:
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, lambda *_: None)  # the wakeup fd tells; nothing to raise
+        return reader.recv(1)[0]
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        reader.close()
+        writer.close()

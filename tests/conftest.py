@@ -72,3 +72,4 @@ def start_daemon(mesh: str, name: str, *extra: str, port: int | None = None) -> 
 
 
 from cmion_mesh.procs import Daemon  # noqa: E402  (for the annotation above)
+from tests.browser import chromium_browser  # noqa: E402, F401  (the real-browser fixture, for the web page tests)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+import signal
 import subprocess
 from pathlib import Path
 
@@ -9,7 +11,8 @@ import pytest
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import GUEST, Timeline, mind_state, run_scenario, start_bodies, stop_bodies
-from cmion_mesh.procs import cli_argv
+from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
@@ -52,3 +55,29 @@ def test_demo_command_runs_and_ends_by_itself() -> None:
     assert result.returncode == 0, result.stdout + result.stderr
     assert "journey: robot -> screen -> phone -> robot" in result.stdout
     assert result.stdout.rstrip().endswith("done")
+
+
+def processes_naming(text: str) -> list[int]:
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if text.encode() in cmdline.read_bytes():
+                found.append(int(cmdline.parent.name))
+        except OSError:  # gone while we looked
+            continue
+    return found
+
+
+def test_a_terminated_demo_stops_its_daemons() -> None:
+    """Its daemons run in sessions of their own (a Ctrl-C at the terminal must not reach them
+    half-way): SIGTERM to the demo must stop them as Ctrl-C does."""
+    demo = Daemon(cli_argv("demo"), name="demo")
+    with demo:
+        line = demo.wait_line("starting three embodiment daemons", 60)
+        mesh = re.search(r"in mesh '([^']+)'", line)
+        assert mesh is not None, line
+        demo.wait_line("found each other", 60)
+        assert len(processes_naming(mesh.group(1))) >= 3
+        assert demo.stop(signal.SIGTERM, grace=60) in (0, 130, 143), demo.lines  # not killed
+        assert any("stopping the daemons" in seen for seen in demo.lines), demo.lines
+    wait_for(lambda: not processes_naming(mesh.group(1)), 30, f"no process left of mesh {mesh.group(1)}")

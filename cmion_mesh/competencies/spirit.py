@@ -385,7 +385,7 @@ class SpeechSynthesis(SimulatedCompetency):
         text = str(value)
         _bb_set(ctx, "speech/current", text)
         try:
-            if not ctx.wait(self.step):
+            if not self._speak(text, ctx):
                 return False
         finally:
             _quietly("speech/current", _bb_remove, ctx, "speech/current")
@@ -393,6 +393,10 @@ class SpeechSynthesis(SimulatedCompetency):
         _wm_set(ctx, self.agent, "lastUtterance", text)
         ctx.raise_event("Spoke", {"text": text, "source": source})
         return True
+
+    def _speak(self, text: str, ctx: RunContext) -> bool:
+        """Say ``text``; False if cancelled meanwhile. Simulated: it takes the constructor's time."""
+        return ctx.wait(self.step)
 
 
 class Animation(SimulatedCompetency):
@@ -417,12 +421,16 @@ class Animation(SimulatedCompetency):
             return ctx.fail(f"this body cannot play animation {animation!r} (it plays: {', '.join(self.animations)})")
         _bb_set(ctx, "animation/current", animation)
         try:
-            if not ctx.wait(self.step):
+            if not self._play(animation, ctx):
                 return False
         finally:
             _quietly("animation/current", _bb_remove, ctx, "animation/current")
         _bb_set(ctx, "animation/last", animation)
         return True
+
+    def _play(self, animation: str, ctx: RunContext) -> bool:
+        """Play ``animation``; False if cancelled meanwhile. Simulated: it takes the constructor's time."""
+        return ctx.wait(self.step)
 
 
 # --- sensors ------------------------------------------------------------------------------------
@@ -454,7 +462,7 @@ class UserDetection(SimulatedCompetency):
         present: set[str] = set()
         with self.watching([self.INPUT]):
             while self._rearm(ctx):
-                seen = self._users(ctx.bb_get(self.INPUT))
+                seen = self._users(ctx.bb_get(self.INPUT)) | self._sensed(ctx)
                 for user in sorted(present - seen):
                     _wm_set(ctx, user, "present", False)
                     present.discard(user)
@@ -466,6 +474,10 @@ class UserDetection(SimulatedCompetency):
                     present.add(user)
                 self._wake.wait(self.interval or None)
         return True
+
+    def _sensed(self, ctx: RunContext) -> set[str]:
+        """Users a real sensor sees besides the simulated input (none here); a change wakes ``_wake``."""
+        return set()
 
     def _users(self, raw: Any) -> set[str]:
         if raw is None:
@@ -529,6 +541,9 @@ class GestureDetect(SimulatedCompetency):
         deadline = time.monotonic() + timeout
         with self.watching([self.INPUT]):
             while self._rearm(ctx):
+                sensed = self._sensed(ctx)
+                if sensed is not None:
+                    return sensed
                 raw = ctx.bb_get(self.INPUT)
                 if raw is not None and str(raw).strip():
                     _bb_remove(ctx, self.INPUT)
@@ -537,6 +552,10 @@ class GestureDetect(SimulatedCompetency):
                 if left <= 0:
                     return None
                 self._wake.wait(left)
+        return None
+
+    def _sensed(self, ctx: RunContext) -> str | None:
+        """A gesture a real sensor saw besides the simulated input (none here); one sets ``_wake``."""
         return None
 
 
@@ -570,7 +589,8 @@ class CommandInput(SimulatedCompetency):
         count = previous if isinstance(previous, int) and not isinstance(previous, bool) else 0
         with self.watching([self.INPUT]):
             while self._rearm(ctx):
-                raw = ctx.bb_get(self.INPUT)
+                typed = self._sensed(ctx)
+                raw = typed if typed is not None else ctx.bb_get(self.INPUT)
                 if raw is None:
                     self._wake.wait(self.interval or None)
                     continue
@@ -585,6 +605,10 @@ class CommandInput(SimulatedCompetency):
                     for prop, value in writes:
                         _wm_set(ctx, self.ENTITY, prop, value, kind="object")
                 # A different command typed meanwhile stays for the next round.
-                if ctx.bb_get(self.INPUT) == raw:
+                if typed is None and ctx.bb_get(self.INPUT) == raw:
                     _bb_remove(ctx, self.INPUT)
         return True
+
+    def _sensed(self, ctx: RunContext) -> str | None:
+        """A command typed on a real console besides the simulated input (none here); one sets ``_wake``."""
+        return None

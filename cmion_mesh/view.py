@@ -1,0 +1,761 @@
+"""The live view of a mesh (``cmion-mesh view``): a page that shows the mesh as it happens.
+
+The view is a mesh client like any other (it serves nothing in the key-space): it watches the
+liveliness tokens (embodiments alive, custody of companions), subscribes to every event of the
+mesh, and to the blackboard and world model of the embodiments that pages have selected. What it
+learns is kept in a ``Model`` on the web server's event loop and pushed to every page over a
+WebSocket as it happens; a page never polls, and nothing here polls the mesh either: an idle
+mesh with a page open costs its daemons nothing.
+
+Threads: the transport's workers run the subscription and liveliness handlers; each hands its
+sample to the loop with ``call_soon`` (never blocking, never calling zenoh) and returns. Requests
+that wait for answers (``describe``, ``execution/status``, store reads, actions) run on a small
+thread pool, whose results are handed to the loop the same way. Only the loop touches the model
+and the pages.
+
+Memory is bounded: the model keeps the last ``RING`` events, ``MIGRATIONS_KEPT`` migrations and
+``PLANS_KEPT`` finished plans; each page has at most ``PAGE_EVENTS`` stream events waiting for it
+(a slow page loses the oldest ones, and is told how many) and at most ``PAGE_CHANGES`` state
+changes (beyond that they are dropped and the page gets one fresh snapshot instead). A slow page
+therefore never holds up the mesh, the other pages, or the view's memory.
+
+Read-only unless ``allow_actions``: a page may then send mind actions and migrations, which the
+view sends as its own requests (with ``--certs``, under its own identity and access rules); when
+not allowed they are refused here, whatever the page sends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import re
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import msgspec
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from cmion_mesh import keys
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import MeshError, ProtocolError
+from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
+from cmion_mesh.procs import Daemon, cli_argv
+from cmion_mesh.transport import Closeable, Sample
+
+log = logging.getLogger(__name__)
+
+#: Recent events a page is given when it connects.
+RING = 500
+#: Stream events waiting for one page; beyond, the oldest are dropped (and counted for the page).
+PAGE_EVENTS = 1000
+#: Most events in one message to a page: a page reading slowly holds at most this much in its
+#: socket's buffers beyond its queue, and a page catching up draws in steps.
+BATCH_EVENTS = 200
+#: State changes waiting for one page; beyond, the page is sent one fresh snapshot instead.
+PAGE_CHANGES = 5000
+MIGRATIONS_KEPT = 50
+PLANS_KEPT = 50
+#: Embodiments that left, still shown (greyed) until this many more have left.
+GONE_KEPT = 50
+#: Entries of one store kept for the pages; beyond, new entries are left out (and the page says so).
+TREE_LIMIT = 20_000
+#: Event data larger than this (JSON bytes) is shown as a preview.
+DATA_PREVIEW = 4096
+DESCRIBE_TIMEOUT = 3.0
+ACTION_TIMEOUT = 60.0
+ACTION_JOIN = 2.0
+#: Actions in flight at once from all pages; more are refused as busy.
+ACTIONS_IN_FLIGHT = 8
+#: Events after which an embodiment's description is asked again (what ``describe`` says changed).
+REDESCRIBE = frozenset({
+    "MigrationOccurred", "MigrationSucceeded", "MigrationFailed", "MigrationDropped", "CompanionResumed", "CompanionBorn",
+    "CompanionDamaged", "CustodyConflict", "CompetencyAppeared", "CompetencyVanished", "MindConnected", "MindDisconnected",
+})
+#: A handshake's steps in the order they happen (``MigrationStep`` names the durable records).
+STEP_ORDER = {step: i for i, step in enumerate(("starting", "prepared", "incoming", "handed", "active", "released"))}
+PLAN_ENDS = {"PlanSucceeded": "succeeded", "PlanFailed": "failed", "PlanCancelled": "cancelled"}
+STEP_STATES = {"StepStarted": "running", "StepSucceeded": "succeeded", "StepFailed": "failed", "StepCancelled": "cancelled",
+               "StepWaiting": "waiting"}
+STORES = (keys.BLACKBOARD, keys.WORLD_MODEL)
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
+
+Schedule = Callable[..., None]
+
+
+def spawn_view(mesh: str, connect: Iterable[str], *extra: str, web: str = "127.0.0.1:0", timeout: float = 30.0) -> tuple[Daemon, str]:
+    """``cmion-mesh view`` in a process of its own, connected to the ``connect`` endpoints only
+    (no multicast): the process (a context manager that stops it) and the page's address, once
+    it serves. For the demo's pages and the tests."""
+    endpoints = [arg for endpoint in connect for arg in ("--connect", endpoint)]
+    view = Daemon(cli_argv("view", "--mesh", mesh, "--web", web, "--no-multicast", *endpoints, *extra), name="view")
+    try:
+        line = view.wait_line("view of mesh", timeout)
+    except BaseException:
+        view.kill()
+        raise
+    match = re.search(r" at (http://\S+)/ ", line)
+    if match is None:
+        view.kill()
+        raise MeshError(f"cmion-mesh view printed no address: {line!r}")
+    return view, match.group(1)
+
+
+def static_dir() -> Path:
+    return Path(__file__).resolve().parent / "web" / "view"
+
+
+def entry_json(entry: Property | Container | None) -> dict[str, Any] | None:
+    if entry is None:
+        return None
+    if isinstance(entry, Property):
+        return {"kind": "property", "value": entry.value, "persistent": entry.persistent}
+    return {"kind": "container", "type": entry.kind}
+
+
+def event_json(event: Event, received: float) -> dict[str, Any]:
+    data: Any = event.data
+    encoded = msgspec.json.encode(data)
+    if len(encoded) > DATA_PREVIEW:
+        data = {"preview": encoded[:DATA_PREVIEW].decode(errors="replace"), "bytes": len(encoded)}
+    return {"embodiment": event.embodiment, "component": event.component, "name": event.name, "data": data,
+            "seq": event.seq, "time": event.time, "received": received}
+
+
+class Page:
+    """One connected page: what waits to be sent to it, bounded (see the module's doc)."""
+
+    def __init__(self, number: int) -> None:
+        self.number = number
+        self.events: deque[dict[str, Any]] = deque()
+        self.changes: list[dict[str, Any]] = []
+        self.dropped = 0
+        self.resync = False
+        self.selected: str | None = None
+        self.wake = asyncio.Event()
+
+    def change(self, item: dict[str, Any]) -> None:
+        if self.resync:
+            return  # a snapshot is coming anyway
+        if len(self.changes) >= PAGE_CHANGES:
+            self.changes.clear()
+            self.resync = True
+        else:
+            self.changes.append(item)
+        self.wake.set()
+
+    def event(self, item: dict[str, Any]) -> None:
+        if len(self.events) >= PAGE_EVENTS:
+            self.events.popleft()
+            self.dropped += 1
+        self.events.append(item)
+        self.wake.set()
+
+
+@dataclass
+class TreeWatch:
+    """An embodiment's blackboard and world model, followed for the pages that selected it."""
+
+    embodiment: str
+    pages: set[Page] = field(default_factory=set)
+    entries: dict[str, dict[tuple[str, ...], dict[str, Any]]] = field(default_factory=lambda: {s: {} for s in STORES})
+    touched: set[tuple[str, tuple[str, ...]]] = field(default_factory=set)  # changed before the first read came back
+    ready: bool = False
+    truncated: bool = False
+    handles: list[Closeable] = field(default_factory=list)
+
+    def apply(self, store: str, path: tuple[str, ...], entry: dict[str, Any] | None) -> bool:
+        """Apply one change; False when it was left out (the store is over ``TREE_LIMIT``)."""
+        entries = self.entries[store]
+        if entry is None:
+            for other in [p for p in entries if p[:len(path)] == path]:
+                del entries[other]
+            return True
+        if path not in entries and len(entries) >= TREE_LIMIT:
+            self.truncated = True
+            return False
+        entries[path] = entry
+        return True
+
+    def message(self) -> dict[str, Any]:
+        return {"type": "trees", "embodiment": self.embodiment, "ready": self.ready, "truncated": self.truncated,
+                "stores": {s: [["/".join(p), e] for p, e in sorted(self.entries[s].items())] for s in STORES}}
+
+
+class Model:
+    """What the view knows of the mesh; touched only on the loop."""
+
+    def __init__(self, mesh: str) -> None:
+        self.mesh = mesh
+        self.embodiments: dict[str, dict[str, Any]] = {}
+        self.custody: dict[str, dict[str, int]] = {}  # companion -> {holder: epoch}
+        self.migrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self.plans: OrderedDict[str, dict[str, Any]] = OrderedDict()  # "<embodiment>/<run id>"
+        self.ring: deque[dict[str, Any]] = deque(maxlen=RING)
+
+    # --- embodiments ------------------------------------------------------------------------
+
+    def alive(self, name: str, alive: bool) -> dict[str, Any]:
+        card = self.embodiments.setdefault(name, {"name": name, "description": None, "error": None})
+        card.update(alive=alive, since=time.time())
+        if not alive:
+            gone = [n for n, c in self.embodiments.items() if not c["alive"]]
+            for old in gone[:-GONE_KEPT]:
+                del self.embodiments[old]
+            for key, plan in list(self.plans.items()):
+                if plan["embodiment"] == name and plan["state"] == "running":
+                    plan.update(state="vanished", reason=f"{name} left the mesh")
+                    del self.plans[key]
+                    self._keep_plan(key, plan)
+        return card
+
+    def described(self, name: str, description: dict[str, Any] | None, error: str | None) -> dict[str, Any] | None:
+        card = self.embodiments.get(name)
+        if card is None:
+            return None
+        if description is not None:
+            card["description"] = description
+        card["error"] = error
+        return card
+
+    def inhabit(self, name: str, companion: str | None) -> dict[str, Any] | None:
+        """What an event says at once (the description that follows confirms it)."""
+        card = self.embodiments.get(name)
+        if card is None or card.get("description") is None:
+            return None
+        card["description"] = {**card["description"], "inhabitant": companion}
+        return card
+
+    def custody_token(self, holder: str, companion: str, epoch: int, alive: bool) -> dict[str, Any]:
+        holders = self.custody.setdefault(companion, {})
+        if alive:
+            holders[holder] = epoch
+        elif holders.get(holder) == epoch:
+            del holders[holder]
+        if not holders:
+            del self.custody[companion]
+        return {"type": "custody", "companion": companion, "holders": dict(holders)}
+
+    # --- migrations and plans ---------------------------------------------------------------
+
+    def migration_event(self, event: Event) -> dict[str, Any] | None:
+        """The migration an event of the ``migration`` component moved on, or None."""
+        data = event.data if isinstance(event.data, dict) else {}
+        companion = str(data.get("companion", ""))
+        attempt = str(data.get("attempt", ""))
+        here = event.embodiment
+        step: str | None = None
+        status: str | None = None
+        source = target = None
+        if event.name == "MigrationStarting":
+            step, source, target = "starting", here, str(data.get("target", ""))
+        elif event.name == "MigrationStep":
+            step = str(data.get("step", ""))
+            peer = str(data.get("peer", ""))
+            source, target = (here, peer) if step in ("prepared", "handed") else (peer, here)
+        elif event.name == "MigrationSucceeded":
+            step, status, source, target = "released", "succeeded", here, str(data.get("target", ""))
+        elif event.name == "MigrationFailed":
+            step, status, source, target = "failed", "failed", here, str(data.get("target", "")) or None
+        elif event.name == "MigrationDropped":
+            step, status, target, source = "dropped", "dropped", here, str(data.get("source", "")) or None
+        elif event.name == "MigrationStuck":
+            step, source, target = "stuck", here, str(data.get("target", ""))
+        else:
+            return None
+        if not attempt:  # refused before an attempt was made, or an event that names none: the latest one
+            running = [m for m in self.migrations.values() if m["companion"] == companion and m["source"] == here]
+            attempt = running[-1]["attempt"] if running and event.name == "MigrationStuck" else f"{here}#{event.seq}"
+        migration = self.migrations.get(attempt)
+        if migration is None:
+            migration = {"attempt": attempt, "companion": companion, "source": source, "target": target,
+                         "status": "running", "reason": "", "steps": [], "started": event.time}
+            self.migrations[attempt] = migration
+            while len(self.migrations) > MIGRATIONS_KEPT:
+                self.migrations.popitem(last=False)
+        migration["source"] = migration["source"] or source
+        migration["target"] = migration["target"] or target
+        # The two sides' events come over different links, in either order: the handshake's own
+        # order puts each step in its place (clocks of two machines could not).
+        steps = migration["steps"]
+        rank = STEP_ORDER.get(step, len(STEP_ORDER))
+        at = next((i for i, s in enumerate(steps) if STEP_ORDER.get(s["step"], len(STEP_ORDER)) > rank), len(steps))
+        steps.insert(at, {"step": step, "embodiment": here, "time": event.time})
+        if "epoch" in data:
+            migration["epoch"] = data["epoch"]
+        if status is not None and migration["status"] != "succeeded":
+            migration["status"] = status
+            migration["reason"] = str(data.get("reason", ""))
+        return migration
+
+    def plan_event(self, event: Event) -> dict[str, Any] | None:
+        data = event.data if isinstance(event.data, dict) else {}
+        run_id = str(data.get("run_id", ""))
+        if not run_id:
+            return None
+        key = f"{event.embodiment}/{run_id}"
+        plan = self.plans.get(key)
+        if event.name == "PlanStarted":
+            plan = self._plan(key, event.embodiment, run_id)
+            plan.update(action=data.get("action"), size=data.get("steps"), started=event.time)
+        elif plan is None:
+            if event.name not in STEP_STATES:
+                return None
+            plan = self._plan(key, event.embodiment, run_id)  # started before the view joined
+        if event.name in STEP_STATES:
+            step = plan["steps"].setdefault(str(data.get("step", "")), {})
+            step.update(status=STEP_STATES[event.name], type=data.get("type"), time=event.time)
+            if data.get("competency"):
+                step["competency"] = data["competency"]
+            if data.get("reason"):
+                step["reason"] = data["reason"]
+        elif event.name in PLAN_ENDS:
+            plan.update(state=PLAN_ENDS[event.name], reason=data.get("reason") or "", ended=event.time)
+            del self.plans[key]
+            self._keep_plan(key, plan)
+        return plan
+
+    def _plan(self, key: str, embodiment: str, run_id: str) -> dict[str, Any]:
+        plan: dict[str, Any] = {"key": key, "embodiment": embodiment, "run_id": run_id, "action": None, "state": "running",
+                                "reason": "", "steps": {}}
+        self.plans[key] = plan
+        return plan
+
+    def _keep_plan(self, key: str, plan: dict[str, Any]) -> None:
+        self.plans[key] = plan  # finished plans go to the end, and only so many are kept
+        ended = [k for k, p in self.plans.items() if p["state"] != "running"]
+        for old in ended[:-PLANS_KEPT]:
+            del self.plans[old]
+
+    def status(self, name: str, value: Any) -> list[dict[str, Any]]:
+        """Plans already running when the view found ``name`` (``execution/status``)."""
+        plans = value.get("plans") if isinstance(value, dict) else None
+        out = []
+        for run_id, steps in (plans or {}).items():
+            key = f"{name}/{run_id}"
+            if key in self.plans or not isinstance(steps, dict):
+                continue
+            plan = self._plan(key, name, str(run_id))
+            plan["steps"] = {str(s): {"status": str(st)} for s, st in steps.items()}
+            out.append(plan)
+        return out
+
+    def snapshot(self) -> dict[str, Any]:
+        return {"type": "snapshot", "mesh": self.mesh, "embodiments": list(self.embodiments.values()),
+                "custody": {c: dict(h) for c, h in self.custody.items()}, "migrations": list(self.migrations.values()),
+                "plans": list(self.plans.values()), "events": list(self.ring)}
+
+
+class MeshView:
+    """The view's server side: ``app`` is the Starlette application; ``start(schedule)`` joins the
+    mesh once the web server's loop runs (``schedule`` is ``WebServer.call_soon``). A context
+    manager; ``close`` (idempotent) leaves the mesh and stops the thread pools."""
+
+    def __init__(self, client: MeshClient, *, allow_actions: bool = False, loopback: bool = False) -> None:
+        self.client = client
+        self.loopback = loopback
+        self.mesh = client.mesh
+        self.allow_actions = allow_actions
+        self.model = Model(client.mesh)
+        self.pages: set[Page] = set()
+        self.trees: dict[str, TreeWatch] = {}
+        self._pages_made = 0
+        self._describing: dict[str, bool] = {}  # name -> asked again while a describe was in flight
+        self._running: dict[threading.Thread, threading.Event] = {}  # actions under way, and what ends their wait
+        self._schedule: Schedule | None = None
+        self._handles: list[Closeable] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        self._pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="view-ask")
+        self.app = Starlette(routes=[
+            Route("/", self._index),
+            Route("/api/snapshot", self._snapshot_route),
+            WebSocketRoute("/ws", self._websocket),
+            Mount("/static", app=StaticFiles(directory=static_dir()), name="static"),
+        ])
+
+    def __enter__(self) -> MeshView:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    # --- joining the mesh (any thread) ------------------------------------------------------
+
+    def start(self, schedule: Schedule) -> None:
+        """Watch the mesh; every handler hands what it got to the loop with ``schedule``."""
+        self._schedule = schedule
+        transport = self.client.transport
+        prefix = keys.mesh_prefix(self.mesh)
+        with self._lock:
+            if self._closed:
+                return
+            self._handles.append(self.client.events(lambda e: self._later(self._on_event, e, time.time())))
+            self._handles.append(transport.watch_liveliness(f"{prefix}/{keys.ALIVE}/*",
+                                                            lambda k, a: self._later(self._on_alive, k.rsplit("/", 1)[-1], a)))
+            self._handles.append(transport.watch_liveliness(keys.custody_pattern(self.mesh),
+                                                            lambda k, a: self._later(self._on_custody, k, a)))
+
+    def _later(self, fn: Callable[..., None], *args: Any) -> None:
+        """From any thread: run ``fn`` on the loop; never blocks."""
+        schedule = self._schedule
+        if schedule is not None and not self._closed:
+            schedule(fn, *args)
+
+    def _ask(self, fn: Callable[[], Any], then: Callable[[Any, str | None], None]) -> None:
+        """Run ``fn`` (which waits for the mesh) on the pool; ``then(result, error)`` on the loop."""
+        def run() -> None:
+            try:
+                result, error = fn(), None
+            except MeshError as exc:
+                result, error = None, str(exc)
+            self._later(then, result, error)
+
+        with self._lock:
+            if not self._closed:
+                self._pool.submit(run)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            handles, self._handles = self._handles, []
+            trees, self.trees = list(self.trees.values()), {}
+            running = dict(self._running)
+        for stop in running.values():
+            stop.set()
+        for handle in handles + [h for t in trees for h in t.handles]:
+            try:
+                handle.close()
+            except MeshError:
+                pass
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        for thread in running:
+            thread.join(ACTION_JOIN)  # a migration cannot be interrupted: it is not waited for longer
+
+    # --- what the mesh says (loop) ----------------------------------------------------------
+
+    def _change(self, item: dict[str, Any], pages: set[Page] | None = None) -> None:
+        for page in self.pages if pages is None else pages:
+            page.change(item)
+
+    def _card(self, card: dict[str, Any] | None) -> None:
+        if card is not None:
+            self._change({"type": "embodiment", "card": card})
+
+    def _on_alive(self, name: str, alive: bool) -> None:
+        self._card(self.model.alive(name, alive))
+        if alive:
+            self._describe(name)
+            self._ask(lambda: self.client.request(name, "execution", "status", ExecutionStatus(), timeout=DESCRIBE_TIMEOUT),
+                      lambda outcome, error: self._on_status(name, outcome))
+
+    def _describe(self, name: str) -> None:
+        if name in self._describing:
+            self._describing[name] = True  # ask once more when this one answers
+            return
+        self._describing[name] = False
+        self._ask(lambda: self.client.describe(name, timeout=DESCRIBE_TIMEOUT),
+                  lambda description, error: self._on_described(name, description, error))
+
+    def _on_described(self, name: str, description: dict[str, Any] | None, error: str | None) -> None:
+        again = self._describing.pop(name, False)
+        card = self.model.embodiments.get(name)
+        if card is not None and card["alive"]:
+            self._card(self.model.described(name, description, error))
+            if again:
+                self._describe(name)
+
+    def _on_status(self, name: str, outcome: Any) -> None:
+        if outcome is not None and getattr(outcome, "status", "") == "accepted":
+            for plan in self.model.status(name, outcome.value):
+                self._change({"type": "plan", "plan": plan})
+
+    def _on_custody(self, key: str, alive: bool) -> None:
+        try:
+            holder, companion, epoch = key.split("/")[-3:]
+            change = self.model.custody_token(holder, companion, int(epoch), alive)
+        except ValueError:
+            return  # not a custody token of this grammar
+        self._change(change)
+
+    def _on_event(self, event: Event, received: float) -> None:
+        item = event_json(event, received)
+        self.model.ring.append(item)
+        for page in self.pages:
+            page.event(item)
+        if event.component == "migration":
+            migration = self.model.migration_event(event)
+            if migration is not None:
+                self._change({"type": "migration", "migration": migration})
+        elif event.component == "execution":
+            plan = self.model.plan_event(event)
+            if plan is not None:
+                self._change({"type": "plan", "plan": plan})
+        data = event.data if isinstance(event.data, dict) else {}
+        if event.name in ("MigrationOccurred", "CompanionResumed", "CompanionBorn"):
+            self._card(self.model.inhabit(event.embodiment, str(data.get("companion") or "") or None))
+        elif event.name == "MigrationSucceeded":
+            self._card(self.model.inhabit(event.embodiment, None))
+        if event.name in REDESCRIBE and self.model.embodiments.get(event.embodiment, {}).get("alive"):
+            self._describe(event.embodiment)
+
+    # --- trees (loop) -----------------------------------------------------------------------
+
+    def _select(self, page: Page, name: str | None) -> None:
+        if page.selected == name:
+            return
+        self._unselect(page)
+        if not name or not keys.is_name(name):
+            return
+        page.selected = name
+        watch = self.trees.get(name)
+        if watch is None:
+            watch = TreeWatch(name)
+            self.trees[name] = watch
+            self._watch_trees(watch)
+        watch.pages.add(page)
+        page.change(watch.message())
+
+    def _unselect(self, page: Page) -> None:
+        name, page.selected = page.selected, None
+        watch = self.trees.get(name) if name else None
+        if watch is None:
+            return
+        watch.pages.discard(page)
+        if not watch.pages:
+            del self.trees[watch.embodiment]
+            handles, watch.handles = watch.handles, []
+            self._close_off_loop(handles)
+
+    def _close_off_loop(self, handles: list[Closeable]) -> None:
+        """Close subscriptions on the pool: closing one calls zenoh, which the loop never waits on."""
+        def close() -> None:
+            for handle in handles:
+                handle.close()
+
+        self._ask(close, lambda *_: None)
+
+    def _watch_trees(self, watch: TreeWatch) -> None:
+        name = watch.embodiment
+        transport = self.client.transport
+
+        def subscribe() -> dict[str, Any]:
+            handles = []
+            for store in STORES:
+                prefix = keys.storage_key(self.mesh, name, store, ())
+                skip = len(prefix.split("/"))
+
+                def on_sample(sample: Sample, store: str = store, skip: int = skip) -> None:
+                    path = tuple(sample.key.split("/")[skip:])
+                    if not path:
+                        return
+                    entry = None
+                    if not sample.deleted:
+                        try:
+                            entry = entry_json(decode(sample.payload, Property | Container, where=sample.key))
+                        except ProtocolError:
+                            return
+                    self._later(self._on_tree, name, store, path, entry, time.time())
+
+                handles.append(transport.subscribe(f"{prefix}/**", on_sample))
+            self._later(self._adopt_handles, watch, handles)
+            # Subscribed first, read second: a change between the two is not lost (``touched``).
+            return {store: self.client.read_store(name, store, timeout=DESCRIBE_TIMEOUT) for store in STORES}
+
+        self._ask(subscribe, lambda stores, error: self._on_trees_read(watch, stores, error))
+
+    def _adopt_handles(self, watch: TreeWatch, handles: list[Closeable]) -> None:
+        if self.trees.get(watch.embodiment) is watch:
+            watch.handles.extend(handles)
+        else:  # unselected meanwhile
+            self._close_off_loop(handles)
+
+    def _on_trees_read(self, watch: TreeWatch, stores: dict[str, dict[str, Any]] | None, error: str | None) -> None:
+        if self.trees.get(watch.embodiment) is not watch:
+            return
+        for store, entries in (stores or {}).items():
+            skip = len(keys.storage_key(self.mesh, watch.embodiment, store, ()).split("/"))
+            for key, entry in entries.items():
+                path = tuple(key.split("/")[skip:])
+                if path and (store, path) not in watch.touched:
+                    watch.apply(store, path, entry_json(entry))
+        watch.touched.clear()
+        watch.ready = True
+        message = watch.message()
+        if error:
+            message["error"] = error
+        self._change(message, watch.pages)
+
+    def _on_tree(self, name: str, store: str, path: tuple[str, ...], entry: dict[str, Any] | None, received: float) -> None:
+        watch = self.trees.get(name)
+        if watch is None:
+            return
+        if not watch.ready:
+            watch.touched.add((store, path))
+        if watch.apply(store, path, entry):
+            self._change({"type": "tree", "embodiment": name, "store": store, "path": "/".join(path), "entry": entry,
+                          "received": received}, watch.pages)
+
+    # --- actions (loop) ---------------------------------------------------------------------
+
+    def _action(self, page: Page, message: dict[str, Any]) -> None:
+        kind = message.get("type")
+        token = message.get("id")
+
+        def answer(status: str, reason: str = "", value: Any = None) -> None:
+            page.change({"type": "action_result", "id": token, "action": kind, "status": status, "reason": reason, "value": value})
+
+        if not self.allow_actions:
+            answer("refused", "this view is read-only: start `cmion-mesh view --allow-actions` to act on the mesh")
+            return
+        stop = threading.Event()
+        try:
+            if kind == "act":
+                embodiment = keys.check_name(str(message.get("embodiment", "")), "embodiment")
+                name = keys.check_name(str(message.get("name", "")), "action")
+                parameters = [str(p) for p in message.get("parameters") or []]
+
+                def run() -> Any:
+                    with self.client.start_action(embodiment, name, parameters, on_end=stop.set) as action:
+                        stop.wait(ACTION_TIMEOUT)  # set by the action's end, or by ``close``
+                        return msgspec.to_builtins(action.result(ACTION_TIMEOUT))
+            else:
+                companion = keys.check_name(str(message.get("companion", "")), "companion")
+                target = keys.check_name(str(message.get("target", "")), "target")
+
+                def run() -> Any:
+                    return self.client.migrate(companion, target, timeout=ACTION_TIMEOUT)
+        except MeshError as exc:
+            answer("refused", str(exc))
+            return
+
+        def done(result: Any, error: str | None) -> None:
+            if error is not None:
+                answer("failed", error)
+            else:
+                answer(str(result.get("status", "succeeded")) if kind == "act" else "succeeded", str(result.get("reason", "")), result)
+
+        def work() -> None:
+            try:
+                result, error = run(), None
+            except MeshError as exc:
+                result, error = None, str(exc)
+            finally:
+                with self._lock:
+                    self._running.pop(thread, None)
+            self._later(done, result, error)
+
+        # Threads of their own, not a pool: ``close`` ends an action's wait (``stop``) rather than
+        # waiting up to ACTION_TIMEOUT for it.
+        thread = threading.Thread(target=work, name=f"view-{kind}", daemon=True)
+        with self._lock:
+            if self._closed:
+                return
+            if len(self._running) >= ACTIONS_IN_FLIGHT:
+                answer("refused", f"busy: {ACTIONS_IN_FLIGHT} actions are already under way")
+                return
+            self._running[thread] = stop
+        thread.start()
+        answer("sent")
+
+    # --- the web side (loop) ----------------------------------------------------------------
+
+    async def _index(self, request: Request) -> Response:
+        return FileResponse(static_dir() / "index.html", headers={"Cache-Control": "no-store"})
+
+    async def _snapshot_route(self, request: Request) -> Response:
+        return JSONResponse(msgspec.to_builtins({**self.model.snapshot(), "allow_actions": self.allow_actions}))
+
+    def _snapshot(self, page: Page) -> dict[str, Any]:
+        out = {**self.model.snapshot(), "allow_actions": self.allow_actions, "dropped": page.dropped, "page": page.number}
+        watch = self.trees.get(page.selected) if page.selected else None
+        if watch is not None:
+            out["trees"] = watch.message()
+        return out
+
+    def same_origin(self, websocket: WebSocket) -> bool:
+        """Whether a page from this server opened the socket. A browser lets any site open a
+        WebSocket to 127.0.0.1, so a foreign page must not read the mesh (or act on it); and
+        served on loopback, a page must have asked for a loopback name, or a site whose name is
+        made to resolve to 127.0.0.1 (DNS rebinding) would count as this server's own."""
+        host = websocket.headers.get("host", "").lower()
+        if self.loopback and urlsplit(f"//{host}").hostname not in LOOPBACK_NAMES:
+            return False
+        origin = websocket.headers.get("origin")
+        if origin is None:
+            return True  # not a browser (a script, a test client): nothing to guard against here
+        return urlsplit(origin).netloc.lower() == host
+
+    async def _websocket(self, websocket: WebSocket) -> None:
+        if not self.same_origin(websocket):
+            await websocket.close(code=1008, reason="cross-origin page")
+            return
+        await websocket.accept()
+        self._pages_made += 1
+        page = Page(self._pages_made)
+        page.resync = True  # the first thing sent is a snapshot
+        page.wake.set()
+        self.pages.add(page)
+        sender = asyncio.create_task(self._send_to(websocket, page))
+        try:
+            while True:
+                received = await websocket.receive()
+                if received["type"] == "websocket.disconnect":
+                    break
+                try:
+                    message = json.loads(received.get("text") or "")
+                    if not isinstance(message, dict):
+                        raise ValueError("not a JSON object")
+                except ValueError as exc:
+                    page.change({"type": "error", "reason": f"message from the page refused: {exc}"})
+                    continue
+                kind = message.get("type")
+                if kind == "select":
+                    self._select(page, message.get("embodiment") or None)
+                elif kind in ("act", "migrate"):
+                    self._action(page, message)
+                else:
+                    page.change({"type": "error", "reason": f"unknown message type {kind!r}"})
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            self.pages.discard(page)
+            self._unselect(page)
+            sender.cancel()
+
+    async def _send_to(self, websocket: WebSocket, page: Page) -> None:
+        """Send what waits for ``page`` in batches; while a send waits on a slow page, more
+        waits in the page's bounded queues (see ``Page``)."""
+        try:
+            while True:
+                await page.wake.wait()
+                page.wake.clear()
+                if page.resync:
+                    page.resync = False
+                    page.changes.clear()
+                    page.events.clear()
+                    payload: dict[str, Any] = self._snapshot(page)
+                else:
+                    events = [page.events.popleft() for _ in range(min(BATCH_EVENTS, len(page.events)))]
+                    payload = {"type": "batch", "changes": page.changes, "events": events, "dropped": page.dropped,
+                               "sent": time.time()}
+                    page.changes = []
+                    if page.events:
+                        page.wake.set()  # the rest in the next message
+                await websocket.send_text(msgspec.json.encode(payload).decode())
+        except (WebSocketDisconnect, RuntimeError, OSError):
+            pass
