@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.daemons import Node, client_config, stop_and_report
-from bench.migration import COMPANION, OVERHEAD, SIZES, A, B, Migrations, size_name
+from bench.migration import COMPANION, DELTA_SCRATCH, OVERHEAD, SIZES, A, B, Migrations, size_name
 from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
@@ -109,8 +109,9 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 
 def install() -> None:
     from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
+    from cmion_mesh import records as records_module
     from cmion_mesh.migration import MigrationManager
-    from cmion_mesh.records import Records
+    from cmion_mesh.records import IncomingSection, Records, SectionStore
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
         kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
@@ -121,8 +122,16 @@ def install() -> None:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(handshake, "unpack", "unpack(parse+XSD)")
-    wrap(identity.Identity, "pack", "pack(JSON+XML)")
+    wrap(records_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
+    wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
+    wrap(SectionStore, "write", "write+fsync:sections")
+    wrap(IncomingSection, "add", "section chunk: copy+hash (write beside)")
+    wrap(IncomingSection, "_write_out", "section chunk: pwrite+fadvise (beside)")
+    wrap(IncomingSection, "finish", "section received: fsync+rename")
+    wrap(SectionStore, "read_many", "read+check sections held")
+    wrap(handshake, "read_manifest", "read_manifest(parse+XSD)")
+    wrap(identity, "decode_section", "decode_section(msgpack)")
+    wrap(identity.Identity, "pack_sections", "pack_sections(msgpack+sha256+XML)")
     wrap(signing, "sign", "sign(ed25519)")
     wrap(custody, "verify_chain", "verify custody chain")
     wrap(migration, "send_request", request_label)
@@ -135,7 +144,10 @@ def install() -> None:
     for method, label in (("_start", "on loop:_start(checks)"), ("_maybe_pack", "on loop:_maybe_pack"),
                           ("_refresh_sections", "on loop:mind.state()"), ("_on_prepare", "on loop:_on_prepare(target)"),
                           ("_on_commit", "on loop:_on_commit(target)"), ("_inhabit", "on loop:_inhabit(restore+wake)"),
-                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)")):
+                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)"),
+                          ("_ask_have", "on a worker:_ask_have"), ("_send_bulk", "on a worker:_send_bulk(chunks)"),
+                          ("_prepare", "on a worker:_prepare"),
+                          ("_on_have", "on loop:_on_have(target)"), ("_on_sections", "on loop:_on_sections(target)")):
         wrap(MigrationManager, method, label)
 
 
@@ -162,11 +174,21 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
         mig = Migrations(client, nodes)
         stack.callback(mig.close)
-        for size in SIZES:
-            mig.tell_mind({"size": max(0, size - OVERHEAD)})
+        # (name, metric suffix, message setting the mind up, message before each traced migration)
+        cases: list[tuple[str, str, dict[str, int], dict[str, int] | None]] = [
+            (size_name(size), str(size), {"size": max(0, size - OVERHEAD)}, {"size": max(0, size - OVERHEAD)})
+            for size in SIZES]
+        big = SIZES[-1]
+        cases.append(("10 MiB delta return", "delta", {"size": max(0, big - OVERHEAD - DELTA_SCRATCH), "scratch": DELTA_SCRATCH},
+                      None))
+        for name, suffix, setup, fresh in cases:
+            mig.tell_mind(setup)
+            mig.once()
             mig.once()
             windows: list[tuple[int, int, float]] = []
             for _ in range(count):
+                if fresh is not None:
+                    mig.tell_mind(fresh)  # a fresh blob: the whole document travels
                 start = time.perf_counter_ns()
                 occurred, _released = mig.once()
                 windows.append((start, time.perf_counter_ns(), occurred))
@@ -182,12 +204,12 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                         sums[label] += d
                 for label, total in sums.items():
                     per_label[label].append(total / 1e9)
-            name = size_name(size)
-            rows.append(Row(f"trace_total_{size}", f"{name}: command -> awake at target (whole)", summarize([w[2] for w in windows])))
+            rows.append(Row(f"trace_total_{suffix}", f"{name}: command -> awake at target (whole)", summarize([w[2] for w in windows])))
             for label in sorted(per_label, key=lambda k: -sorted(per_label[k])[len(per_label[k]) // 2]):
                 values = per_label[label] + [0.0] * (count - len(per_label[label]))
-                rows.append(Row(f"trace_{label}_{size}", f"{name}: {label} (sum per migration)", summarize(values)))
+                rows.append(Row(f"trace_{label}_{suffix}", f"{name}: {label} (sum per migration)", summarize(values)))
             log(f"{name}: {count} traced migrations")
+        mig.tell_mind({"scratch": 0})
     return rows
 
 

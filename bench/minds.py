@@ -4,14 +4,14 @@
   sends that action ``count`` times back to back, each from the handler of the previous one's
   end, and times ``act()`` -> ``on_action_succeeded`` in the daemon's own process. The samples
   come back as its event ``Measured`` ``{"tag", "samples"}`` (seconds), or ``{"tag", "error"}``.
-* ``CarryMind`` (component ``mind``): a companion's mind whose state carries a blob (message
-  ``{"size": N}`` sets it to N characters) and the list of embodiments it arrived on, so that the
-  identity document has the size a benchmark asks for and a soak can check where it has been.
-  The identity parser refuses a text node over 10,000,000 bytes (libxml2's limit without
-  ``huge_tree``), so a blob over ``PART`` characters (message ``{"part": N}`` changes it) travels
-  in extra sections ``<mind>-part<i>``,
-  contributed through the migration manager's ``wait``/``resolve`` when ``MigrationStarting`` is
-  raised and read back with ``section()`` on arrival.
+* ``CarryMind`` (component ``mind``): a companion's mind that carries a blob (message
+  ``{"size": N}`` sets it to N fresh random characters) and the list of embodiments it arrived
+  on, so that the identity document has the size a benchmark asks for and a soak can check where
+  it has been. The blob is a section of its own, ``<mind>-blob`` (contributed when
+  ``MigrationStarting`` is raised, read back with ``section()`` on arrival): it is unchanged from
+  one migration to the next unless a message sets it again, so a return trip sends only the
+  mind's own section. That section also carries ``{"scratch": N}`` characters drawn afresh at
+  every migration (the "one changed section" of the return benchmark).
 """
 
 from __future__ import annotations
@@ -25,9 +25,6 @@ from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ActionReport, Event
 from cmion_mesh.migration import MigrationManager
 from cmion_mesh.mind import Mind
-
-#: Largest piece of the blob in one identity section (characters).
-PART = 4 * 1024 * 1024
 
 
 class TimingMind(Mind):
@@ -75,9 +72,12 @@ class CarryMind(Mind):
     def __init__(self, name: str = "mind", size: str = "0") -> None:
         super().__init__(name)
         self.blob = blob(int(size))
+        self.scratch = 0
         self.arrivals: list[str] = []
-        self.parts_max = 0  # most extra sections ever carried: unused ones are blanked, not left stale
-        self.part = PART
+
+    @property
+    def blob_section(self) -> str:
+        return f"{self.name}-blob"
 
     def attach(self, sim: Simulation) -> None:
         super().attach(sim)
@@ -87,37 +87,28 @@ class CarryMind(Mind):
         manager = self.sim.components_by_name().get("migration")
         return manager if isinstance(manager, MigrationManager) else None
 
-    def _parts(self) -> list[str]:
-        return [self.blob[start:start + self.part] for start in range(self.part, len(self.blob), self.part)]
-
     def _migration_starting(self, event: Event) -> None:
         manager = self._migration()
-        if manager is None:
-            return
-        parts = self._parts()
-        self.parts_max = max(self.parts_max, len(parts))
-        for i in range(1, self.parts_max + 1):
-            manager.resolve(manager.wait(f"{self.name}-part{i}"), parts[i - 1] if i <= len(parts) else "")
+        if manager is not None:
+            manager.contribute(self.blob_section, self.blob)
 
     def on_message(self, data: dict[str, Any]) -> None:
-        if "part" in data:  # the largest piece in one section (to show the parser's limit)
-            self.part = max(1, int(data["part"]))
         if "size" in data:
             self.blob = blob(int(data["size"]))
+        if "scratch" in data:
+            self.scratch = max(0, int(data["scratch"]))
 
     def on_arrived(self, world_model: dict[str, Any]) -> None:
         manager = self._migration()
         if manager is not None:
-            for i in range(1, self.parts_max + 1):
-                part = manager.section(f"{self.name}-part{i}")
-                if isinstance(part, str):
-                    self.blob += part
+            carried = manager.section(self.blob_section)
+            if isinstance(carried, str):
+                self.blob = carried
         self.arrivals.append(self.sim.embodiment)
 
     def state(self) -> dict[str, Any]:
-        return {"blob": self.blob[:self.part], "parts_max": self.parts_max, "arrivals": list(self.arrivals)}
+        return {"scratch": blob(self.scratch), "scratch_size": self.scratch, "arrivals": list(self.arrivals)}
 
     def restore(self, state: dict[str, Any]) -> None:
-        self.blob = str(state.get("blob", ""))
-        self.parts_max = int(state.get("parts_max", 0))
+        self.scratch = int(state.get("scratch_size", 0))
         self.arrivals = [str(a) for a in state.get("arrivals", [])]

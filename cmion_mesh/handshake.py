@@ -39,12 +39,20 @@ reply or an error is "outcome unknown": asked again, never taken for success, an
 taken over because a peer went quiet.
 
 Custody (``custody``) makes the same decisions unforgeable by a former host: see its docstring.
+
+**Sections.** A SchemaVersion 2 document is a manifest naming its sections by hash (``identity``);
+T must hold every section before it records ``incoming``. Before the prepare of a large identity,
+S sends ``have`` (the manifest with the same chain and offer; T checks custody exactly as for a
+prepare and records nothing) and T answers which sections it holds already; S sends the others
+(``migrate_sections``, or small ones inside the prepare). A prepare whose sections T lacks is
+refused ``missing_sections`` without any record written, so it changes nothing above: S sends them
+and prepares again, the same attempt.
 """
 
 from __future__ import annotations
 
 import base64
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -53,8 +61,8 @@ import msgspec
 from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link, Offer
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.identity import Identity, unpack
-from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
+from cmion_mesh.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
+from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
 
 POLICY_SECTION = "policy"
@@ -69,6 +77,12 @@ class Decision:
     document: bytes | None = None
     key: bytes | None = None
     identity: Identity | None = None  # the parsed document of an accepted prepare
+    manifest: Manifest | None = None  # the parsed document of an accepted prepare or have
+    sections: Mapping[str, Bytes] | None = None  # an accepted prepare's section bytes (sha256 -> bytes)
+
+
+#: Finds the bytes of sections (sha256 -> bytes, each checked against its hash), those it can.
+SectionSource = Callable[[Sequence[SectionRef]], Mapping[str, Bytes]]
 
 
 def refused(reason: str) -> Decision:
@@ -104,9 +118,70 @@ def link_of_text(text: Any) -> Link:
 
 def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Record | None,
                admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int],
-               new_key: Callable[[], bytes] = signing.new_key) -> Decision:
+               new_key: Callable[[], bytes] = signing.new_key, sections: SectionSource | None = None,
+               values: Mapping[str, Any] | None = None) -> Decision:
     """A prepare at T. ``held``: the record of a companion T holds, if any; ``live_claims``: the other
-    embodiments that say in the mesh they hold the companion, and at which epoch (custody tokens)."""
+    embodiments that say in the mesh they hold the companion, and at which epoch (custody tokens);
+    ``sections``: where T finds the bytes of the sections a version 2 document names; ``values``:
+    immutable values T holds already decoded, by their bytes' hash (``identity.SectionMemo.values``)."""
+    checked = _check_offer(msg, msg.document, record, me=me, held=held, admit=admit, live_claims=live_claims)
+    if isinstance(checked, Decision):
+        return checked
+    if _repeated(msg, record):
+        assert record is not None
+        return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": record.custody_key}))
+    chain = checked
+    try:
+        manifest = read_manifest(msg.document, name=f"identity of {msg.companion} from {msg.source}")
+        found = sections(manifest.refs) if sections is not None and manifest.refs else {}
+        identity = manifest.identity(found, values)
+    except MissingSections as exc:
+        missing = sorted({ref.sha256 for ref in exc.missing})
+        return Decision(Outcome("rejected", f"{me!r} lacks {len(missing)} section(s) of {msg.companion!r}: {exc.detail}",
+                                {"missing": missing}, Code.MISSING_SECTIONS))
+    except ConfigError as exc:
+        return refused(str(exc))
+    if identity.companion != msg.companion or identity.epoch != msg.epoch:
+        return refused(f"document is for {identity.companion!r} at epoch {identity.epoch}, not {msg.companion!r} at epoch {msg.epoch}")
+    policy = refuses(identity, me)
+    if policy:
+        return refused(policy)
+    private = new_key()
+    public = signing.encode_public(signing.public_of(private))
+    incoming = Record(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, seq=msg.seq, chain=chain,
+                      custody_key=public, public_key=record.public_key if record is not None else "")
+    return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": public}), incoming, msg.document, private,
+                    identity, manifest, {ref.sha256: found[ref.sha256] for ref in manifest.refs})
+
+
+def on_have(msg: MigrateHave, record: Record | None, *, me: str, held: Record | None,
+            admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int]) -> Decision:
+    """A ``have`` at T: the checks of a prepare of the same offer, nothing recorded. Accepted, the
+    decision carries the manifest; which sections T holds is for the caller to say (its disk)."""
+    checked = _check_offer(msg, msg.manifest, record, me=me, held=held, admit=admit, live_claims=live_claims)
+    if isinstance(checked, Decision):
+        return checked
+    try:
+        manifest = read_manifest(msg.manifest, name=f"identity of {msg.companion} from {msg.source}")
+    except ConfigError as exc:
+        return refused(str(exc))
+    if manifest.schema_version < 2:
+        return refused(f"have takes a SchemaVersion 2 manifest; this one is SchemaVersion {manifest.schema_version}")
+    if manifest.companion != msg.companion or manifest.epoch != msg.epoch:
+        return refused(f"document is for {manifest.companion!r} at epoch {manifest.epoch}, not {msg.companion!r} at epoch {msg.epoch}")
+    return Decision(Outcome("accepted"), manifest=manifest)
+
+
+def _repeated(msg: MigratePrepare | MigrateHave, record: Record | None) -> bool:
+    """Whether ``record`` is T ``incoming`` for the very attempt ``msg`` offers (a repeated message)."""
+    return record is not None and record.state == "incoming" and record.attempt == msg.attempt \
+        and record.order == (msg.epoch, msg.seq)
+
+
+def precheck(msg: MigratePrepare | MigrateHave, record: Record | None, *, me: str, held: Record | None,
+             admit: Mapping[str, bytes | None] | None) -> Decision | None:
+    """The checks of an offer that cost nothing (names, target, admission, the records here): the
+    refusal, or None. A stale or misdirected offer, replayed in a flood, is refused by these alone."""
     try:
         keys.check_name(msg.companion, "companion")
         keys.check_name(msg.source, "source")
@@ -118,9 +193,9 @@ def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Rec
     if admit is not None and msg.companion not in admit:
         return refused(f"admission: companion {msg.companion!r} may not enter {me!r}")
     attempt = (msg.epoch, msg.seq)
+    if _repeated(msg, record):
+        return None
     if record is not None:
-        if record.state == "incoming" and record.attempt == msg.attempt and record.order == attempt:
-            return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": record.custody_key}))
         if record.state in ("active", "prepared", "handed"):
             return refused(f"custody: {me!r} holds {msg.companion!r} itself (epoch {record.epoch}); "
                            "a host never accepts a prepare for a companion it holds")
@@ -132,6 +207,18 @@ def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Rec
                            f"{record.epoch}.{record.seq}, {record.state} here")
     if held is not None and held.companion != msg.companion:
         return refused(f"{me!r} is occupied by companion {held.companion!r}")
+    return None
+
+
+def _check_offer(msg: MigratePrepare | MigrateHave, document: bytes, record: Record | None, *, me: str, held: Record | None,
+                 admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int]) -> list[Link] | Decision:
+    """The checks of an offer that need no XML: ``precheck``, then custody. The verified chain, or the refusal."""
+    early = precheck(msg, record, me=me, held=held, admit=admit)
+    if early is not None:
+        return early
+    if _repeated(msg, record):
+        assert record is not None
+        return list(record.chain)  # checked when it was first offered; the answer is the same
     trusted = admit.get(msg.companion) if admit is not None else None
     if trusted is None and record is not None and record.public_key:
         trusted = signing.decode_public(record.public_key)
@@ -151,24 +238,11 @@ def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Rec
         if rivals:
             return refused(f"custody: {', '.join(map(repr, rivals))} holds {msg.companion!r} now (it says so in the mesh), "
                            f"not {msg.source!r}")
-        digest = custody.digest(msg.document)
+        digest = custody.digest(document)
         custody.verify_offer(chain, Offer(msg.companion, msg.epoch, msg.seq, msg.attempt, msg.source, msg.target, digest), msg.proof)
     except signing.SignatureRefused as exc:
         return refused(f"refused: {exc}")
-    try:
-        identity = unpack(msg.document, name=f"identity of {msg.companion} from {msg.source}")
-    except ConfigError as exc:
-        return refused(str(exc))
-    if identity.companion != msg.companion or identity.epoch != msg.epoch:
-        return refused(f"document is for {identity.companion!r} at epoch {identity.epoch}, not {msg.companion!r} at epoch {msg.epoch}")
-    policy = refuses(identity, me)
-    if policy:
-        return refused(policy)
-    private = new_key()
-    public = signing.encode_public(signing.public_of(private))
-    incoming = Record(msg.companion, "incoming", msg.epoch, msg.attempt, msg.source, seq=msg.seq, chain=chain,
-                      custody_key=public, public_key=record.public_key if record is not None else "")
-    return Decision(Outcome("accepted", "", {"state": "prepared", "custody_key": public}), incoming, msg.document, private, identity)
+    return chain
 
 
 def _activation(record: Record, link: Link, me: str) -> Record:
@@ -252,6 +326,12 @@ def offer(record: Record, *, attempt: str, me: str, target: str, document: bytes
     message = MigratePrepare(record.companion, record.epoch, seq, attempt, me, target, document,
                              custody.encode_chain(record.chain), proof)
     return prepared, message
+
+
+def have(prepare: MigratePrepare) -> MigrateHave:
+    """The ``have`` that goes before ``prepare``: the same offer, its document as the manifest."""
+    return MigrateHave(prepare.companion, prepare.epoch, prepare.seq, prepare.attempt, prepare.source, prepare.target,
+                       prepare.document, prepare.chain, prepare.proof)
 
 
 Next = Literal["commit", "resume", "released", "abort", "ask", "retry"]

@@ -16,7 +16,7 @@ of ``Message`` with a tag of their own) the same way.
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 
@@ -25,6 +25,12 @@ from cmion_mesh.errors import ProtocolError
 #: Largest payload decoded from the network; bigger ones are refused unread.
 MAX_PAYLOAD = 16 * 1024 * 1024
 MAX_DEPTH = 32
+#: Largest identity manifest (SchemaVersion 2): the XML naming the sections, never their bytes.
+MAX_MANIFEST = 1024 * 1024
+#: Most section bytes in one chunk of ``migrate_sections`` (a request is under ``MAX_PAYLOAD`` as a whole).
+MAX_SECTION_BYTES = 8 * 1024 * 1024
+#: Most chunks in one ``migrate_sections`` request, and most sections one manifest names.
+MAX_CHUNKS = 1000
 
 Value = Any  # plain data, checked by ``check_value``
 
@@ -142,6 +148,9 @@ class Code(StrEnum):
     CONFLICT = "conflict"
     #: The component cannot take the request now (a competency running, a mind asleep...).
     BUSY = "busy"
+    #: A migration's target lacks sections its manifest names (value ``{"missing": [sha256 hex]}``):
+    #: send them (``migrate_sections``) and prepare again.
+    MISSING_SECTIONS = "missing_sections"
 
 
 class Outcome(Message, frozen=True, tag="outcome"):
@@ -277,6 +286,48 @@ class MigratePrepare(Message, frozen=True, tag="migrate_prepare"):
     document: bytes
     chain: bytes
     proof: bytes
+    #: Bytes of small sections the target is not known to hold (each named by its SHA-256 in the
+    #: SchemaVersion 2 ``document``), so that a small identity takes no round trip more.
+    sections: Annotated[list[bytes], msgspec.Meta(max_length=MAX_CHUNKS)] = []
+
+
+class MigrateHave(Message, frozen=True, tag="migrate_have"):
+    """Source -> target, before the prepare of a large identity (``.../rq/migration/have/<source>``):
+    the SchemaVersion 2 manifest it is about to offer, with the chain and the proof of that offer
+    (those of the prepare that follows). The target checks custody as for a prepare, records
+    nothing, and answers ``{"have": [sha256 hex]}``: the sections it holds already, checked
+    against their hash, so that only the others cross the network (``migrate_sections``)."""
+
+    companion: str
+    epoch: int
+    seq: int
+    attempt: str
+    source: str
+    target: str
+    manifest: Annotated[bytes, msgspec.Meta(max_length=MAX_MANIFEST)]
+    chain: bytes
+    proof: bytes
+
+
+class SectionChunk(msgspec.Struct, frozen=True):
+    """``data`` is the bytes at ``offset`` of the section whose SHA-256 (hex) is ``sha256``."""
+
+    sha256: Annotated[str, msgspec.Meta(pattern="^[0-9a-f]{64}$")]
+    offset: Annotated[int, msgspec.Meta(ge=0)]
+    data: Annotated[bytes, msgspec.Meta(max_length=MAX_SECTION_BYTES)]
+
+
+class MigrateSections(Message, frozen=True, tag="migrate_sections"):
+    """Source -> target, after ``have``: bytes of sections the target lacks, as raw MessagePack
+    bytes in chunks (``.../rq/migration/sections/<source>``), each section's chunks in order. The
+    target answers once every section completed by these chunks is checked against its hash and
+    on its disk: ``{"stored": [sha256 hex]}``."""
+
+    companion: str
+    attempt: str
+    source: str
+    target: str
+    chunks: Annotated[list[SectionChunk], msgspec.Meta(max_length=MAX_CHUNKS)]
 
 
 class MigrateCommit(Message, frozen=True, tag="migrate_commit"):
@@ -340,6 +391,7 @@ AnyMessage = (
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
+    | MigrateHave | MigrateSections
 )
 
 

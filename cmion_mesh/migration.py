@@ -4,10 +4,13 @@ The decisions (what each record accepts, what it answers, how a side resolves) a
 for why they keep exactly one host are in ``handshake``; custody (who may hand a companion on) is
 in ``custody``; the durable records in ``records``. This module moves messages and threads:
 
-* the loop thread runs request handlers, ``_start``, packing and inhabiting (the ``Component`` API);
+* the loop thread runs request handlers (a target's section checks and writes among them), ``_start``,
+  collecting sections and inhabiting (the ``Component`` API);
 * one thread per handshake in flight sends the prepare and the commit (``_send``,
   ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
   these threads touch only the records (locked) and hand everything else to the loop (``_post``);
+  while sending sections, ``_send`` has one short-lived thread write this side's copy of them and
+  two send chunks, all joined before it goes on;
 * the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
   ``_on_custody``), under ``_watch_lock``.
 
@@ -23,6 +26,14 @@ companion (a fork across a partition, an old backup restored), both report it lo
 running it: **the higher epoch; at equal epochs, the embodiment whose name sorts first**. The
 other freezes (its minds sleep) until the conflict is gone.
 
+**Sections travel apart** (SchemaVersion 2, ``identity``): the source packs the identity into a
+manifest and section bytes off the loop; for a small identity it sends them all inside the
+prepare; for a larger one it first sends ``have`` and the target answers which sections it holds
+from an earlier visit (checked against their hash), then only the others cross, as raw bytes in
+``migrate_sections`` chunks, while the source writes its own copy to its disk. The target answers
+each request once what it received is on its disk. ``MigrationSucceeded`` says how many bytes were
+sent (``transfer``).
+
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
 SIGKILL right after writing that record: the crash tests use it.
@@ -37,8 +48,8 @@ import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable
-from concurrent.futures import Future
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,19 +59,23 @@ from cmion_mesh import custody, handshake, keys, signing
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
 from cmion_mesh.handshake import POLICY_SECTION, refuses
-from cmion_mesh.identity import Identity, unpack
+from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import (
+    Code,
     Migrate,
     MigrateAbort,
     MigrateCommit,
+    MigrateHave,
     MigratePrepare,
+    MigrateSections,
     MigrateStatus,
     Outcome,
+    SectionChunk,
     SetPolicy,
 )
 from cmion_mesh.mind import Mind
-from cmion_mesh.records import HOSTING, Record, Records
+from cmion_mesh.records import HOSTING, IncomingSection, Record, Records
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -72,6 +87,19 @@ PREPARE_BURST = 20
 PREPARE_RATE = 5.0
 #: Seconds the components of the source have to give their sections once a migration starts.
 SECTION_DEADLINE = 5.0
+#: Missing sections that together are at most this many bytes travel inside the prepare: a small
+#: identity takes no round trip more than it used to (and no ``have``).
+INLINE = 256 * 1024
+#: Bytes of sections per ``migrate_sections`` request: a large section goes in chunks of this size.
+CHUNK = 4 * 1024 * 1024
+#: ``migrate_sections`` requests in flight at once.
+IN_FLIGHT = 2
+#: Pins of the section store held by the attempt being staged here.
+_STAGING = "staging"
+
+
+class _Refused(MeshError):
+    """The target refused a step of the handshake before the prepare (the reason is its answer)."""
 
 
 def crash_point(point: str) -> None:
@@ -92,6 +120,23 @@ class _Outgoing:
     contributions: dict[str, Any] = field(default_factory=dict)
     waits: set[str] = field(default_factory=set)
     packed: bool = False
+    transfer: dict[str, int] = field(default_factory=dict)  # bytes sent / of the document (handshake thread)
+
+
+@dataclass(eq=False)
+class _Staging:
+    """Target: the sections gathered for one attempt between its ``have`` and its prepare (loop)."""
+
+    attempt: str
+    source: str
+    refs: dict[str, SectionRef]  # sha256 -> section, as the manifest offered names them
+    data: dict[str, Bytes] = field(default_factory=dict)  # checked bytes: held here already, or received
+    partial: dict[str, IncomingSection] = field(default_factory=dict)
+
+    def abandon(self) -> None:
+        for incoming in self.partial.values():
+            incoming.abandon()
+        self.partial.clear()
 
 
 @dataclass(frozen=True)
@@ -123,9 +168,9 @@ class MigrationManager(Component):
     """The ``migration`` component: owns the records, runs both sides of the handshake."""
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
-                "status": MigrateStatus, "policy": SetPolicy}
+                "status": MigrateStatus, "policy": SetPolicy, "have": MigrateHave, "sections": MigrateSections}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
-    sender_requests = frozenset({"prepare", "commit", "abort", "status"})
+    sender_requests = frozenset({"prepare", "commit", "abort", "status", "have", "sections"})
     # Its constructor opens the state folder (creates it, sweeps what a crash left): never built
     # from a configuration, so that ``validate`` can build every component it names.
     built_by_embodiment = True
@@ -137,6 +182,7 @@ class MigrationManager(Component):
         first commit); None admits any companion (its identity key is pinned at its first commit here)."""
         super().__init__("migration")
         self.admit = admit
+        max_section()  # a bad CMION_MESH_MAX_SECTION stops the start, naming it
         self.records = Records(state_dir)
         #: Companions whose stored identity is unusable: reported (description, log, event), never run.
         self.damaged = self.records.damaged()
@@ -149,6 +195,10 @@ class MigrationManager(Component):
         self._outgoing: _Outgoing | None = None  # loop
         self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
         self._buckets: dict[str, TokenBucket] = {}  # sender -> prepare budget (loop)
+        self._staging: _Staging | None = None  # target: sections gathered for the next prepare (loop)
+        self._memo = SectionMemo()  # the companion's section bytes last packed or received, with their hashes
+        #: The last migration from here: bytes of the document sent and in all (``MigrationSucceeded``'s ``transfer``).
+        self.last_transfer: dict[str, int] | None = None
         self._token: Closeable | None = None  # this embodiment's custody claim (loop)
         self._stop = threading.Event()
         self._threads_lock = threading.Lock()
@@ -225,12 +275,12 @@ class MigrationManager(Component):
 
     def _give_birth(self, companion: str) -> None:
         """First start of the companion's home: it is born here, at epoch 1, with its identity key."""
-        document = Identity(companion, 1, {}).pack()
+        packed = Identity(companion, 1, {}).pack_sections()
         private = signing.new_key()
-        chain = [custody.birth(companion, self.sim.embodiment, private, document)]
+        chain = [custody.birth(companion, self.sim.embodiment, private, packed.manifest)]
         self.records.put_key(companion, private)
         self.records.put(Record(companion, "active", 1, chain=chain, public_key=signing.encode_public(chain[0].public_key)),
-                         document=document)
+                         document=packed.manifest, sections=packed.data)
 
     def _adopt_legacy(self, record: Record) -> Record:
         """A record written before custody chains: an active companion starts its chain here (its old
@@ -256,6 +306,7 @@ class MigrationManager(Component):
             watch.close()
         self._watches = []
         self._stop.set()
+        self._unstage()
         with self._threads_lock:
             threads, self._threads = self._threads, []
         for thread in threads:
@@ -266,7 +317,12 @@ class MigrationManager(Component):
         if identity is not None and record is not None and record.state == "active":
             # A clean stop keeps what the companion learnt since it arrived.
             self._refresh_sections(identity)
-            self.records.put(record, document=identity.pack())
+            self._keep(record, identity)
+
+    def _keep(self, record: Record, identity: Identity) -> None:
+        """Store ``identity`` as the active companion's document (and its sections) here."""
+        packed = identity.pack_sections(self._memo)
+        self.records.put(record, document=packed.manifest, sections=packed.data)
 
     def _spawn(self, name: str, fn: Callable[..., None], *args: Any) -> None:
         thread = threading.Thread(target=fn, args=args, name=f"migration-{name}", daemon=True)
@@ -369,8 +425,15 @@ class MigrationManager(Component):
             identity.sections[mind.name] = mind.state()
 
     def _resume(self, companion: str, why: str) -> None:
-        data = self.records.document(companion)
-        identity = unpack(data, name=f"{companion}.identity.xml") if data else Identity(companion, 1, {})
+        try:
+            identity = self.records.identity(companion, self._memo) or Identity(companion, 1, {})
+        except ConfigError as exc:  # its stored identity was altered at rest meanwhile: report, never run
+            self.identity = None
+            self.damaged[companion] = str(exc)
+            log.error("companion %s is damaged and will not run here: %s", companion, exc)
+            self.raise_event("CompanionDamaged", {"companion": companion, "error": str(exc)})
+            self._minds_sleep()
+            return
         record = self.records.get(companion)
         if record is not None:
             identity.epoch = record.epoch
@@ -514,40 +577,66 @@ class MigrationManager(Component):
         sections = dict(identity.sections)  # carried-on sections stay unless freshly contributed
         sections.update(out.contributions)
         out.packed = True
-        try:
-            document = Identity(out.companion, out.epoch, sections).pack()
-        except (MeshError, ValueError) as exc:
-            self._abandon(out, f"cannot pack the identity: {exc}")
-            return
-        self._spawn(f"send-{out.companion}", self._send, out, document)
+        # Encoding and hashing happen on the handshake thread: the minds sleep, nothing changes these.
+        self._spawn(f"send-{out.companion}", self._send, out, Identity(out.companion, out.epoch, sections))
 
     def _request(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
         key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
         return send_request(self.sim.transport, key, message, timeout=self.request_timeout if timeout is None else timeout)
 
-    def _send(self, out: _Outgoing, document: bytes) -> None:
-        """Handshake thread: prepare, then (once handed) commit."""
+    def _send(self, out: _Outgoing, identity: Identity) -> None:
+        """Handshake thread: pack, send what the target lacks, prepare, then (once handed) commit."""
+        try:
+            packed = identity.pack_sections(self._memo)
+        except (MeshError, ValueError) as exc:
+            self._post(self._abandon, out, f"cannot pack the identity: {exc}")
+            return
         active = self.records.get(out.companion)
         private = self.records.key(out.companion)
         if active is None or active.state != "active" or private is None:
             self._post(self._aborted, out, f"{out.companion!r} is not active here with its custody key")
             return
         prepared, message = handshake.offer(active, attempt=out.attempt, me=self.sim.embodiment, target=out.target,
-                                            document=document, private=private)
-        prepared = self.records.put(prepared, document=document)
+                                            document=packed.manifest, private=private)
+        refs = list({ref.sha256: ref for ref in packed.refs}.values())
+        out.transfer = {"sent": 0, "total": packed.size, "sections": len(refs), "sections_sent": 0}
+        stored: list[BaseException] = []
+
+        def store() -> None:  # this side's copy, written while the target receives its own
+            try:
+                self.records.sections.write(packed.data)
+            except OSError as exc:
+                stored.append(exc)
+
+        writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
+        together: Mapping[str, Bytes] = packed.data  # a small identity: this side's copy goes with its record
+        try:
+            inline = refs
+            if sum(ref.size for ref in refs) > INLINE:
+                together = {}
+                writer.start()  # from now on, beside have and the chunks
+                inline, bulk = self._ask_have(out, message, refs)
+                self._send_bulk(out, message, packed, bulk)
+        except (_Refused, OutcomeUnknown) as exc:
+            if writer.is_alive():
+                writer.join()
+            why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
+            self._post(self._abandon, out, f"{why}; the companion stays here")
+            return
+        if writer.is_alive():
+            writer.join()
+        if stored:
+            self._post(self._abandon, out, f"cannot store the identity here: {stored[0]}")
+            return
+        try:
+            prepared = self.records.put(prepared, document=packed.manifest, sections=together)
+        except OSError as exc:
+            self._post(self._abandon, out, f"cannot store the identity here: {exc}")
+            return
         crash_point("source:prepared")
         self._post(self._step, prepared)
-        reply: Outcome | None = None
-        unknown = ""
-        for _ in range(3):  # prepare is idempotent: a lost reply may be asked again
-            try:
-                reply = self._request(out.target, "prepare", message)
-                break
-            except OutcomeUnknown as exc:
-                unknown = str(exc)
-                if self._stop.wait(self.retry[0]):
-                    break
-        after = handshake.after_prepare(prepared, reply, private=private, document=document) if reply is not None \
+        reply, unknown = self._prepare(out, message, packed, inline)
+        after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
             else handshake.resume(prepared)
         if after.state != "handed":
             self.records.put(after)
@@ -563,6 +652,96 @@ class MigrationManager(Component):
         self._post(self._step, handed)
         self._post(self._handed, out)
         self._commit_until_acked(handed)
+
+    def _prepare(self, out: _Outgoing, message: MigratePrepare, packed: Packed,
+                 inline: list[SectionRef]) -> tuple[Outcome | None, str]:
+        """Send the prepare, with ``inline`` sections inside; prepare is idempotent, so a lost reply
+        is asked again, and sections the target says it lacks are sent before asking again."""
+        reply: Outcome | None = None
+        unknown = ""
+        tries = lossy = 0
+        while tries < 3 and lossy < 3:  # missing sections twice over is a target losing them: give up
+            sections = [packed.data[ref.sha256] for ref in inline]
+            out.transfer["sent"] += len(message.document) + sum(len(b) for b in sections)
+            out.transfer["sections_sent"] += len(sections)
+            try:
+                reply = self._request(out.target, "prepare", msgspec.structs.replace(message, sections=sections))
+            except OutcomeUnknown as exc:
+                reply, unknown = None, str(exc)
+                lossy += 1
+                if self._stop.wait(self.retry[0]):
+                    break
+                continue
+            tries += 1
+            value = reply.value if isinstance(reply.value, dict) else {}
+            missing = set(value.get("missing") or []) if reply.code == Code.MISSING_SECTIONS else set()
+            wanted = [ref for ref in packed.refs if ref.sha256 in missing]
+            if not wanted:
+                break
+            log.info("%s lacks %d section(s) of %s: sending them", out.target, len(wanted), out.companion)
+            wanted = list({ref.sha256: ref for ref in wanted}.values())
+            inline = wanted
+            if sum(ref.size for ref in wanted) > INLINE:
+                try:
+                    inline, bulk = self._ask_have(out, message, wanted)
+                    self._send_bulk(out, message, packed, bulk)
+                except (_Refused, OutcomeUnknown) as exc:
+                    unknown = str(exc)
+                    break
+        return reply, unknown
+
+    def _ask_have(self, out: _Outgoing, message: MigratePrepare,
+                  refs: list[SectionRef]) -> tuple[list[SectionRef], list[SectionRef]]:
+        """``have``: of the sections the target lacks, the small ones (at most ``INLINE`` bytes
+        together), for the prepare to carry, and the others, to send apart (``_send_bulk``)."""
+        reply = self._request(out.target, "have", handshake.have(message))
+        if reply.status != "accepted":
+            raise _Refused(reply.reason)
+        value = reply.value if isinstance(reply.value, dict) else {}
+        held = set(value.get("have") or [])
+        missing = sorted((ref for ref in refs if ref.sha256 not in held), key=lambda r: r.size)
+        inline: list[SectionRef] = []
+        budget = INLINE
+        while missing and missing[0].size <= budget:
+            budget -= missing[0].size
+            inline.append(missing.pop(0))
+        return inline, missing
+
+    def _send_bulk(self, out: _Outgoing, message: MigratePrepare, packed: Packed, missing: list[SectionRef]) -> None:
+        """The sections ``missing`` in ``migrate_sections`` chunks, two requests in flight."""
+        batches: list[list[SectionChunk]] = [[]]
+        size = 0
+        for ref in missing:
+            data = memoryview(packed.data[ref.sha256])
+            for offset in range(0, max(1, ref.size), CHUNK):
+                piece = data[offset:offset + CHUNK]
+                if batches[-1] and size + len(piece) > CHUNK:
+                    batches.append([])
+                    size = 0
+                batches[-1].append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
+                size += len(piece)
+            out.transfer["sections_sent"] += 1
+        batches = [b for b in batches if b]
+        if len(batches) > 1:
+            # Two requests in flight: the target checks and writes one while the next is on its way.
+            with ThreadPoolExecutor(IN_FLIGHT, thread_name_prefix=f"migration-chunks-{out.companion}") as pool:
+                for _ in pool.map(functools.partial(self._send_chunks, out, message), batches):
+                    pass
+        elif batches:
+            self._send_chunks(out, message, batches[0])
+        out.transfer["sent"] += sum(len(c.data) for batch in batches for c in batch)
+
+    def _send_chunks(self, out: _Outgoing, message: MigratePrepare, chunks: list[SectionChunk]) -> None:
+        request = MigrateSections(message.companion, message.attempt, message.source, message.target, chunks)
+        for attempt in range(3):  # chunks are idempotent: a lost answer is asked again
+            try:
+                reply = self._request(out.target, "sections", request)
+                break
+            except OutcomeUnknown:
+                if attempt == 2 or self._stop.wait(self.retry[0]):
+                    raise
+        if reply.status != "accepted":
+            raise _Refused(reply.reason)
 
     def _step(self, record: Record) -> None:
         # Loop thread. Each durable record of a handshake is one step a watcher (``cmion-mesh view``)
@@ -634,7 +813,11 @@ class MigrationManager(Component):
         self._outgoing = None
         if self.identity is None:
             self._withdraw_claim()
-        data = {"companion": record.companion, "target": record.peer, "attempt": record.attempt, "epoch": record.epoch + 1}
+        data: dict[str, Any] = {"companion": record.companion, "target": record.peer, "attempt": record.attempt,
+                                "epoch": record.epoch + 1}
+        if out is not None and out.attempt == record.attempt and out.transfer:
+            data["transfer"] = dict(out.transfer)
+            self.last_transfer = dict(out.transfer)
         self.raise_event("MigrationSucceeded", data)
         if out is not None and out.attempt == record.attempt and not out.future.done():
             out.future.set_result(Outcome("accepted", "", data))
@@ -675,6 +858,7 @@ class MigrationManager(Component):
                     self._on_commit(request, payload)
             case MigrateAbort() as payload:
                 decision = handshake.on_abort(payload, self.records.get(payload.companion), requester=request.requester)
+                self._unstage(payload.attempt)
                 if decision.record is not None:
                     self.records.put(decision.record)
                     self._prepared.pop(payload.attempt, None)
@@ -685,6 +869,16 @@ class MigrationManager(Component):
                 request.answer(decision.outcome)
             case MigrateStatus() as payload:
                 request.answer(handshake.on_status(payload, self.records.get(payload.companion), requester=request.requester).outcome)
+            case MigrateHave() as payload:
+                if request.requester != payload.source:
+                    request.reject(f"{request.requester!r} cannot send a have on behalf of {payload.source!r}")
+                else:
+                    self._on_have(request, payload)
+            case MigrateSections() as payload:
+                if request.requester != payload.source:
+                    request.reject(f"{request.requester!r} cannot send sections on behalf of {payload.source!r}")
+                else:
+                    self._on_sections(request, payload)
             case SetPolicy() as payload:
                 self._on_policy(request, payload.accepts)
             case other:
@@ -698,6 +892,9 @@ class MigrationManager(Component):
         if identity is None or record is None or record.state != "active":
             request.reject(f"embodiment {self.sim.embodiment!r} hosts no companion")
             return
+        if self._outgoing is not None:
+            request.reject(f"{identity.companion!r} is migrating to {self._outgoing.target!r}", Code.BUSY)
+            return
         for name in accepts or []:
             keys.check_name(name, "accepted embodiment")
         if accepts is None:
@@ -705,29 +902,154 @@ class MigrationManager(Component):
         else:
             identity.sections[POLICY_SECTION] = {"accepts": sorted(set(accepts))}
         self._refresh_sections(identity)
-        self.records.put(record, document=identity.pack())
+        self._keep(record, identity)
         request.accept(identity.sections.get(POLICY_SECTION))
 
-    def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
-        bucket = self._buckets.setdefault(msg.source, TokenBucket())
+    def _take_token(self, source: str) -> bool:
+        bucket = self._buckets.setdefault(source, TokenBucket())
         if len(self._buckets) > 1024:
-            self._buckets = {msg.source: bucket}  # bounded: forget strangers, keep the one asking
+            self._buckets = {source: bucket}  # bounded: forget strangers, keep the one asking
+        return bucket.take()
+
+    def _staged(self, attempt: str, source: str) -> _Staging | None:
+        staging = self._staging
+        return staging if staging is not None and staging.attempt == attempt and staging.source == source else None
+
+    def _unstage(self, attempt: str | None = None) -> None:
+        if self._staging is not None and (attempt is None or self._staging.attempt == attempt):
+            self._staging.abandon()
+            self._staging = None
+            self.records.sections.unpin(_STAGING)
+
+    def _on_have(self, request: IncomingRequest, msg: MigrateHave) -> None:
+        """Target: which sections of the offered manifest are here already (each read and checked
+        against its hash: a damaged one is missing, and fetched again)."""
+        record = self.records.get(msg.companion)
+        early = handshake.precheck(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit)
+        if early is not None:
+            request.answer(early.outcome)
+            return
+        if self._staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
+            request.reject(f"busy: too many prepares from {msg.source!r}; try again later", Code.BUSY)
+            return
+        holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
+        decision = handshake.on_have(msg, record, me=self.sim.embodiment,
+                                     held=self.records.hosting(), admit=self.admit, live_claims=holders)
+        if decision.manifest is None:
+            request.answer(decision.outcome)
+            return
+        staging = _Staging(msg.attempt, msg.source, {ref.sha256: ref for ref in decision.manifest.refs})
+        store = self.records.sections
+        found, errors = store.read_many((ref for ref in staging.refs.values() if store.holds(ref)), self._memo.held())
+        for error in errors.values():
+            log.warning("%s; fetching it again from %s", error, msg.source)
+        # What nobody names yet is bounded by the cache: a larger offer would fill the disk.
+        missing = sum(ref.size for ref in staging.refs.values() if ref.sha256 not in found)
+        if missing > store.max_cache:
+            request.reject(f"the sections of {msg.companion!r} missing at {self.sim.embodiment!r} total {missing} bytes, "
+                           f"over its section cache of {store.max_cache} bytes", Code.INVALID)
+            return
+        staging.data = dict(found)
+        self._unstage()  # one attempt staged at a time: a newer have replaces it
+        self._staging = staging
+        store.pin(_STAGING, staging.refs)
+        request.accept({"have": sorted(found)})
+
+    def _on_sections(self, request: IncomingRequest, msg: MigrateSections) -> None:
+        """Target: chunks of sections; each completed section is checked against its hash and written
+        (fsync) before the answer."""
+        staging = self._staged(msg.attempt, msg.source)
+        if staging is None or msg.target != self.sim.embodiment:
+            request.reject(f"no have of attempt {msg.attempt} from {msg.source!r} at {self.sim.embodiment!r}: "
+                           "sections are sent after it", Code.NOT_FOUND)
+            return
+        complete: list[str] = []
+        problems: list[str] = []
+        store = self.records.sections
+        for chunk in msg.chunks:
+            ref = staging.refs.get(chunk.sha256)
+            if ref is None:
+                problems.append(f"section {chunk.sha256} is not in the manifest of attempt {msg.attempt}")
+                break
+            if chunk.sha256 in staging.data:
+                continue
+            incoming = staging.partial.get(chunk.sha256)
+            if incoming is None:
+                incoming = staging.partial[chunk.sha256] = store.receive(ref)
+            problem = incoming.add(chunk.offset, chunk.data)
+            if not problem and incoming.complete:
+                del staging.partial[chunk.sha256]
+                problem = incoming.finish()  # replaces a damaged file of that name, if any
+                if not problem:
+                    staging.data[chunk.sha256] = incoming.data
+                    complete.append(chunk.sha256)
+            if problem:
+                problems.append(f"section {ref.component!r} of {msg.companion!r}: {problem}")
+                break
+        if complete:
+            store.sync()
+        if problems:
+            request.reject("; ".join(problems), Code.INVALID)
+        else:
+            request.accept({"stored": sorted(complete)})
+        log.debug("sections of attempt %s: %d stored", msg.attempt, len(complete))
+
+    def _sections_for(self, msg: MigratePrepare, carried: dict[str, Bytes]) -> handshake.SectionSource:
+        """Where a prepare's sections are: inside it (those used are put in ``carried``), staged since
+        its ``have``, or on this disk."""
+
+        def find(refs: Sequence[SectionRef]) -> dict[str, Bytes]:
+            inline: dict[str, Bytes] = {sha256_hex(data): data for data in msg.sections}
+            staging = self._staged(msg.attempt, msg.source)
+            found: dict[str, Bytes] = {}
+            for ref in refs:
+                data = inline.get(ref.sha256)
+                if data is not None:
+                    carried[ref.sha256] = data
+                elif staging is not None:
+                    data = staging.data.get(ref.sha256)
+                if data is not None:
+                    found[ref.sha256] = data
+            store = self.records.sections
+            read, errors = store.read_many(r for r in refs if r.sha256 not in found and store.holds(r))
+            for error in errors.values():
+                log.warning("%s; asking %s for it again", error, msg.source)
+            found.update(read)
+            return found
+
+        return find
+
+    def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
         record = self.records.get(msg.companion)
         repeat = record is not None and record.state == "incoming" and record.attempt == msg.attempt
-        if not repeat and not bucket.take():
+        # Only offers that would cost this embodiment custody checks, XML and disk take from the budget.
+        early = handshake.precheck(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit)
+        if early is not None:
+            request.answer(early.outcome)
+            return
+        if not repeat and self._staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
             request.reject(f"busy: too many prepares from {msg.source!r}; try again later")
             return
         holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
+        carried: dict[str, Bytes] = {}
         decision = handshake.on_prepare(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit,
-                                        live_claims=holders)
+                                        live_claims=holders, sections=self._sections_for(msg, carried), values=self._memo.values())
         if decision.record is None:
+            if decision.outcome.code != Code.MISSING_SECTIONS:
+                self._unstage(msg.attempt)
             request.answer(decision.outcome)
             return
-        assert decision.key is not None and decision.identity is not None
-        self.records.put_key(msg.companion, decision.key)
-        incoming = self.records.put(decision.record, document=decision.document)
+        assert decision.key is not None and decision.identity is not None and decision.manifest is not None
+        # The sections it carried were sent because they are missing here, or damaged: written anew.
+        incoming = self.records.put(decision.record, document=decision.document, sections=carried, key=decision.key,
+                                    replace=True)
         crash_point("target:incoming")
         self._step(incoming)
+        self._unstage()
+        for ref in decision.manifest.refs:
+            if decision.sections is not None:
+                self._memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
+                                    decision.identity.sections.get(ref.component))
         self._claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
         self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
         request.answer(decision.outcome)
@@ -747,8 +1069,7 @@ class MigrationManager(Component):
         self._step(active)
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
-            data = self.records.document(active.companion)
-            identity = unpack(data or b"", name=f"{active.companion}.identity.xml")
+            identity = self.records.identity(active.companion, self._memo) or Identity(active.companion, active.epoch, {})
         identity.epoch = active.epoch
         self._inhabit(identity, "MigrationOccurred", f"arrived from {active.peer}")
 
@@ -786,6 +1107,7 @@ class MigrationManager(Component):
         else:
             self.records.put(settled)
             self._prepared.pop(record.attempt, None)
+            self._unstage(record.attempt)
             if self.identity is None:
                 self._withdraw_claim()
             self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,

@@ -331,6 +331,10 @@ def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, No
         record = json.loads((a.state / "spirit.record.json").read_bytes())
         document = a.state / f"spirit.{record['document']}.identity.xml"
         assert oct(document.stat().st_mode & 0o777) == "0o600" and oct(a.state.stat().st_mode & 0o777) == "0o700"
+        # The memory is in a section the manifest names by its hash (SchemaVersion 2): edit those bytes.
+        edited = [p for p in (a.state / "sections").iterdir() if b"met Ada" in p.read_bytes()]
+        assert len(edited) == 1 and oct(edited[0].stat().st_mode & 0o777) == "0o600"
+        document = edited[0]
         document.write_bytes(document.read_bytes().replace(b"met Ada", b"HACKED!"))
         a.start()
         def damaged() -> bool:

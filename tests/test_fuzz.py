@@ -23,6 +23,7 @@ import shutil
 import tempfile
 import threading
 import time
+import typing
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -57,7 +58,9 @@ from cmion_mesh.messages import (
     Migrate,
     MigrateAbort,
     MigrateCommit,
+    MigrateHave,
     MigratePrepare,
+    MigrateSections,
     MigrateStatus,
     MindMessage,
     MindState,
@@ -66,6 +69,7 @@ from cmion_mesh.messages import (
     RemoveContainer,
     RemoveProperty,
     RunEnded,
+    SectionChunk,
     SendInvitations,
     SetPolicy,
     SetProperty,
@@ -178,6 +182,9 @@ SAMPLES: list[Message] = [
     RunEnded("r-1", "succeeded", ""),
     Migrate("spirit", "screen"),
     MigratePrepare("spirit", 3, 1, "a1b2", "robot", "screen", b"<Identity/>", b"\x91\x97\xa1s", b"\x00" * 64),
+    MigratePrepare("spirit", 3, 1, "a1b2", "robot", "screen", b"<Identity/>", b"\x91\x97\xa1s", b"\x00" * 64, [b"\xa1x"]),
+    MigrateHave("spirit", 3, 1, "a1b2", "robot", "screen", b"<Identity/>", b"\x91\x97\xa1s", b"\x00" * 64),
+    MigrateSections("spirit", "a1b2", "robot", "screen", [SectionChunk("0" * 64, 0, b"\x92\x01\x02")]),
     MigrateCommit("spirit", 3, "a1b2", "robot", "screen", b"\x97\xa1s"),
     MigrateAbort("spirit", 3, "a1b2"),
     MigrateStatus("spirit", "a1b2", 3, "target"),
@@ -201,7 +208,7 @@ NON_UTF8_FIELD = encode(Migrate("s", "screen")).replace(b"screen", b"scr\xffen")
 
 
 def test_every_message_type_has_a_sample() -> None:
-    assert sorted(type(m).__name__ for m in SAMPLES) == [c.__name__ for c in MESSAGE_TYPES]
+    assert sorted({type(m).__name__ for m in SAMPLES}) == [c.__name__ for c in MESSAGE_TYPES]
     for message in SAMPLES:
         assert decode(encode(message), type(message)) == message
         assert decode(encode(message)) == message
@@ -222,9 +229,33 @@ def decodes_cleanly(data: bytes, *, tolerate: tuple[type[BaseException], ...] = 
         except tolerate:
             continue
         assert isinstance(message, Message)
-        for field in msgspec.structs.fields(message):
-            if field.type is not bytes:
-                check_value(getattr(message, field.name))
+        _check_fields(message)
+
+
+def _check_fields(struct: msgspec.Struct) -> None:
+    """Each field is what its type says: bytes where bytes are declared (also inside lists and nested
+    Structs, as the section chunks carry them), plain data everywhere else."""
+    for field in msgspec.structs.fields(struct):
+        _check_typed(field.type, getattr(struct, field.name))
+
+
+def _check_typed(kind: Any, value: Any) -> None:
+    if typing.get_origin(kind) is typing.Annotated:
+        kind = typing.get_args(kind)[0]
+    if kind is bytes:
+        assert isinstance(value, bytes)
+    elif typing.get_origin(kind) is list and typing.get_args(kind)[0] is not Any and value is not None:
+        item = typing.get_args(kind)[0]
+        if item is bytes or (isinstance(item, type) and issubclass(item, msgspec.Struct)):
+            for element in value:
+                _check_typed(item, element)
+        else:
+            check_value(value)
+    elif isinstance(kind, type) and issubclass(kind, msgspec.Struct):
+        assert isinstance(value, kind)
+        _check_fields(value)
+    else:
+        check_value(value)
 
 
 @FUZZ
@@ -426,10 +457,10 @@ def only_config_errors(call: Callable[[], object], where: str) -> object:
         return None
 
 
-def _checked_identity(data: bytes, *, names: bool = True) -> None:
+def _checked_identity(data: bytes, *, names: bool = True, sections: dict[str, bytes] | None = None) -> None:
     """Only ``ConfigError`` escapes ``unpack``; what it returns is usable (with ``names``: companion and
     sections are names that can be key chunks, as everything downstream assumes)."""
-    result = only_config_errors(lambda: identity.unpack(data, name="<fuzz>"), "<fuzz>")
+    result = only_config_errors(lambda: identity.unpack(data, name="<fuzz>", sections=sections), "<fuzz>")
     if result is not None:
         assert isinstance(result, Identity)
         assert result.epoch >= 0
@@ -444,6 +475,29 @@ def _checked_identity(data: bytes, *, names: bool = True) -> None:
 @given(IDENTITIES)
 def test_identity_round_trips(original: Identity) -> None:
     assert identity.unpack(original.pack()) == original
+
+
+@FUZZ
+@given(IDENTITIES)
+def test_identity_round_trips_as_manifest_and_sections(original: Identity) -> None:
+    packed = original.pack_sections()
+    assert identity.unpack(packed.manifest, sections=packed.data) == Identity(original.companion, original.epoch,
+                                                                              original.sections, 2)
+
+
+@FUZZ
+@given(IDENTITIES, EDITS)
+def test_unpack_mutated_manifests(original: Identity, edits: list[tuple[int, int, bytes]]) -> None:
+    packed = original.pack_sections()
+    _checked_identity(_edit(packed.manifest, edits), sections=packed.data)
+
+
+@FUZZ
+@given(IDENTITIES, EDITS)
+def test_unpack_mutated_section_bytes(original: Identity, edits: list[tuple[int, int, bytes]]) -> None:
+    """Section bytes edited in place (as if their hash had been checked by a careless holder): still only ConfigError."""
+    packed = original.pack_sections()
+    _checked_identity(packed.manifest, sections={k: _edit(v, edits)[:len(v)].ljust(len(v), b"\xc1") for k, v in packed.data.items()})
 
 
 @FUZZ
