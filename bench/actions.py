@@ -50,7 +50,6 @@ from cmion_mesh.zenoh_transport import ZenohTransport
 
 EMBODIMENT = "bench-act"
 COMPANION = "bench"
-TARGET_MS = 2.0
 
 LABELS = {
     "raw_get": "raw zenoh get, round trip (context)",
@@ -208,6 +207,5 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                              rewarm=options.rewarm, log=log)
         log(f"measured in {time.monotonic() - started:.1f} s")
     rows = [Row(m, LABELS[m], summarize(pooled[m]), extra={"rounds": options.rounds}) for m in LABELS]
-    compare(rows, CONTEXT, None)
-    rows[1].limit = TARGET_MS
+    compare(rows, CONTEXT, None)  # targets: bench.targets
     return rows
