@@ -348,6 +348,9 @@ class _Untagged(Message, frozen=True, tag=""):
     which it leaves optional when decoding into one tagged Struct."""
 
 _encoder = msgspec.msgpack.Encoder()
+#: Per message kind, its fields holding plain data (checked after decoding); never _Untagged.
+_PLAIN_FIELDS: dict[type, tuple[str, ...]] = {}
+_FLAT = frozenset({str, int, float, bool, type(None)})
 _any_decoder = msgspec.msgpack.Decoder(AnyMessage)
 _decoders: dict[Any, msgspec.msgpack.Decoder[Any]] = {}
 
@@ -372,14 +375,20 @@ def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
         raise ProtocolError(f"{where or 'payload'}: malformed message: {exc}") from None
     except RecursionError:
         raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
-    if isinstance(message, _Untagged):
-        raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
-    for field in ("value", "data", "parameters"):
-        if hasattr(message, field):
-            try:
-                check_value(getattr(message, field))
-            except ValueError as exc:
-                raise ProtocolError(f"{where or 'payload'}: {exc}") from None
+    cls = type(message)
+    fields = _PLAIN_FIELDS.get(cls)
+    if fields is None:
+        if cls is _Untagged:
+            raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
+        fields = _PLAIN_FIELDS.setdefault(cls, tuple(f for f in ("value", "data", "parameters") if f in cls.__struct_fields__))
+    for field in fields:
+        value = getattr(message, field)
+        if type(value) in _FLAT:
+            continue  # decoded scalars are plain data (MessagePack integers fit in 64 bits)
+        try:
+            check_value(value)
+        except ValueError as exc:
+            raise ProtocolError(f"{where or 'payload'}: {exc}") from None
     return message
 
 
