@@ -12,6 +12,14 @@ is already there or an older claim is (two started at the same moment: the older
 winner keeps its claim for its life; a claim that appears later and stays longer than a
 newcomer needs to decide (``DUPLICATE_GRACE``) is a duplicate: two parts of a mesh that could
 not see each other have joined. ``NameClaim.duplicates`` names them; the embodiment says so loudly.
+
+Joining does not wait a fixed time for tokens to arrive: once linked, it *asks* (liveliness
+queries on ``@alive/*`` and on its name's claims), and a liveliness query ends when every peer
+linked to the session has answered. Of two newcomers claiming one name through a common peer, at
+least one sees the other's claim (each declares its claim before it asks, and the peer answers
+in the order it hears them). The younger withdraws as soon as it sees an older claim; the older,
+when it sees a younger one, waits until that one withdraws (it saw the older) or shows alive (it
+did not: then the older refuses). So neither starts unseen by the other.
 """
 
 from __future__ import annotations
@@ -24,12 +32,16 @@ from cmion_mesh import keys
 from cmion_mesh.errors import Refused
 from cmion_mesh.transport import Closeable, Handle, Transport
 
-#: After the first sign of another member (a token, a link), how long a joining daemon waits for the
-#: rest of the mesh's tokens (peers found by scouting connect at about the same time).
-SETTLE = 0.15
+#: Longest wait for the peers linked to a joining daemon to answer its liveliness queries (they
+#: answer in a round trip: this bounds a peer that does not).
+ASK_TIMEOUT = 1.0
 #: How long a joining daemon waits for the token of a same-named embodiment that the others say is
 #: alive, to say where it runs (it refuses either way).
 REPORTED_WAIT = 3.0
+#: How long a joining daemon that sees a younger claim on its name waits for that newcomer to
+#: withdraw or to show alive (it decides once it has asked the mesh, which takes moments; a
+#: newcomer that did not see this claim shows alive once its components are loaded).
+YOUNGER_WAIT = 30.0
 #: How often a joining daemon looks whether its session has connected to anyone (zenoh gives no
 #: event for it); tokens wake it at once.
 POLL = 0.02
@@ -112,34 +124,54 @@ class NameClaim(Handle):
         self._closed = False
         self._token = transport.declare_token(keys.claim_key(mesh, name, self.rank))
         self._watch: Closeable | None = None
-        joining = transport.watch_liveliness(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", self._on_alive)
+        alive_pattern = f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*"
+        joining = transport.watch_liveliness(alive_pattern, self._on_alive)
         try:
             self._watch = transport.watch_liveliness(keys.claim_pattern(mesh, name), self._on_claim)
             deadline = time.monotonic() + window
+            found = False
             with self._cond:
                 for _ in range(int(window / POLL) + 2):  # bounded: ends on a sign of the mesh or the window's end
                     if self._claims or self._alive or (connected is not None and connected()):
-                        # Someone is there: its tokens, and the rest of the mesh, arrive within moments.
-                        self._cond.wait_for(lambda: name in self._alive, SETTLE)
+                        found = True
                         break
                     left = deadline - time.monotonic()
                     if left <= 0:
                         break
                     self._cond.wait(min(POLL, left))  # woken at once by any token; links have no event
+            if found:
+                # Someone is there: ask every linked peer for the tokens it holds rather than wait for them.
+                for key in transport.alive(alive_pattern, timeout=ASK_TIMEOUT):
+                    self._on_alive(key, True)
+                for key in transport.alive(keys.claim_pattern(mesh, name), timeout=ASK_TIMEOUT):
+                    self._on_claim(key, True)
+            with self._cond:
                 seen = set(self._alive)
-            # Tokens of the daemons this session is not linked to yet may still be on their way (under
-            # load, longer than SETTLE): the daemons it sees know the whole mesh. Ask them.
+            # Daemons this session is not linked to yet answered nothing: the daemons it sees know the
+            # whole mesh. Ask them.
             if name not in seen and seen and name in views(seen):
                 with self._cond:
                     self._cond.wait_for(lambda: name in self._alive, REPORTED_WAIT)
                 seen.add(name)
             with self._cond:
-                # An older claim is a daemon still starting, or (its token delayed under load) one
-                # already running: let it show which before telling the user, or let it withdraw.
-                self._cond.wait_for(lambda: name in seen or name in self._alive
-                                    or not any(rank < self.rank for rank in self._claims), REPORTED_WAIT)
                 taken = name in seen or name in self._alive
                 older = sorted(rank for rank in self._claims if rank < self.rank)
+            if older and not taken:
+                # An older claim is a daemon still starting, or (its token delayed under load) one
+                # already running: this one yields at once (withdrawing its claim lets a starting
+                # older one go on), then lets it show which before telling the user.
+                self._token.close()
+                with self._cond:
+                    self._cond.wait_for(lambda: name in self._alive or not any(rank < self.rank for rank in self._claims),
+                                        REPORTED_WAIT)
+                    taken = name in self._alive
+            if not taken and not older:
+                # A younger claim is a newcomer that either saw this claim (it withdraws) or did not
+                # (it shows alive, and then this one yields): wait for it to say which.
+                with self._cond:
+                    self._cond.wait_for(lambda: name in self._alive or not any(rank > self.rank for rank in self._claims),
+                                        YOUNGER_WAIT)
+                    taken = name in self._alive
             if taken:
                 where = describe(name)
                 raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
