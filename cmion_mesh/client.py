@@ -17,6 +17,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from operator import itemgetter
 from typing import Any
 
 import msgspec
@@ -167,16 +168,16 @@ class MeshClient:
     # --- storage ------------------------------------------------------------------------------
 
     def read(self, selector: str, *, timeout: float = 5.0) -> dict[str, Entry]:
-        """All properties and containers under a zenoh selector, by key."""
-        out: dict[str, Entry] = {}
-        for reply in self.transport.get(selector, timeout=timeout):
-            if not reply.ok:
-                continue
-            try:
-                out[reply.key] = decode(reply.payload, Entry, where=reply.key)
-            except ProtocolError:
-                continue  # not a storage entry (another program answering the same keys)
-        return dict(sorted(out.items()))
+        """All properties and containers under a zenoh selector, by key (in key order)."""
+        found: list[tuple[str, Entry]] = []
+        for key, payload, ok in self.transport.get(selector, timeout=timeout):
+            if ok:
+                try:
+                    found.append((key, decode(payload, Entry, where=key)))
+                except ProtocolError:
+                    continue  # not a storage entry (another program answering the same keys)
+        found.sort(key=itemgetter(0))  # stable: of two answers for one key, the later one wins below
+        return dict(found)
 
     def read_store(self, embodiment: str, store: str, path: str = "", *, timeout: float = 5.0) -> dict[str, Entry]:
         base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(path))
