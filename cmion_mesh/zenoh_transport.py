@@ -76,30 +76,30 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
             raise ConfigError(f"invalid zenoh config: {exc}", path=str(path)) from None
     else:
         zc = zenoh.Config()
-    settings: list[tuple[str, Any]] = [("mode", cfg.mode)]
-    if cfg.connect:
-        settings.append(("connect/endpoints", list(cfg.connect)))
-    if cfg.listen:
-        settings.append(("listen/endpoints", list(cfg.listen)))
-    if not cfg.multicast:
-        settings.append(("scouting/multicast/enabled", False))
-    if cfg.multicast_interface:
-        settings.append(("scouting/multicast/interface", cfg.multicast_interface))
-    if cfg.lease_ms:
-        settings.append(("transport/link/tx/lease", cfg.lease_ms))
-        # zenoh sends keep-alives lease/keep_alive apart; 4 per lease tolerates one lost.
-        settings.append(("transport/link/tx/keep_alive", 4))
-    for key, value in settings:
-        try:
-            zc.insert_json5(key, json.dumps(value))
-        except zenoh.ZError as exc:
-            raise ConfigError(f"zenoh setting {key}={value!r} refused: {exc}") from None
-    for key, raw in cfg.overrides:
+    for key, raw in settings(cfg):
         try:
             zc.insert_json5(key, raw)
         except zenoh.ZError as exc:
             raise ConfigError(f"zenoh setting {key}={raw} refused: {exc}") from None
     return zc
+
+
+def settings(cfg: TransportConfig) -> list[tuple[str, str]]:
+    """The zenoh settings (key, JSON5 value) ``build_config`` puts on top of the file or defaults."""
+    values: list[tuple[str, Any]] = [("mode", cfg.mode)]
+    if cfg.connect:
+        values.append(("connect/endpoints", list(cfg.connect)))
+    if cfg.listen:
+        values.append(("listen/endpoints", list(cfg.listen)))
+    if not cfg.multicast:
+        values.append(("scouting/multicast/enabled", False))
+    if cfg.multicast_interface:
+        values.append(("scouting/multicast/interface", cfg.multicast_interface))
+    if cfg.lease_ms:
+        values.append(("transport/link/tx/lease", cfg.lease_ms))
+        # zenoh sends keep-alives lease/keep_alive apart; 4 per lease tolerates one lost.
+        values.append(("transport/link/tx/keep_alive", 4))
+    return [(key, json.dumps(value)) for key, value in values] + list(cfg.overrides)
 
 
 class _Query:
