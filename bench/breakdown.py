@@ -97,11 +97,20 @@ def instrument() -> None:
     handle = Store.handle_requests
     send = IncomingRequest._send
     query_init = zenoh_transport._Query.__init__
-    make_sample = zenoh_transport._sample
+    make_sample, sample_of = zenoh_transport._sample, zenoh_transport._sample_of
 
     def traced_sample(sample: Any) -> Sample:
         BOOK.channel_out = ns()
         return make_sample(sample)
+
+    def traced_sample_of(key: str) -> Any:  # subscriptions on one concrete key convert with this
+        convert = sample_of(key)
+
+        def traced(sample: Any) -> Sample:
+            BOOK.channel_out = ns()
+            return convert(sample)
+
+        return traced
 
     def traced_query_init(self: Any, query: Any) -> None:
         BOOK.channel_out = ns()
@@ -141,6 +150,7 @@ def instrument() -> None:
     Store.handle_requests = traced_handle  # type: ignore[method-assign]
     IncomingRequest._send = traced_send  # type: ignore[method-assign]
     zenoh_transport._sample = traced_sample
+    zenoh_transport._sample_of = traced_sample_of
     zenoh_transport._Query.__init__ = traced_query_init  # type: ignore[method-assign]
 
 

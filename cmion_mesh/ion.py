@@ -42,7 +42,7 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
-from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, encode, tag
+from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, decoder, encode, tag
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
 log = logging.getLogger(__name__)
@@ -147,7 +147,10 @@ class Component:
         request.reject(f"component {self.name!r} does not handle {request.name!r}", Code.UNKNOWN_REQUEST)
 
     def raise_event(self, name: str, data: Any = None) -> None:
-        self.sim.raise_event(self.name, name, data)
+        sim = self._sim
+        if sim is None:
+            raise MeshError(f"component {self.name!r} is not attached to a simulation")
+        sim.raise_event(self.name, name, data)
 
     def request_catalogue(self) -> dict[str, Any]:
         """What this component answers, as plain data: ``{"component", "requests": {name: message
@@ -207,6 +210,7 @@ class _Subscription(Handle):
 
 
 _STOP = object()
+_decode_event = decoder(Event)
 #: Values that are plain data whatever they hold (ints need their range checked: ``check_value``).
 _SCALARS = frozenset({str, float, bool, type(None)})
 
@@ -419,7 +423,7 @@ class Simulation:
             if deleted:
                 continue
             try:
-                event = decode(payload, Event, where=key)
+                event = _decode_event(payload, key)
                 named = keys_of.get((event.embodiment, event.component, event.name)) or \
                     self._event_key(event.embodiment, event.component, event.name)
                 if named != key:
@@ -645,7 +649,14 @@ class Simulation:
         while events and dispatched < MAX_EVENTS_PER_UPDATE:
             event, key, target = events.popleft()
             dispatched += 1
-            for sub in self._subscribers(key) if target is None else (target,):
+            if target is not None:  # a remote event, for the one subscription that received it
+                if not target.closed:
+                    try:
+                        target.handler(event)
+                    except Exception:
+                        log.exception("handler of %s failed in embodiment %s", key, self.embodiment)
+                continue
+            for sub in self._subscribers(key):
                 if not sub.closed:
                     try:
                         sub.handler(event)

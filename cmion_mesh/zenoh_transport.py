@@ -180,15 +180,27 @@ def _sample(sample: zenoh.Sample) -> Sample:
     return Sample(str(sample.key_expr), sample.payload.to_bytes(), sample.kind == _DELETE)
 
 
-def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], None]) -> threading.Thread:
+def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
+    """``_sample`` for a subscription on the concrete ``key``: every sample it gets is on that key,
+    so the key is not converted back to a string per sample."""
+
+    def convert(sample: zenoh.Sample) -> Sample:
+        return Sample(key, sample.payload.to_bytes(), sample.kind == _DELETE)
+
+    return convert
+
+
+def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], None],
+                   convert: Callable[[zenoh.Sample], Sample] | None = None) -> threading.Thread:
     """A worker handing ``handle`` what the channel holds each time it looks (``MAX_BATCH`` at most):
     one blocking ``recv``, then ``try_recv`` until the channel is empty."""
     recv, try_recv = channel.recv, channel.try_recv
 
     def run() -> None:
+        make = convert or _sample  # looked up here, not at declaration: bench.breakdown wraps _sample
         while True:
             try:
-                batch = [_sample(recv())]
+                batch = [make(recv())]
             except zenoh.ZError:
                 return  # channel closed: undeclared or session closed
             closed = False
@@ -200,7 +212,7 @@ def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], Non
                     break
                 if item is None:
                     break
-                batch.append(_sample(item))
+                batch.append(make(item))
             try:
                 handle(batch)
             except Exception:
@@ -291,7 +303,9 @@ class ZenohTransport:
             sub = self._session.declare_subscriber(
                 selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), allowed_origin=origin
             )
-        return self._track(_Entity(sub.undeclare, _drain_batches(f"sub:{selector}", sub.handler, handler)))
+        concrete = "*" not in selector and "$" not in selector
+        return self._track(_Entity(sub.undeclare, _drain_batches(f"sub:{selector}", sub.handler, handler,
+                                                                 _sample_of(selector) if concrete else None)))
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
         with self._errors(f"declare queryable {selector}"):
