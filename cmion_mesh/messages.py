@@ -356,6 +356,8 @@ _encoder = msgspec.msgpack.Encoder()
 #: Per message kind, its fields holding plain data (checked after decoding); never _Untagged.
 _PLAIN_FIELDS: dict[type, tuple[str, ...]] = {}
 _FLAT = frozenset({str, int, float, bool, type(None)})
+#: Types that are plain data whatever their value (an int's range must be checked).
+_SCALARS = frozenset({str, float, bool, type(None)})
 _any_decoder = msgspec.msgpack.Decoder(AnyMessage)
 _decoders: dict[Any, msgspec.msgpack.Decoder[Any]] = {}
 
@@ -434,6 +436,20 @@ def check_value(value: Value, _depth: int = 0) -> Value:
     """Return ``value`` if it is plain data (see module doc), else raise ``ValueError`` saying where."""
     if _depth > MAX_DEPTH:
         raise ValueError(f"value nested deeper than {MAX_DEPTH} levels")
+    kind = type(value)
+    if kind in _SCALARS:
+        return value
+    if kind is dict or kind is list:  # the common containers: their scalar items checked here, not by a call each
+        deeper = _depth + 1
+        for k, item in value.items() if kind is dict else enumerate(value):
+            if kind is dict and type(k) is not str and not isinstance(k, str):
+                raise ValueError(f"map key {k!r} is not a string")
+            if type(item) in _SCALARS:
+                if deeper > MAX_DEPTH:
+                    raise ValueError(f"value nested deeper than {MAX_DEPTH} levels")
+            else:
+                check_value(item, deeper)
+        return value
     if value is None or isinstance(value, (str, bool, float)):
         return value
     if isinstance(value, int):

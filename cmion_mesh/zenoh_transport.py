@@ -327,12 +327,14 @@ class ZenohTransport:
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
         if self._closed:
             raise ClosedError(f"query {selector}: the transport is closed")
+        # A concrete key intersects only itself: every reply to it is on it (no conversion back).
+        concrete = "*" not in selector and "$" not in selector and "?" not in selector
         out: list[Reply] = []
         try:
             for reply in self._session.get(selector, payload=payload, timeout=timeout, target=_ALL, consolidation=_NONE):
                 ok = reply.ok
                 if ok is not None:
-                    out.append(Reply(str(ok.key_expr), ok.payload.to_bytes(), True))
+                    out.append(Reply(selector if concrete else str(ok.key_expr), ok.payload.to_bytes(), True))
                 else:
                     err = reply.err
                     out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
