@@ -86,18 +86,24 @@ class Presence(Handle):
         """``listener(name, alive)`` on every change from now on (on the transport's worker)."""
         with self._cond:
             self._listeners.append(listener)
-        presence = self
-
-        class _Stop(Handle):
-            def close(self) -> None:
-                with presence._cond:
-                    if listener in presence._listeners:
-                        presence._listeners.remove(listener)
-
-        return _Stop()
+        return _Listening(self, listener)
 
     def close(self) -> None:
         self._watch.close()
+
+
+class _Listening(Handle):
+    """A listener of ``Presence.listen``; closing it stops the calls (idempotent)."""
+
+    def __init__(self, presence: Presence, listener: Listener) -> None:
+        self._presence = presence
+        self._listener = listener
+
+    def close(self) -> None:
+        presence = self._presence
+        with presence._cond:
+            if self._listener in presence._listeners:
+                presence._listeners.remove(self._listener)
 
 
 class NameClaim(Handle):
