@@ -5,6 +5,8 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
 
 * An update starts as soon as work arrives (a request, a remote event, a posted call) and takes
   everything that has arrived by then. An idle simulation blocks in one ``queue.get``: no polling.
+  Remote events cross one thread hop: each subscription's transport worker decodes what its
+  channel holds and hands it over as one item (``Transport.subscribe_batches``).
 * In one update, posted calls run first, then every component receives *all* the requests that
   reached it together (``handle_requests``) so it can mediate conflicts, then events are
   dispatched one at a time in the order raised, including events raised by the handlers.

@@ -293,7 +293,10 @@ class ZenohTransport:
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
         def each(batch: list[Sample]) -> None:
             for sample in batch:
-                handler(sample)
+                try:
+                    handler(sample)
+                except Exception:  # one sample's failure is not the next one's
+                    log.exception("handler of %s failed", selector)
 
         return self.subscribe_batches(selector, each, remote_only=remote_only)
 
