@@ -128,6 +128,7 @@ class NameClaim(Handle):
         self._on_duplicate: Callable[[list[str]], None] | None = None
         self._timers: list[threading.Timer] = []
         self._closed = False
+        self._transport = transport
         self._token = transport.declare_token(keys.claim_key(mesh, name, self.rank))
         self._watch: Closeable | None = None
         alive_pattern = f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*"
@@ -149,20 +150,37 @@ class NameClaim(Handle):
                 # Someone is there: ask every linked peer for the tokens it holds rather than wait for them.
                 for key in transport.alive(alive_pattern, timeout=ASK_TIMEOUT):
                     self._on_alive(key, True)
-                for key in transport.alive(keys.claim_pattern(mesh, name), timeout=ASK_TIMEOUT):
-                    self._on_claim(key, True)
+                self._ask_claims(mesh, name)
             with self._cond:
                 seen = set(self._alive)
             # Daemons this session is not linked to yet answered nothing: the daemons it sees know the
             # whole mesh. Ask them.
-            if name not in seen and seen and name in views(seen):
+            reported = name not in seen and bool(seen) and name in views(seen)
+            if reported:
                 with self._cond:
                     self._cond.wait_for(lambda: name in self._alive, REPORTED_WAIT)
-                seen.add(name)
+            self._decide(mesh, name, reported, describe)
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            joining.close()
+
+    def _decide(self, mesh: str, name: str, reported: bool, describe: Callable[[str], str]) -> None:
+        """Keep the claim, or raise ``Refused``: the name is alive, or an older claim holds it."""
+        for _ in range(3):  # bounded: a round ends in a decision, or in the name freed by a daemon that stopped
             with self._cond:
-                taken = name in seen or name in self._alive
+                taken = reported or name in self._alive
                 older = sorted(rank for rank in self._claims if rank < self.rank)
-            if older and not taken:
+            if taken:
+                where = describe(name)  # waits for the live one to answer
+                if reported or where or self._transport.alive(keys.alive_key(mesh, name), timeout=ASK_TIMEOUT):
+                    raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
+                                  "one name, one body (stop that one first, or choose another --name)")
+                with self._cond:  # its token was a daemon's that has just stopped: decide again
+                    self._alive.discard(name)
+                continue
+            if older:
                 # An older claim is a daemon still starting, or (its token delayed under load) one
                 # already running: this one yields at once (withdrawing its claim lets a starting
                 # older one go on), then lets it show which before telling the user.
@@ -170,26 +188,38 @@ class NameClaim(Handle):
                 with self._cond:
                     self._cond.wait_for(lambda: name in self._alive or not any(rank < self.rank for rank in self._claims),
                                         REPORTED_WAIT)
-                    taken = name in self._alive
-            if not taken and not older:
-                # A younger claim is a newcomer that either saw this claim (it withdraws) or did not
-                # (it shows alive, and then this one yields): wait for it to say which.
+                self._ask_claims(mesh, name)  # what is still there (a claim seen only by asking never says it left)
                 with self._cond:
-                    self._cond.wait_for(lambda: name in self._alive or not any(rank > self.rank for rank in self._claims),
-                                        YOUNGER_WAIT)
-                    taken = name in self._alive
-            if taken:
-                where = describe(name)
-                raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
-                              "one name, one body (stop that one first, or choose another --name)")
-            if older:
-                raise Refused(f"another {name!r} is starting in mesh {mesh!r} at the same moment (zenoh id "
-                              f"{older[0].partition('-')[2]}), and it started first: one name, one body")
-        except BaseException:
-            self.close()
-            raise
-        finally:
-            joining.close()
+                    if name not in self._alive and any(rank < self.rank for rank in self._claims):
+                        raise Refused(f"another {name!r} is starting in mesh {mesh!r} at the same moment (zenoh id "
+                                      f"{older[0].partition('-')[2]}), and it started first: one name, one body")
+                if name not in self._alive:
+                    # the older claims were withdrawn (daemons refused or stopped): claim again
+                    self._token = self._transport.declare_token(keys.claim_key(mesh, name, self.rank))
+                continue
+            # A younger claim is a newcomer that either saw this claim (it withdraws) or did not (it
+            # shows alive, and then this one yields): wait for it to say which.
+            for _ in range(int(YOUNGER_WAIT / REPORTED_WAIT)):
+                with self._cond:
+                    if self._cond.wait_for(lambda: name in self._alive or not any(rank > self.rank for rank in self._claims),
+                                           REPORTED_WAIT):
+                        break
+                self._ask_claims(mesh, name)  # still there? (a claim seen only by asking never says it left)
+            with self._cond:
+                if name not in self._alive:
+                    return
+        raise Refused(f"embodiment {name!r} in mesh {mesh!r}: claimed and released by others three times while "
+                      "this one joined; try again")
+
+    def _ask_claims(self, mesh: str, name: str) -> None:
+        """The claims on ``name`` now, asked of every linked peer (replacing what the watch gathered)."""
+        ranks = {key.rsplit("/", 1)[-1] for key in self._transport.alive(keys.claim_pattern(mesh, name), timeout=ASK_TIMEOUT)}
+        with self._cond:
+            for rank in list(self._claims):
+                if rank not in ranks:
+                    self._claims.pop(rank, None)
+        for rank in ranks:
+            self._on_claim(keys.claim_key(mesh, name, rank), True)
 
     def _on_alive(self, key: str, alive: bool) -> None:
         with self._cond:

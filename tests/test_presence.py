@@ -49,11 +49,34 @@ def test_an_older_claim_makes_the_newcomer_yield_at_once(network: MemoryNetwork,
         with pool:
             # it withdraws its own claim before anything else (so that a starting older one goes on) ...
             wait_for(lambda: claims(elder, mesh, "robot") == [OLDEST], 10.0, "the newcomer's claim withdrawn")
-            assert not future.done()  # ... and waits to say whether the older one is starting or running
-            older.close()
+            assert not future.done()  # ... and waits for the older one to show alive or to withdraw
+            older.close()  # it withdrew (refused, or stopped): the name is free
             finished(future)
+        with future.result() as claim:
+            assert claims(new, mesh, "robot") == [claim.rank], "claimed again"
+
+
+def test_an_older_claim_that_stays_refuses_the_newcomer(network: MemoryNetwork, mesh: str) -> None:
+    with MemoryTransport(network, "elder") as elder, MemoryTransport(network, "new") as new:
+        elder.declare_token(keys.claim_key(mesh, "robot", OLDEST))
         with pytest.raises(Refused, match=r"another .robot. is starting .* \(zenoh id elder\)"):
-            future.result()
+            NameClaim(new, mesh, "robot", window=0.2)
+        assert claims(elder, mesh, "robot") == [OLDEST]
+
+
+def test_the_token_of_a_daemon_that_just_stopped_does_not_refuse_its_successor(network: MemoryNetwork, mesh: str) -> None:
+    # a restart: the old daemon's tokens may still be there when the new one asks
+    with MemoryTransport(network, "old") as old, MemoryTransport(network, "new") as new:
+        token = old.declare_token(keys.alive_key(mesh, "robot"))
+        claim_token = old.declare_token(keys.claim_key(mesh, "robot", OLDEST))
+
+        def old_one_finishes_stopping(name: str) -> str:  # asked where the live one runs: nobody answers
+            token.close()
+            claim_token.close()
+            return ""
+
+        with NameClaim(new, mesh, "robot", window=0.2, describe=old_one_finishes_stopping) as claim:
+            assert claims(new, mesh, "robot") == [claim.rank]
 
 
 def test_an_older_claim_shown_alive_is_named_as_running(network: MemoryNetwork, mesh: str) -> None:
