@@ -15,7 +15,9 @@ not see each other have joined. ``NameClaim.duplicates`` names them; the embodim
 
 Joining does not wait a fixed time for tokens to arrive: once linked, it *asks* (liveliness
 queries on ``@alive/*`` and on its name's claims), and a liveliness query ends when every peer
-linked to the session has answered. Of two newcomers claiming one name through a common peer, at
+linked to the session has answered. Only when the answer is that nobody is alive does it wait
+(``SETTLE``) and ask again: just after a link comes up, its declarations may not have been
+exchanged, and the query then reaches nobody. Of two newcomers claiming one name through a common peer, at
 least one sees the other's claim (each declares its claim before it asks, and the peer answers
 in the order it hears them). The younger withdraws as soon as it sees an older claim; the older,
 when it sees a younger one, waits until that one withdraws (it saw the older) or shows alive (it
@@ -35,6 +37,9 @@ from cmion_mesh.transport import Closeable, Handle, Transport
 #: Longest wait for the peers linked to a joining daemon to answer its liveliness queries (they
 #: answer in a round trip: this bounds a peer that does not).
 ASK_TIMEOUT = 1.0
+#: When the linked peers answer that no embodiment is alive, how long a joining daemon still waits
+#: for tokens before it believes them (a link's declarations may not have been exchanged yet).
+SETTLE = 0.15
 #: How long a joining daemon waits for the token of a same-named embodiment that the others say is
 #: alive, to say where it runs (it refuses either way).
 REPORTED_WAIT = 3.0
@@ -148,7 +153,14 @@ class NameClaim(Handle):
                     self._cond.wait(min(POLL, left))  # woken at once by any token; links have no event
             if found:
                 # Someone is there: ask every linked peer for the tokens it holds rather than wait for them.
-                for key in transport.alive(alive_pattern, timeout=ASK_TIMEOUT):
+                answered = transport.alive(alive_pattern, timeout=ASK_TIMEOUT)
+                if not answered:
+                    # Nothing: a mesh with no embodiment yet, or a link whose declarations are still on
+                    # their way (under load, the query can find no route yet): wait for tokens, then ask again.
+                    with self._cond:
+                        self._cond.wait_for(lambda: bool(self._alive), SETTLE)
+                    answered = transport.alive(alive_pattern, timeout=ASK_TIMEOUT)
+                for key in answered:
                     self._on_alive(key, True)
                 self._ask_claims(mesh, name)
             with self._cond:
