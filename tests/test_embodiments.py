@@ -222,9 +222,10 @@ def test_screen_detects_users_through_the_blackboard(transport: MemoryTransport,
         wait_for(lambda: screen.blackboard.has_container("sim"), WAIT, "UserDetection created the sim container")
         assert not wm.has_container("Visitor")
         set_bb(client, "screen", "sim/userPresent", "Visitor")
-        wait_for(lambda: wm.get("Visitor", "present") is True, WAIT, "the visitor is seen")
+        # location is written after present: once it is there, so is the rest
+        wait_for(lambda: wm.get("Visitor", "location") == "Entrance", WAIT, "the visitor is seen where the screen is")
+        assert wm.get("Visitor", "present") is True
         assert wm.node("Visitor").kind == "agent"
-        assert wm.get("Visitor", "location") == "Entrance", "seen where the screen is"
         set_bb(client, "screen", "sim/userPresent", "Visitor, Alice")
         wait_for(lambda: wm.get("Alice", "present") is True, WAIT, "a known user comes too")
         assert wm.get("Alice", "displayName") == "Alice", "a known user keeps what the companion knows of them"
