@@ -47,6 +47,7 @@ LABELS = {
     "mesh_up_line": "cmion-mesh up: spawn -> 'up in mesh' line",
     "mesh_line_to_token": "cmion-mesh up: 'up' line -> token seen",
     "mesh_described": "cmion-mesh up: spawn -> describe answered",
+    "mesh_token_seen_joined": "cmion-mesh up, a daemon already in the mesh: spawn -> token seen",
     "import_zenoh": "python -c 'import zenoh' (wall)",
     "import_cmion": "python -c 'import <what up imports>' (wall)",
 }
@@ -143,9 +144,29 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 for problem in stop_all([node]):
                     log(problem)
         log(f"{rounds} rounds of spawn -> discovered done")
+        # The same, with a daemon already in the mesh: a joining daemon asks the mesh who holds its
+        # name and gets an answer at once; in a mesh with no token at all (above) it waits a moment
+        # (presence.SETTLE) before believing that nobody is there.
+        anchor = Node("anchor", mesh, tmp / "anchor", connect=(watch_ep,))
+        anchor.start()
+        stack.callback(stop_all, [anchor])
+        watcher.wait(f"{alive}/anchor", 60.0)
+        for i in range(-1, rounds):
+            node = Node(f"j{i}", mesh, tmp / f"j{i}", connect=(watch_ep,))
+            node.start()
+            try:
+                assert node.daemon is not None
+                seen = watcher.wait(f"{alive}/j{i}", 60.0)
+                if i >= 0:
+                    samples["mesh_token_seen_joined"].append(seen - node.daemon.spawned)
+            finally:
+                for problem in stop_all([node]):
+                    log(problem)
+        log(f"{rounds} rounds of spawn -> discovered, joining a daemon, done")
         for _ in range(rounds):
             samples["import_zenoh"].append(import_wall("import zenoh"))
             samples["import_cmion"].append(import_wall(IMPORTS))
     rows = [Row(m, LABELS[m], summarize(samples[m]), extra={"rounds": rounds}) for m in LABELS]
-    compare(rows, {"mesh_token_seen": "raw_token_seen", "import_cmion": "import_zenoh"}, None)
+    compare(rows, {"mesh_token_seen": "raw_token_seen", "mesh_token_seen_joined": "raw_token_seen", "import_cmion": "import_zenoh"},
+            None)
     return rows
