@@ -8,6 +8,7 @@ Given several runs, a later run's row replaces an earlier one's (one run per ben
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -21,10 +22,17 @@ README = Path(__file__).resolve().parent / "README.md"
 
 
 def rows_of(doc: dict[str, Any]) -> list[Row]:
-    """The rows of a run's JSON: a whole run (``--json``: ``benchmarks``) or one benchmark's file."""
-    if "benchmarks" in doc:
-        return [Row.from_json(r) for bench in doc["benchmarks"].values() for r in bench["rows"]]
-    return [Row.from_json(r) for r in doc.get("rows", ())]
+    """The rows of a run's JSON: a whole run (``--json``: ``benchmarks``) or one benchmark's file.
+    Each row's ``extra["benchmark"]`` names its benchmark: raw rows share ids across benchmarks
+    (``raw_get`` in core, actions...), and a row's baseline is the one of its own benchmark."""
+    benches = doc["benchmarks"].items() if "benchmarks" in doc else [(doc.get("benchmark", ""), doc)]
+    rows = []
+    for name, bench in benches:
+        for r in bench.get("rows", ()):
+            row = Row.from_json(r)
+            row.extra["benchmark"] = name
+            rows.append(row)
+    return rows
 
 
 def load(paths: Iterable[Path]) -> tuple[list[Row], list[dict[str, Any]]]:
@@ -60,11 +68,11 @@ def _cell(row: Row | None) -> str:
 
 def markdown(rows: Sequence[Row], targets: Sequence[Target] = TARGETS) -> str:
     """One line per target: what raw zenoh and cmion measured (median, p99), the ratio, the target, met?"""
-    by_metric = {row.metric: row for row in rows}
+    by_metric = {(row.extra.get("benchmark"), row.metric): row for row in rows}
     lines = ["| metric | raw zenoh | cmion | ratio | target | |", "|---|---|---|---|---|---|"]
     for verdict in verdicts(rows, targets):
         target, row = verdict.target, verdict.row
-        base = by_metric.get(row.baseline) if row is not None and row.baseline else None
+        base = by_metric.get((row.extra.get("benchmark"), row.baseline)) if row is not None and row.baseline else None
         ratio = f"{row.ratio:.2f}x" if row is not None and row.ratio is not None else "-"
         state = {"met": "met", "missed": "**missed**", "not measured": "not measured", "no ratio": "**no ratio**",
                  "wrong unit": f"**in {row.unit if row else '?'}, not {target.unit}**"}[verdict.state]
@@ -74,10 +82,12 @@ def markdown(rows: Sequence[Row], targets: Sequence[Target] = TARGETS) -> str:
 
 
 def header(runs: Sequence[dict[str, Any]]) -> str:
+    """Which runs the table comes from: each one's command (without where its JSON went), date, machine."""
     parts = []
     for run in runs:
         machine = run.get("machine") or {}
-        parts.append(f"`{run.get('command')}` ({run.get('created')}; {machine.get('cpus')} CPUs, Python {machine.get('python')}, "
+        command = re.sub(r" --json \S+", "", str(run.get("command")))
+        parts.append(f"`{command}` ({run.get('created')}; {machine.get('cpus')} CPUs, Python {machine.get('python')}, "
                      f"zenoh {machine.get('zenoh')})")
     return "From " + "; ".join(parts) + "." if parts else ""
 

@@ -129,6 +129,16 @@ def test_report_check_exits_0_when_every_measured_target_is_met(tmp_path: Path) 
     assert "1 met, 0 missed" in done.stdout
 
 
+def test_a_rows_baseline_is_the_one_of_its_own_benchmark(tmp_path: Path) -> None:
+    core = [row("raw_get", 0.2), row("mesh_set_property", 0.26, baseline="raw_get", ratio=1.3)]
+    doc = {"command": "c", "created": "d", "machine": {},
+           "benchmarks": {"core": {"rows": [r.to_json() for r in core]}, "actions": {"rows": [row("raw_get", 0.9).to_json()]}}}
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(doc))
+    rows, _ = tables.load([path])
+    assert "| set request round trip (`mesh_set_property`) | 0.2 ms (p99 0.2) | 0.26 ms (p99 0.26) | 1.30x |" in tables.markdown(rows)
+
+
 def test_a_later_run_replaces_an_earlier_ones_row(tmp_path: Path) -> None:
     first = run_file(tmp_path / "a.json", [row("act_one_client", 0.9)])
     second = run_file(tmp_path / "b.json", [row("act_one_client", 0.5)])
