@@ -4,10 +4,12 @@
     python -m bench --only breakdown             # diagnostic: per-hop timestamps
     python -m bench soak [--seconds N]           # the soak (not part of the default set)
     python -m bench sim [--schedules N]          # handshake simulation testing (bench/simulation.py)
+    python -m bench report [RUN.json ...] [--readme] [--check]   # the targets table of earlier runs
 
 Exit status: 1 if a correctness check failed (a row's ``failures``: lost events or writes, a lost
-or duplicated companion, growth during the soak...), or with ``--check`` if a target is missed;
-else 0.
+or duplicated companion, growth during the soak...), or with ``--check`` if a target of
+``bench.targets`` is missed (each one is named); else 0. A target whose metric the run did not
+measure is "not measured", never a miss.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from bench import targets
 from bench.registry import BENCHMARKS, Options, Row, select
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -130,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, metavar="N", help="unrecorded iterations per metric first (default 200, quick 100)")
     parser.add_argument("--rounds", type=int, default=4, metavar="N", help="raw/cmion alternations (default %(default)s)")
     parser.add_argument("--json", metavar="PATH", help="write the whole run here (default bench/results/<benchmark>.json)")
-    parser.add_argument("--check", action="store_true", help="exit 1 if a cmion metric misses its target ratio")
+    parser.add_argument("--check", action="store_true", help="exit 1 if a measured metric misses its target (bench/targets.py)")
     parser.add_argument("--full", action="store_true", help="also the slow parts (the 32-daemon point of the discovery curve)")
     parser.add_argument("--soak-seconds", type=float, default=20.0, metavar="N",
                         help="traffic phase of the soak (with --only soak; default %(default)s)")
@@ -140,6 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         from bench import simulation  # only this command needs it
 
         return simulation.main(argv[1:])
+    if argv[:1] == ["report"]:
+        return report(argv[1:])
     if argv[:1] == ["soak"]:
         soak = argparse.ArgumentParser(prog="python -m bench soak", description="the soak: see bench/soak.py")
         soak.add_argument("--seconds", type=float, default=20.0, help="traffic phase, seconds (default %(default)s)")
@@ -168,7 +173,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"{command}: {samples} samples per metric in {options.rounds} interleaved rounds after {warmup} warm-up "
           f"iterations; {host['cpus']} CPUs, zenoh {host['zenoh']}", flush=True)
     everything: dict[str, Any] = {**meta, "benchmarks": {}}
-    failed = False
     broken: list[str] = []
     all_rows: list[Row] = []
     run_started = time.monotonic()
@@ -177,13 +181,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         started = time.monotonic()
         rows = bench.load()(options, groups)
         elapsed = time.monotonic() - started
+        targets.apply(rows)
         print(table(rows), flush=True)
         for text in curve_tables(rows):
             print("\n" + text, flush=True)
         all_rows.extend(rows)
         for row in rows:
-            if row.meets is False:
-                failed = True
             if row.failures:
                 broken.append(f"{bench.name}: {row.label}: {'; '.join(row.failures)}")
         doc = {**meta, "benchmark": bench.name, "groups": sorted(groups), "seconds": round(elapsed, 1),
@@ -205,10 +208,50 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         print(draw(all_rows, Path(args.png)))
     print(f"\ntotal {everything['seconds']:.1f} s")
+    missed = print_check(all_rows) if args.check else []
     if broken:
         print("\nFAILED checks:\n  " + "\n  ".join(broken), flush=True)
         return 1
-    return 1 if args.check and failed else 0
+    return 1 if missed else 0
+
+
+def print_check(rows: Sequence[Row]) -> list[targets.Verdict]:
+    """Print each measured target, met or missed (and how many were not measured); the missed ones."""
+    verdicts = targets.verdicts(rows)
+    measured = [v for v in verdicts if v.state != "not measured"]
+    missed = targets.missed(rows)
+    print(f"\ntargets: {len(measured) - len(missed)} met, {len(missed)} missed, {len(verdicts) - len(measured)} not measured "
+          "in this run (bench/targets.py)")
+    for verdict in measured:
+        print(("  MISSED " if verdict in missed else "  met    ") + verdict.line())
+    return missed
+
+
+def report(argv: Sequence[str]) -> int:
+    """``python -m bench report``: the targets table of earlier runs, in markdown."""
+    from bench import tables
+
+    parser = argparse.ArgumentParser(prog="python -m bench report",
+                                     description="the targets table (markdown) of earlier runs' JSON; a later run's row wins")
+    parser.add_argument("runs", nargs="*", metavar="RUN.json",
+                        help="runs written by --json or bench/results/*.json (default: bench/results/*.json, oldest first)")
+    parser.add_argument("--readme", action="store_true", help="also write the table into bench/README.md")
+    parser.add_argument("--check", action="store_true", help="exit 1 if a measured target is missed")
+    args = parser.parse_args(argv)
+    paths = [Path(p) for p in args.runs] or sorted(RESULTS.glob("*.json"), key=lambda p: p.stat().st_mtime)
+    if not paths:
+        parser.error(f"no runs given and none in {os.path.relpath(RESULTS)}")
+    try:
+        rows, runs = tables.load(paths)
+    except ValueError as exc:
+        parser.error(str(exc))
+    text = tables.header(runs) + "\n\n" + tables.markdown(rows)
+    print(text)
+    if args.readme:
+        tables.write_readme(text)
+        print(f"\nwritten into {os.path.relpath(tables.README)}")
+    missed = print_check(rows) if args.check else []
+    return 1 if missed else 0
 
 
 if __name__ == "__main__":

@@ -76,7 +76,7 @@ class Book:
     """Timestamps of the message in flight (traffic is strictly one at a time) and the records."""
 
     channel_out: int = 0  # the transport's worker got the sample/query from its FifoChannel
-    worker_in: int = 0  # cmion's handler (Simulation._on_remote_event/_on_query) entered
+    worker_in: int = 0  # cmion's handler (Simulation._on_remote_events/_on_query) entered
     worker_out: int = 0
     update_in: int = 0
     handle_in: int = 0
@@ -91,25 +91,34 @@ BOOK = Book()
 
 def instrument() -> None:
     """Wrap the cmion methods on a message's path (class-level: only this process's objects)."""
-    on_event = Simulation._on_remote_event
+    on_events = Simulation._on_remote_events
     on_query = Simulation._on_query
     update = Simulation._update
     handle = Store.handle_requests
     send = IncomingRequest._send
     query_init = zenoh_transport._Query.__init__
-    make_sample = Sample
+    make_sample, sample_of = zenoh_transport._sample, zenoh_transport._sample_of
 
-    def traced_sample(key: str, payload: bytes, deleted: bool = False) -> Sample:
+    def traced_sample(sample: Any) -> Sample:
         BOOK.channel_out = ns()
-        return make_sample(key, payload, deleted)
+        return make_sample(sample)
+
+    def traced_sample_of(key: str) -> Any:  # subscriptions on one concrete key convert with this
+        convert = sample_of(key)
+
+        def traced(sample: Any) -> Sample:
+            BOOK.channel_out = ns()
+            return convert(sample)
+
+        return traced
 
     def traced_query_init(self: Any, query: Any) -> None:
         BOOK.channel_out = ns()
         query_init(self, query)
 
-    def traced_event(self: Simulation, sub: Any, sample: Any) -> None:
+    def traced_events(self: Simulation, sub: Any, batch: Any) -> None:
         BOOK.worker_in = ns()
-        on_event(self, sub, sample)
+        on_events(self, sub, batch)
         BOOK.worker_out = ns()
 
     def traced_query(self: Simulation, component: Any, query: Any) -> None:
@@ -135,12 +144,13 @@ def instrument() -> None:
                               "worker_in": BOOK.worker_in, "worker_out": BOOK.worker_out, "update_in": BOOK.update_in,
                               "handle_in": BOOK.handle_in, "send_in": t_in, "send_out": ns()})
 
-    Simulation._on_remote_event = traced_event  # type: ignore[method-assign]
+    Simulation._on_remote_events = traced_events  # type: ignore[method-assign]
     Simulation._on_query = traced_query  # type: ignore[method-assign]
     Simulation._update = traced_update  # type: ignore[method-assign]
     Store.handle_requests = traced_handle  # type: ignore[method-assign]
     IncomingRequest._send = traced_send  # type: ignore[method-assign]
-    setattr(zenoh_transport, "Sample", traced_sample)  # noqa: B010 - the module imports it; mypy sees no export
+    zenoh_transport._sample = traced_sample
+    zenoh_transport._sample_of = traced_sample_of
     zenoh_transport._Query.__init__ = traced_query_init  # type: ignore[method-assign]
 
 

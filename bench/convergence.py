@@ -2,7 +2,7 @@
 
 For each mesh size N, the measuring process (a zenoh peer listening on a loopback endpoint, with
 a liveliness subscriber on the mesh's ``@alive`` keys) first spawns N raw zenoh processes at once
-(``python -m bench.discovery token``: a session connected to the watcher, one liveliness token),
+(``python -m bench.rawtoken``: a session connected to the watcher, one liveliness token),
 waits until it has seen every token, samples their memory and stops them; then it spawns N
 ``cmion-mesh up`` daemons of the bench embodiment at once (each listening on its own loopback
 port, connecting to the watcher; zenoh's gossip lets them find each other through it) and takes

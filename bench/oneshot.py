@@ -30,7 +30,6 @@ from bench.registry import Options, Row, compare
 from bench.stats import summarize
 from cmion_mesh.procs import cli_argv, unique_mesh
 
-AIM_MS = 400.0
 LABELS = {
     "import_zenoh": 'python -c "import zenoh" (wall)',
     "raw_oneshot": "raw zenoh one-shot: open, join, liveliness get, close (wall)",
@@ -56,7 +55,13 @@ with zenoh.open(config) as session:
     with session.liveliness().declare_subscriber(f"cmion/{mesh}/@alive/*", on_token, history=True):
         if not joined.wait(10):
             sys.exit(1)
-    print(len(list(session.liveliness().get(f"cmion/{mesh}/@alive/*", timeout=5))))
+    # Just after a link comes up a liveliness query can reach nobody (its answer is then empty, at
+    # once): asked again, as a plain zenoh client must.
+    for _ in range(3):
+        found = len([r for r in session.liveliness().get(f"cmion/{mesh}/@alive/*", timeout=5) if r.ok is not None])
+        if found:
+            break
+    print(found)
 """
 
 
@@ -112,8 +117,5 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                     failures[metric].append(f"round {i}: exit {done.returncode}: {(done.stderr or done.stdout).strip()[:200]}")
         log(f"{rounds} rounds done")
     rows = [Row(m, LABELS[m], summarize(samples[m]), extra={"rounds": rounds}, failures=failures[m][:3]) for m in LABELS]
-    for row in rows:
-        if row.metric.startswith("cli_"):
-            row.limit = AIM_MS
     compare(rows, {"raw_oneshot": "import_zenoh", "cli_peers": "import_zenoh", "cli_bb_get": "import_zenoh"}, None)
     return rows

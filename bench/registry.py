@@ -5,12 +5,13 @@ it is registered below by name with the metric groups it can measure (``--only``
 benchmarks by name or by group). To add one: write ``bench/<name>.py`` with a ``run`` function
 and append a ``Benchmark`` to ``BENCHMARKS``.
 
-A row is usually a latency in milliseconds compared with a raw-zenoh row (``ratio``, ``target``);
-it may instead hold another quantity (``unit``: "%", "MiB", "events/s", "s"...), have an absolute
-``limit`` on its median, carry ``failures`` (a correctness check that did not hold: lost events,
-a lost companion...; any failure makes ``python -m bench`` exit 1) and belong to a growth curve
-(``extra["curve"]``, ``extra["x"]``, ``extra["series"]``), which is printed as its own table and
-drawn by ``--png``.
+A row is usually a latency in milliseconds compared with a raw-zenoh row (``ratio``); it may
+instead hold another quantity (``unit``: "%", "MiB", "events/s", "s"...), carry ``failures`` (a
+correctness check that did not hold: lost events, a lost companion...; any failure makes
+``python -m bench`` exit 1) and belong to a growth curve (``extra["curve"]``, ``extra["x"]``,
+``extra["series"]``), which is printed as its own table and drawn by ``--png``. Its target (a
+bound on the ratio, ``at_least`` for rates where higher is better, and/or a ``limit`` on the
+median) comes from ``bench.targets.TARGETS``, the one table of every target.
 """
 
 from __future__ import annotations
@@ -50,16 +51,37 @@ class Row:
     unit: str = "ms"
     limit: float | None = None  # the median the issue asks for (at most), in ``unit``
     failures: list[str] = field(default_factory=list)  # correctness checks that did not hold
+    at_least: bool = False  # ``target`` is a floor on the ratio (rates: higher is better), not a ceiling
+    strict: bool = False  # the median must be below ``limit``, not at it
+
+    def ratio_ok(self) -> bool | None:
+        """Whether the ratio is on the right side of ``target`` (None: no ratio or no target)."""
+        if self.ratio is None or self.target is None:
+            return None
+        return self.ratio >= self.target if self.at_least else self.ratio <= self.target
+
+    def limit_ok(self) -> bool | None:
+        """Whether the median is within ``limit`` (None: no limit)."""
+        if self.limit is None:
+            return None
+        median = self.summary.median_ms
+        return median < self.limit if self.strict else median <= self.limit
 
     @property
     def meets(self) -> bool | None:
-        """Whether the row meets its target ratio and/or absolute limit (None: it has neither)."""
-        checks = []
-        if self.ratio is not None and self.target is not None:
-            checks.append(self.ratio <= self.target)
-        if self.limit is not None:
-            checks.append(self.summary.median_ms <= self.limit)
+        """Whether the row meets its target ratio and/or absolute limit (None: it has neither, or the
+        ratio its target bounds could not be computed)."""
+        checks = [ok for ok in (self.ratio_ok(), self.limit_ok()) if ok is not None]
         return all(checks) if checks else None
+
+    def bounds(self) -> str:
+        """The target in words: ``< 20 ms``, ``<= 1.3x``, ``>= 0.5x`` (``-`` when there is none)."""
+        parts = []
+        if self.limit is not None:
+            parts.append(f"{'<' if self.strict else '<='} {self.limit:g} {self.unit}")
+        if self.target is not None:
+            parts.append(f"{'>=' if self.at_least else '<='} {self.target:g}x")
+        return ", ".join(parts) or "-"
 
     def verdict(self) -> str:
         """The table's target column: the failures, else each target with met/MISSED."""
@@ -67,9 +89,11 @@ class Row:
             return "FAILED: " + "; ".join(self.failures)
         parts = []
         if self.limit is not None:
-            parts.append(f"<= {self.limit:g} {self.unit} " + ("met" if self.summary.median_ms <= self.limit else "MISSED"))
-        if self.ratio is not None and self.target is not None:
-            parts.append(f"<= {self.target:g}x " + ("met" if self.ratio <= self.target else "MISSED"))
+            parts.append(f"{'<' if self.strict else '<='} {self.limit:g} {self.unit} " + ("met" if self.limit_ok() else "MISSED"))
+        if self.target is not None:
+            ok = self.ratio_ok()
+            state = "no ratio" if ok is None else ("met" if ok else "MISSED")
+            parts.append(f"{'>=' if self.at_least else '<='} {self.target:g}x {state}")
         return ", ".join(parts) or "-"
 
     def to_json(self) -> dict[str, Any]:
@@ -88,8 +112,26 @@ class Row:
             "meets_target": self.meets,
             "failures": list(self.failures),
         }
+        if self.at_least:
+            out["target_at_least"] = True
+        if self.strict:
+            out["limit_strict"] = True
         out.update(self.extra)
         return out
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> Row:
+        """The row ``to_json`` wrote (what ``python -m bench report`` reads back from a run's JSON)."""
+        unit = str(doc.get("unit", "ms"))
+        # to_json names the summary's fields as Summary does for ms rows, without "_ms" otherwise
+        names = {name: name if unit == "ms" or name == "n" else name.removesuffix("_ms") for name in Summary.__dataclass_fields__}
+        summary = Summary(**{name: (int if name == "n" else float)(doc[key]) for name, key in names.items()})
+        known = {"metric", "label", "unit", "baseline", "ratio_vs_raw", "target_ratio", "limit", "meets_target", "failures",
+                 "target_at_least", "limit_strict", *names.values()}
+        return cls(str(doc["metric"]), str(doc.get("label", doc["metric"])), summary, baseline=doc.get("baseline"),
+                   ratio=doc.get("ratio_vs_raw"), target=doc.get("target_ratio"), unit=unit, limit=doc.get("limit"),
+                   failures=list(doc.get("failures") or ()), at_least=bool(doc.get("target_at_least")),
+                   strict=bool(doc.get("limit_strict")), extra={k: v for k, v in doc.items() if k not in known})
 
 
 def compare(rows: Iterable[Row], pairs: dict[str, str], target: float | None) -> None:

@@ -819,7 +819,9 @@ def _router_parser(parser: argparse.ArgumentParser) -> None:
                            "the router then forwards only between its clients, its peers and other routers)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; given the ``command`` about to run, the sub-commands of ``certs``
+    are left out unless it is ``certs`` (they import cryptography, which the others never need)."""
     parser = argparse.ArgumentParser(
         prog="cmion-mesh", description="Zenoh peer-to-peer embodiment mesh (CMION rebuilt).",
         epilog="exit codes: 0 succeeded, 1 failed or refused, 2 usage or configuration error, 3 cancelled, "
@@ -941,7 +943,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("certs", help="a certificate authority and certificates for an authenticated mesh (mutual TLS)")
-    _certs_parsers(p)
+    if command in (None, "certs"):
+        _certs_parsers(p)
     p.set_defaults(func=cmd_certs)
 
     p = sub.add_parser("doctor", help="explain why peers are (not) found, and what is wrong in the mesh")
@@ -968,7 +971,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in arguments if not a.startswith("-")), None)  # the top level has options only
+    args = build_parser(command).parse_args(arguments)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return int(func(args))

@@ -17,6 +17,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from operator import itemgetter
 from typing import Any
 
 import msgspec
@@ -65,6 +66,9 @@ REACH_RETRY = 0.5
 STORE_LABELS = {keys.BLACKBOARD: "blackboard", keys.WORLD_MODEL: "world model"}
 #: Most embodiments described at once.
 MAX_PARALLEL_DESCRIBE = 16
+#: Most embodiments whose action ends a client follows at once (``watch_actions``); beyond it,
+#: the least recently used watch with no action in flight is closed.
+MAX_ACTION_WATCHES = 64
 
 
 def did_you_mean(name: str, known: Iterable[str]) -> str:
@@ -89,6 +93,8 @@ class MeshClient:
         self.mesh = keys.check_name(mesh, "mesh")
         self._presence: Presence | None = None
         self._lock = threading.Lock()
+        self._watches: dict[str, ActionWatch] = {}  # by embodiment, least recently used first
+        self._id: str | None = None
 
     def __enter__(self) -> MeshClient:
         return self
@@ -99,6 +105,9 @@ class MeshClient:
     def close(self) -> None:
         with self._lock:
             presence, self._presence = self._presence, None
+            watches, self._watches = list(self._watches.values()), {}
+        for watch in watches:
+            watch.close()
         if presence is not None:
             presence.close()
 
@@ -159,16 +168,16 @@ class MeshClient:
     # --- storage ------------------------------------------------------------------------------
 
     def read(self, selector: str, *, timeout: float = 5.0) -> dict[str, Entry]:
-        """All properties and containers under a zenoh selector, by key."""
-        out: dict[str, Entry] = {}
-        for reply in self.transport.get(selector, timeout=timeout):
-            if not reply.ok:
-                continue
-            try:
-                out[reply.key] = decode(reply.payload, Entry, where=reply.key)
-            except ProtocolError:
-                continue  # not a storage entry (another program answering the same keys)
-        return dict(sorted(out.items()))
+        """All properties and containers under a zenoh selector, by key (in key order)."""
+        found: list[tuple[str, Entry]] = []
+        for key, payload, ok in self.transport.get(selector, timeout=timeout):
+            if ok:
+                try:
+                    found.append((key, decode(payload, Entry, where=key)))
+                except ProtocolError:
+                    continue  # not a storage entry (another program answering the same keys)
+        found.sort(key=itemgetter(0))  # stable: of two answers for one key, the later one wins below
+        return dict(found)
 
     def read_store(self, embodiment: str, store: str, path: str = "", *, timeout: float = 5.0) -> dict[str, Entry]:
         base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(path))
@@ -272,7 +281,9 @@ class MeshClient:
         ends or the embodiment vanishes.
         """
         self.join(embodiment, timeout=join_timeout)
-        action_id = action_id or f"{self.transport.id[:8]}-{uuid.uuid4().hex[:12]}"
+        if self._id is None:
+            self._id = self.transport.id[:8]
+        action_id = action_id or f"{self._id}-{uuid.uuid4().hex[:12]}"
         run = ActionRun(self, embodiment, action_id, on_end)
         try:
             key = keys.request_key(self.mesh, embodiment, "manager", "act")
@@ -284,6 +295,39 @@ class MeshClient:
             raise
         return run
 
+    def watch_actions(self, embodiment: str) -> ActionWatch:
+        """Follow ``embodiment``'s action ends from now on, for every action this client sends it: one
+        subscription instead of one per action (``act`` and ``start_action`` open it on first use).
+        It stays open until ``close()`` on it or on the client; of more than ``MAX_ACTION_WATCHES``
+        embodiments, the least recently used watch with no action in flight is closed."""
+        return self._follow(embodiment, None)
+
+    def _follow(self, embodiment: str, run: ActionRun | None) -> ActionWatch:
+        """``watch_actions(embodiment)``, handing it ``run`` in the same step (so that it is never
+        closed as idle between the two)."""
+        keys.check_name(embodiment, "embodiment")
+        evicted: list[ActionWatch] = []
+        with self._lock:
+            watch = self._watches.pop(embodiment, None)
+            if watch is None or watch.closed:
+                watch = ActionWatch(self, embodiment)
+            if run is not None:
+                watch._add(run)
+            self._watches[embodiment] = watch  # most recently used last
+            for name, other in list(self._watches.items()):
+                if len(self._watches) <= MAX_ACTION_WATCHES:
+                    break
+                if not other.busy:
+                    evicted.append(self._watches.pop(name))
+        for old in evicted:
+            old.close()
+        return watch
+
+    def _forget(self, watch: ActionWatch) -> None:
+        with self._lock:
+            if self._watches.get(watch.embodiment) is watch:
+                del self._watches[watch.embodiment]
+
     def act(
         self, embodiment: str, name: str, parameters: Sequence[str] = (), *, subject: str = "", action_id: str = "",
         timeout: float = 60.0, deadline: float = 0.0,
@@ -292,7 +336,8 @@ class MeshClient:
 
         Raises ``NotAlive`` if the embodiment is not alive, ``RequestRejected`` if the manager refuses
         it (no rule, duplicate id), ``Vanished`` if the embodiment leaves the mesh before the end and
-        ``OutcomeUnknown`` if the end is not heard within ``timeout``.
+        ``OutcomeUnknown`` if the end is not heard within ``timeout``. The ends are followed by the
+        embodiment's ``watch_actions``, kept from the first action on.
         """
         with self.start_action(embodiment, name, parameters, subject=subject, action_id=action_id, deadline=deadline) as run:
             return run.wait(timeout)
@@ -559,9 +604,63 @@ def mesh_problems(described: Sequence[dict[str, Any]]) -> list[str]:
     return list(dict.fromkeys(problems))
 
 
+class ActionWatch(Handle):
+    """One subscription to an embodiment's action end events, handing each to the ``ActionRun`` of
+    its action id (``MeshClient.watch_actions``). Close it (idempotent) to stop following."""
+
+    def __init__(self, client: MeshClient, embodiment: str) -> None:
+        self.client = client
+        self.embodiment = embodiment
+        self.closed = False
+        self._runs: dict[str, ActionRun] = {}
+        self._lock = threading.Lock()
+        self._ends = tuple(keys.event_key(client.mesh, embodiment, "manager", name) for name in ACTION_END_EVENTS)
+        # The manager's other events (started, attempt) are skipped by key, never decoded.
+        self._events = client.transport.subscribe_batches(keys.event_pattern(client.mesh, embodiment, "manager", "*"),
+                                                          self._on_samples)
+
+    @property
+    def busy(self) -> bool:
+        """Whether an action is in flight on it."""
+        with self._lock:
+            return bool(self._runs)
+
+    def _add(self, run: ActionRun) -> None:
+        with self._lock:
+            self._runs[run.action_id] = run
+
+    def _remove(self, run: ActionRun) -> None:
+        with self._lock:
+            if self._runs.get(run.action_id) is run:
+                del self._runs[run.action_id]
+
+    def _on_samples(self, batch: list[Sample]) -> None:
+        for key, payload, deleted in batch:
+            if deleted or key not in self._ends:
+                continue
+            try:
+                event = decode(payload, Event, where=key)
+                if not isinstance(event.data, dict):
+                    continue
+                with self._lock:
+                    run = self._runs.get(str(event.data.get("action_id")))
+                if run is not None:
+                    run._end(msgspec.convert(event.data, ActionReport))
+            except (ProtocolError, msgspec.ValidationError):
+                continue  # not a manager's report (another program on the same keys)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.client._forget(self)
+        self._events.close()
+
+
 class ActionRun(Handle):
-    """A mind action on its way: ``wait`` for its report. Follows the manager's end events and the
-    embodiment's liveliness; close it (idempotent) to stop following."""
+    """A mind action on its way: ``wait`` for its report. Follows the manager's end events (through
+    the client's ``watch_actions``) and the embodiment's liveliness; close it (idempotent) to stop
+    following."""
 
     def __init__(self, client: MeshClient, embodiment: str, action_id: str, on_end: Callable[[], None] | None) -> None:
         self.client = client
@@ -572,17 +671,13 @@ class ActionRun(Handle):
         self.ended = threading.Event()
         self._on_end = on_end
         self._started = time.monotonic()
-        self._events = client.events(self._on_event, embodiment=embodiment, component="manager")
+        self._watch = client._follow(embodiment, self)
         self._presence = client.presence.listen(self._on_presence)
         if embodiment not in client.presence.alive():
             self._end(None)
 
     def __enter__(self) -> ActionRun:
         return self
-
-    def _on_event(self, event: Event) -> None:
-        if event.name in ACTION_END_EVENTS and isinstance(event.data, dict) and event.data.get("action_id") == self.action_id:
-            self._end(msgspec.convert(event.data, ActionReport))
 
     def _on_presence(self, name: str, alive: bool) -> None:
         if name == self.embodiment and not alive:
@@ -622,7 +717,7 @@ class ActionRun(Handle):
 
     def close(self) -> None:
         self._presence.close()
-        self._events.close()
+        self._watch._remove(self)
 
 
-__all__ = ["ActionRun", "Entry", "MeshClient", "OutcomeUnknown", "mesh_problems"]
+__all__ = ["ActionRun", "ActionWatch", "Entry", "MeshClient", "OutcomeUnknown", "mesh_problems"]

@@ -5,6 +5,8 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
 
 * An update starts as soon as work arrives (a request, a remote event, a posted call) and takes
   everything that has arrived by then. An idle simulation blocks in one ``queue.get``: no polling.
+  Remote events cross one thread hop: each subscription's transport worker decodes what its
+  channel holds and hands it over as one item (``Transport.subscribe_batches``).
 * In one update, posted calls run first, then every component receives *all* the requests that
   reached it together (``handle_requests``) so it can mediate conflicts, then events are
   dispatched one at a time in the order raised, including events raised by the handlers.
@@ -42,7 +44,7 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
-from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, encode, tag
+from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, decoder, encode, tag
 from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
 
 log = logging.getLogger(__name__)
@@ -150,7 +152,10 @@ class Component:
         request.reject(f"component {self.name!r} does not handle {request.name!r}", Code.UNKNOWN_REQUEST)
 
     def raise_event(self, name: str, data: Any = None) -> None:
-        self.sim.raise_event(self.name, name, data)
+        sim = self._sim
+        if sim is None:
+            raise MeshError(f"component {self.name!r} is not attached to a simulation")
+        sim.raise_event(self.name, name, data)
 
     def request_catalogue(self) -> dict[str, Any]:
         """What this component answers, as plain data: ``{"component", "requests": {name: message
@@ -189,17 +194,6 @@ class _RequestItem:
         self.request = request
 
 
-class _RemoteEvent:
-    """A remote event on its way to the loop, for the one subscription whose zenoh subscriber got it."""
-
-    __slots__ = ("event", "key", "sub")
-
-    def __init__(self, event: Event, key: str, sub: _Subscription) -> None:
-        self.event = event
-        self.key = key
-        self.sub = sub
-
-
 class _Subscription(Handle):
     def __init__(self, sim: Simulation, pattern: str, handler: EventHandler) -> None:
         self.sim = sim
@@ -208,8 +202,8 @@ class _Subscription(Handle):
         self.remote: Closeable | None = None
         self.closed = False
 
-    def on_sample(self, sample: Sample) -> None:
-        self.sim._on_remote_event(self, sample)
+    def on_samples(self, batch: list[Sample]) -> None:
+        self.sim._on_remote_events(self, batch)
 
     def close(self) -> None:
         if self.closed:
@@ -221,6 +215,9 @@ class _Subscription(Handle):
 
 
 _STOP = object()
+_decode_event = decoder(Event)
+#: Values that are plain data whatever they hold (ints need their range checked: ``check_value``).
+_SCALARS = frozenset({str, float, bool, type(None)})
 
 
 class Simulation:
@@ -248,6 +245,9 @@ class Simulation:
         self._pool: ThreadPoolExecutor | None = None
         self._thread: threading.Thread | None = None
         self._stepper: threading.Thread | None = None  # the owner's thread, when run_once drives it
+        self._loop_ident: int | None = None  # thread id of whichever of the two runs updates (on_loop, fast)
+        # length of ".../<embodiment>/rq/", which every request key of this embodiment starts with
+        self._rq_prefix_len = len(keys.embodiment_prefix(self.mesh, self.embodiment)) + len(keys.REQUESTS) + 2
         self._closed = False
         self._stopped = threading.Event()
         self.updates = 0
@@ -287,8 +287,7 @@ class Simulation:
         return self._closed
 
     def on_loop(self) -> bool:
-        current = threading.current_thread()
-        return current is self._thread or current is self._stepper
+        return threading.get_ident() == self._loop_ident
 
     # --- components ---------------------------------------------------------------------------
 
@@ -386,8 +385,7 @@ class Simulation:
     def _on_query(self, component: Component, query: IncomingQuery) -> None:
         # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
         # component state are answered here so a bad request never costs an update.
-        prefix_len = len(keys.embodiment_prefix(self.mesh, self.embodiment)) + len(keys.REQUESTS) + len(component.name) + 3
-        name, _, sender = query.key[prefix_len:].partition("/")
+        name, _, sender = query.key[self._rq_prefix_len + len(component.name) + 1:].partition("/")
 
         def answer(outcome: Outcome) -> None:
             try:
@@ -420,22 +418,30 @@ class Simulation:
             return
         self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, sender, answer)))
 
-    def _on_remote_event(self, sub: _Subscription, sample: Sample) -> None:
-        # Runs on the subscription's transport worker. zenoh matched the key against this
-        # subscription's pattern; the event's fields must name that same key.
-        if sample.deleted:
-            return
-        try:
-            event = decode(sample.payload, Event, where=sample.key)
-            if self._event_key(event.embodiment, event.component, event.name) != sample.key:
-                raise ProtocolError(f"{sample.key}: the event says it is {event.embodiment}/{event.component}/{event.name}")
-        except ProtocolError as exc:
-            log.warning("ignored event: %s", exc)
-            return
-        except InvalidName as exc:
-            log.warning("ignored event: %s: %s", sample.key, exc)
-            return
-        self._inbox.put(_RemoteEvent(event, sample.key, sub))
+    def _on_remote_events(self, sub: _Subscription, batch: list[Sample]) -> None:
+        # Runs on the subscription's transport worker: decodes what arrived and hands it to the loop
+        # in one item (one wake-up of the loop per batch). zenoh matched each key against this
+        # subscription's pattern; an event's fields must name that same key.
+        events: list[tuple[Event, str, _Subscription | None]] = []
+        keys_of = self._event_keys
+        for key, payload, deleted in batch:
+            if deleted:
+                continue
+            try:
+                event = _decode_event(payload, key)
+                named = keys_of.get((event.embodiment, event.component, event.name)) or \
+                    self._event_key(event.embodiment, event.component, event.name)
+                if named != key:
+                    raise ProtocolError(f"{key}: the event says it is {event.embodiment}/{event.component}/{event.name}")
+            except ProtocolError as exc:
+                log.warning("ignored event: %s", exc)
+                continue
+            except InvalidName as exc:
+                log.warning("ignored event: %s: %s", key, exc)
+                continue
+            events.append((event, key, sub))
+        if events:
+            self._inbox.put(events)
 
     # --- events -----------------------------------------------------------------------------
 
@@ -455,14 +461,17 @@ class Simulation:
 
         Raises ``InvalidName`` at once (on any thread) if a name cannot be a key chunk.
         """
-        key = self._event_key(self.embodiment, component, name)
-        if not self.on_loop():
+        embodiment = self.embodiment
+        key = self._event_keys.get((embodiment, component, name)) or self._event_key(embodiment, component, name)
+        if threading.get_ident() != self._loop_ident:
             self.call(lambda: self.raise_event(component, name, data))
             return
-        event = Event(self.embodiment, component, name, check_value(data), next(self._seq), time.time())
+        if type(data) not in _SCALARS:
+            check_value(data)
+        event = Event(embodiment, component, name, data, next(self._seq), time.time())
         self._events.append((event, key, None))
         try:
-            self.transport.publish(key, encode(event), block=True)
+            self.transport.publish(key, encode(event))  # encoded once, whoever subscribes
         except MeshError as exc:
             log.warning("could not publish %s: %s", key, exc)
 
@@ -475,7 +484,7 @@ class Simulation:
         with self._lock:
             self._subscriptions.append(sub)
             self._matching = {}
-        sub.remote = self.transport.subscribe(pattern, sub.on_sample, remote_only=True)
+        sub.remote = self.transport.subscribe_batches(pattern, sub.on_samples, remote_only=True)
         return sub
 
     def _unsubscribe(self, sub: _Subscription) -> None:
@@ -568,6 +577,7 @@ class Simulation:
         if self._closed:
             raise ClosedError(f"simulation {self.embodiment!r} is closed")
         self._stepper = threading.current_thread()
+        self._loop_ident = threading.get_ident()
         items, _ = self._take(timeout)
         self._update(items)
         return len(items)
@@ -585,13 +595,16 @@ class Simulation:
         except queue.Empty:  # a timer is due, or nothing came in time
             pass
         # The loop is the inbox's only reader, so this many get_nowait() cannot fail.
-        for _ in range(min(inbox.qsize(), MAX_ITEMS_PER_UPDATE - len(items))):
-            items.append(inbox.get_nowait())
-        if any(item is _STOP for item in items):
+        waiting = inbox.qsize()
+        if waiting:
+            get = inbox.get_nowait
+            items.extend(get() for _ in range(min(waiting, MAX_ITEMS_PER_UPDATE - len(items))))
+        if _STOP in items:
             return [item for item in items if item is not _STOP], True
         return items, False
 
     def _run(self) -> None:
+        self._loop_ident = threading.get_ident()
         try:
             stop = False
             while not stop:
@@ -603,20 +616,23 @@ class Simulation:
 
     def _update(self, items: list[Any]) -> None:
         self.updates += 1
-        now = time.monotonic()
-        while self._timers and self._timers[0][0] <= now:
-            fn = heapq.heappop(self._timers)[2].fire()
-            if fn is not None:
-                items.insert(0, fn)
+        timers = self._timers
+        if timers:
+            now = time.monotonic()
+            while timers and timers[0][0] <= now:
+                fn = heapq.heappop(timers)[2].fire()
+                if fn is not None:
+                    items.insert(0, fn)
         batches: dict[str, list[IncomingRequest]] = {}
+        events = self._events
         for item in items:
-            match item:
-                case _RemoteEvent(event=event, key=key, sub=sub):
-                    self._events.append((event, key, sub))
-                case _RequestItem(component=owner, request=request):
-                    batches.setdefault(owner.name, []).append(request)
-                case _:
-                    self._guard("call", item)
+            kind = type(item)
+            if kind is list:  # remote events, in the order their subscription received them
+                events.extend(item)
+            elif kind is _RequestItem:
+                batches.setdefault(item.component.name, []).append(item.request)
+            else:
+                self._guard("call", item)
         for name, batch in batches.items():
             component = self._components.get(name)
             if component is None:
@@ -634,12 +650,18 @@ class Simulation:
             for request in batch:
                 if not request.answered:
                     request.reject(f"component {name!r} gave no answer to {request.name!r}", Code.UNANSWERED)
-        events = self._events
         dispatched = 0
         while events and dispatched < MAX_EVENTS_PER_UPDATE:
             event, key, target = events.popleft()
             dispatched += 1
-            for sub in self._subscribers(key) if target is None else (target,):
+            if target is not None:  # a remote event, for the one subscription that received it
+                if not target.closed:
+                    try:
+                        target.handler(event)
+                    except Exception:
+                        log.exception("handler of %s failed in embodiment %s", key, self.embodiment)
+                continue
+            for sub in self._subscribers(key):
                 if not sub.closed:
                     try:
                         sub.handler(event)

@@ -19,6 +19,7 @@ ends, or nothing at all is refused with ``InvalidName`` naming it.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -101,6 +102,7 @@ def event_key(mesh: str, embodiment: str, component: str, event: str) -> str:
     return f"{embodiment_prefix(mesh, embodiment)}/{EVENTS}/{check_name(component, 'component')}/{check_name(event, 'event')}"
 
 
+@functools.lru_cache(maxsize=4096)  # a client sends the same requests again and again: checked once
 def request_key(mesh: str, embodiment: str, component: str, request: str, sender: str | None = None) -> str:
     """Key of a request; with ``sender``, the per-sender form ``.../rq/<component>/<request>/<sender>``
     that access control can restrict to the sender's own certificate."""

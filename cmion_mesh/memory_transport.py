@@ -14,7 +14,17 @@ from typing import Any
 
 from cmion_mesh.errors import ClosedError
 from cmion_mesh.keys import matches
-from cmion_mesh.transport import Closeable, Handle, LivelinessHandler, QueryHandler, Reply, Sample, SampleHandler
+from cmion_mesh.transport import (
+    MAX_BATCH,
+    BatchHandler,
+    Closeable,
+    Handle,
+    LivelinessHandler,
+    QueryHandler,
+    Reply,
+    Sample,
+    SampleHandler,
+)
 
 _STOP = object()
 log = logging.getLogger(__name__)
@@ -26,21 +36,33 @@ def _intersects(a: str, b: str) -> bool:
 
 
 class _Worker:
-    def __init__(self, name: str, handle: Callable[[Any], None]) -> None:
+    """Drains its queue on a thread of its own; ``batches``: hands over lists of what it found queued."""
+
+    def __init__(self, name: str, handle: Callable[[Any], None], *, batches: bool = False) -> None:
         self.queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._handle = handle
+        self._batches = batches
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         while True:
-            item = self.queue.get()
-            if item is _STOP:
-                return
+            items = [self.queue.get()]
+            if self._batches:
+                for _ in range(min(self.queue.qsize(), MAX_BATCH - 1)):  # the only reader: cannot fail
+                    items.append(self.queue.get_nowait())
+            stop = any(item is _STOP for item in items)
+            items = [item for item in items if item is not _STOP]
             try:
-                self._handle(item)
+                if self._batches and items:
+                    self._handle(items)
+                else:
+                    for item in items:
+                        self._handle(item)
             except Exception:  # mirror zenoh_transport: a failing handler does not kill the worker
                 log.exception("handler failed")
+            if stop:
+                return
 
     def stop(self) -> None:
         self.queue.put(_STOP)
@@ -130,8 +152,17 @@ class MemoryTransport:
             worker.queue.put(sample)
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
-        self._check()
-        worker = _Worker(f"mem-sub:{selector}", handler)
+        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler), remote_only)
+
+    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False) -> Closeable:
+        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler, batches=True), remote_only)
+
+    def _subscribe(self, selector: str, worker: _Worker, remote_only: bool) -> Closeable:
+        try:
+            self._check()
+        except ClosedError:
+            worker.stop()
+            raise
         with self.net.lock:
             sid = next(self.net.ids)
             self.net.subs[sid] = (selector, worker, remote_only, self)

@@ -12,6 +12,16 @@ is already there or an older claim is (two started at the same moment: the older
 winner keeps its claim for its life; a claim that appears later and stays longer than a
 newcomer needs to decide (``DUPLICATE_GRACE``) is a duplicate: two parts of a mesh that could
 not see each other have joined. ``NameClaim.duplicates`` names them; the embodiment says so loudly.
+
+Joining does not wait a fixed time for tokens to arrive: once linked, it *asks* (liveliness
+queries on ``@alive/*`` and on its name's claims), and a liveliness query ends when every peer
+linked to the session has answered. Only when the answer is that nobody is alive does it wait
+(``SETTLE``) and ask again: just after a link comes up, its declarations may not have been
+exchanged, and the query then reaches nobody. Of two newcomers claiming one name through a common peer, at
+least one sees the other's claim (each declares its claim before it asks, and the peer answers
+in the order it hears them). The younger withdraws as soon as it sees an older claim; the older,
+when it sees a younger one, waits until that one withdraws (it saw the older) or shows alive (it
+did not: then the older refuses). So neither starts unseen by the other.
 """
 
 from __future__ import annotations
@@ -24,12 +34,19 @@ from cmion_mesh import keys
 from cmion_mesh.errors import Refused
 from cmion_mesh.transport import Closeable, Handle, Transport
 
-#: After the first sign of another member (a token, a link), how long a joining daemon waits for the
-#: rest of the mesh's tokens (peers found by scouting connect at about the same time).
+#: Longest wait for the peers linked to a joining daemon to answer its liveliness queries (they
+#: answer in a round trip: this bounds a peer that does not).
+ASK_TIMEOUT = 1.0
+#: When the linked peers answer that no embodiment is alive, how long a joining daemon still waits
+#: for tokens before it believes them (a link's declarations may not have been exchanged yet).
 SETTLE = 0.15
 #: How long a joining daemon waits for the token of a same-named embodiment that the others say is
 #: alive, to say where it runs (it refuses either way).
 REPORTED_WAIT = 3.0
+#: How long a joining daemon that sees a younger claim on its name waits for that newcomer to
+#: withdraw or to show alive (it decides once it has asked the mesh, which takes moments; a
+#: newcomer that did not see this claim shows alive once its components are loaded).
+YOUNGER_WAIT = 30.0
 #: How often a joining daemon looks whether its session has connected to anyone (zenoh gives no
 #: event for it); tokens wake it at once.
 POLL = 0.02
@@ -74,18 +91,24 @@ class Presence(Handle):
         """``listener(name, alive)`` on every change from now on (on the transport's worker)."""
         with self._cond:
             self._listeners.append(listener)
-        presence = self
-
-        class _Stop(Handle):
-            def close(self) -> None:
-                with presence._cond:
-                    if listener in presence._listeners:
-                        presence._listeners.remove(listener)
-
-        return _Stop()
+        return _Listening(self, listener)
 
     def close(self) -> None:
         self._watch.close()
+
+
+class _Listening(Handle):
+    """A listener of ``Presence.listen``; closing it stops the calls (idempotent)."""
+
+    def __init__(self, presence: Presence, listener: Listener) -> None:
+        self._presence = presence
+        self._listener = listener
+
+    def close(self) -> None:
+        presence = self._presence
+        with presence._cond:
+            if self._listener in presence._listeners:
+                presence._listeners.remove(self._listener)
 
 
 class NameClaim(Handle):
@@ -110,48 +133,105 @@ class NameClaim(Handle):
         self._on_duplicate: Callable[[list[str]], None] | None = None
         self._timers: list[threading.Timer] = []
         self._closed = False
+        self._transport = transport
         self._token = transport.declare_token(keys.claim_key(mesh, name, self.rank))
         self._watch: Closeable | None = None
-        joining = transport.watch_liveliness(f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*", self._on_alive)
+        alive_pattern = f"{keys.mesh_prefix(mesh)}/{keys.ALIVE}/*"
+        joining = transport.watch_liveliness(alive_pattern, self._on_alive)
         try:
             self._watch = transport.watch_liveliness(keys.claim_pattern(mesh, name), self._on_claim)
             deadline = time.monotonic() + window
+            found = False
             with self._cond:
                 for _ in range(int(window / POLL) + 2):  # bounded: ends on a sign of the mesh or the window's end
                     if self._claims or self._alive or (connected is not None and connected()):
-                        # Someone is there: its tokens, and the rest of the mesh, arrive within moments.
-                        self._cond.wait_for(lambda: name in self._alive, SETTLE)
+                        found = True
                         break
                     left = deadline - time.monotonic()
                     if left <= 0:
                         break
                     self._cond.wait(min(POLL, left))  # woken at once by any token; links have no event
+            if found:
+                # Someone is there: ask every linked peer for the tokens it holds rather than wait for them.
+                answered = transport.alive(alive_pattern, timeout=ASK_TIMEOUT)
+                if not answered:
+                    # Nothing: a mesh with no embodiment yet, or a link whose declarations are still on
+                    # their way (under load, the query can find no route yet): wait for tokens, then ask again.
+                    with self._cond:
+                        self._cond.wait_for(lambda: bool(self._alive), SETTLE)
+                    answered = transport.alive(alive_pattern, timeout=ASK_TIMEOUT)
+                for key in answered:
+                    self._on_alive(key, True)
+                self._ask_claims(mesh, name)
+            with self._cond:
                 seen = set(self._alive)
-            # Tokens of the daemons this session is not linked to yet may still be on their way (under
-            # load, longer than SETTLE): the daemons it sees know the whole mesh. Ask them.
-            if name not in seen and seen and name in views(seen):
+            # Daemons this session is not linked to yet answered nothing: the daemons it sees know the
+            # whole mesh. Ask them.
+            reported = name not in seen and bool(seen) and name in views(seen)
+            if reported:
                 with self._cond:
                     self._cond.wait_for(lambda: name in self._alive, REPORTED_WAIT)
-                seen.add(name)
-            with self._cond:
-                # An older claim is a daemon still starting, or (its token delayed under load) one
-                # already running: let it show which before telling the user, or let it withdraw.
-                self._cond.wait_for(lambda: name in seen or name in self._alive
-                                    or not any(rank < self.rank for rank in self._claims), REPORTED_WAIT)
-                taken = name in seen or name in self._alive
-                older = sorted(rank for rank in self._claims if rank < self.rank)
-            if taken:
-                where = describe(name)
-                raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
-                              "one name, one body (stop that one first, or choose another --name)")
-            if older:
-                raise Refused(f"another {name!r} is starting in mesh {mesh!r} at the same moment (zenoh id "
-                              f"{older[0].partition('-')[2]}), and it started first: one name, one body")
+            self._decide(mesh, name, reported, describe)
         except BaseException:
             self.close()
             raise
         finally:
             joining.close()
+
+    def _decide(self, mesh: str, name: str, reported: bool, describe: Callable[[str], str]) -> None:
+        """Keep the claim, or raise ``Refused``: the name is alive, or an older claim holds it."""
+        for _ in range(3):  # bounded: a round ends in a decision, or in the name freed by a daemon that stopped
+            with self._cond:
+                taken = reported or name in self._alive
+                older = sorted(rank for rank in self._claims if rank < self.rank)
+            if taken:
+                where = describe(name)  # waits for the live one to answer
+                if reported or where or self._transport.alive(keys.alive_key(mesh, name), timeout=ASK_TIMEOUT):
+                    raise Refused(f"embodiment {name!r} is already alive in mesh {mesh!r}{f' ({where})' if where else ''}: "
+                                  "one name, one body (stop that one first, or choose another --name)")
+                with self._cond:  # its token was a daemon's that has just stopped: decide again
+                    self._alive.discard(name)
+                continue
+            if older:
+                # An older claim is a daemon still starting, or (its token delayed under load) one
+                # already running: this one yields at once (withdrawing its claim lets a starting
+                # older one go on), then lets it show which before telling the user.
+                self._token.close()
+                with self._cond:
+                    self._cond.wait_for(lambda: name in self._alive or not any(rank < self.rank for rank in self._claims),
+                                        REPORTED_WAIT)
+                self._ask_claims(mesh, name)  # what is still there (a claim seen only by asking never says it left)
+                with self._cond:
+                    if name not in self._alive and any(rank < self.rank for rank in self._claims):
+                        raise Refused(f"another {name!r} is starting in mesh {mesh!r} at the same moment (zenoh id "
+                                      f"{older[0].partition('-')[2]}), and it started first: one name, one body")
+                if name not in self._alive:
+                    # the older claims were withdrawn (daemons refused or stopped): claim again
+                    self._token = self._transport.declare_token(keys.claim_key(mesh, name, self.rank))
+                continue
+            # A younger claim is a newcomer that either saw this claim (it withdraws) or did not (it
+            # shows alive, and then this one yields): wait for it to say which.
+            for _ in range(int(YOUNGER_WAIT / REPORTED_WAIT)):
+                with self._cond:
+                    if self._cond.wait_for(lambda: name in self._alive or not any(rank > self.rank for rank in self._claims),
+                                           REPORTED_WAIT):
+                        break
+                self._ask_claims(mesh, name)  # still there? (a claim seen only by asking never says it left)
+            with self._cond:
+                if name not in self._alive:
+                    return
+        raise Refused(f"embodiment {name!r} in mesh {mesh!r}: claimed and released by others three times while "
+                      "this one joined; try again")
+
+    def _ask_claims(self, mesh: str, name: str) -> None:
+        """The claims on ``name`` now, asked of every linked peer (replacing what the watch gathered)."""
+        ranks = {key.rsplit("/", 1)[-1] for key in self._transport.alive(keys.claim_pattern(mesh, name), timeout=ASK_TIMEOUT)}
+        with self._cond:
+            for rank in list(self._claims):
+                if rank not in ranks:
+                    self._claims.pop(rank, None)
+        for rank in ranks:
+            self._on_claim(keys.claim_key(mesh, name, rank), True)
 
     def _on_alive(self, key: str, alive: bool) -> None:
         with self._cond:

@@ -34,7 +34,8 @@ def unique_mesh(prefix: str = "t") -> str:
 class Daemon:
     """A child process whose output lines are collected; a context manager that always stops it."""
 
-    def __init__(self, argv: Sequence[str], *, env: dict[str, str] | None = None, name: str = "") -> None:
+    def __init__(self, argv: Sequence[str], *, env: dict[str, str] | None = None, name: str = "", stdin: bool = False) -> None:
+        """``stdin``: a pipe to the child's standard input (``send`` writes a line to it); else none."""
         self.name = name or os.path.basename(argv[0])
         self.argv = list(argv)
         full_env = dict(os.environ)
@@ -42,7 +43,7 @@ class Daemon:
         if env:
             full_env.update(env)
         self.proc = subprocess.Popen(
-            self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
             env=full_env, text=True, start_new_session=True,
         )
         self.lines: list[str] = []
@@ -79,6 +80,13 @@ class Daemon:
         tail = "\n".join(self.lines[-20:])
         raise TimeoutError(f"{self.name}: no line with {needle!r} within {timeout:g} s; output:\n{tail}")
 
+    def send(self, line: str) -> None:
+        """Write ``line`` to the child's standard input (started with ``stdin=True``)."""
+        if self.proc.stdin is None:
+            raise ValueError(f"{self.name}: started without a pipe to its standard input")
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
     def stop(self, sig: int = signal.SIGTERM, grace: float = 10.0) -> int:
         if self.proc.poll() is None:
             try:
@@ -88,6 +96,8 @@ class Daemon:
                 self.kill()
         code = self.proc.wait(grace)
         self._reader.join(grace)
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
         return code
 
     def kill(self) -> None:

@@ -42,11 +42,16 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cmion_mesh import certs, keys
+from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport import TransportConfig
+
+if TYPE_CHECKING:
+    # Imported where used: certificates mean cryptography, whose import costs every daemon start
+    # time, and only secure mode needs them.
+    from cmion_mesh import certs
 
 #: Every message kind zenoh 1.10's access control knows (``AclMessage``).
 MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -103,6 +108,8 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     whole mesh to it: every trusted name is then allowed everything under ``cmion/<mesh>/`` (the
     member filtered it by sender on its own links), and untrusted names still nothing.
     """
+    from cmion_mesh import certs
+
     m = keys.mesh_prefix(mesh)
     alive, competency = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}"
     custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
@@ -181,6 +188,8 @@ class Credentials:
 def load_credentials(directory: str | os.PathLike[str], name: str, trust: certs.Trust | None = None) -> Credentials:
     """Check that ``directory`` holds a usable identity ``name``: the authority, a certificate of
     ``name`` it signed and that has not expired, its key (0600, matching), and ``name`` in the trust list."""
+    from cmion_mesh import certs
+
     folder = Path(directory)
     certs.check_cert_name(name)
     ca_path, cert_path, key_path = folder / certs.CA_CERT, folder / f"{name}.pem", folder / f"{name}.key"
@@ -258,6 +267,8 @@ def secure(config: TransportConfig, directory: str | os.PathLike[str], name: str
     to open a session with any other protocol, since only TLS is allowed (and a file without
     listen endpoints gets zenoh's ``tcp/[::]:0``, so it must list them).
     """
+    from cmion_mesh import certs
+
     cred = load_credentials(directory, name)
     trust = certs.Trust.load(directory)
     pairs = settings(cred, mesh, trust, listen=config.listen, connect=config.connect, verify_names=verify_names,
@@ -272,6 +283,8 @@ def config_document(directory: str | os.PathLike[str], name: str, mesh: str, *, 
                     mode: str = "peer") -> dict[str, Any]:
     """A whole zenoh configuration (as a dict) for identity ``name``: what ``--config FILE`` takes,
     and what a client in another language can load."""
+    from cmion_mesh import certs
+
     cred = load_credentials(directory, name)
     trust = certs.Trust.load(directory)
     doc: dict[str, Any] = {"mode": mode}
@@ -301,6 +314,8 @@ def config_json5(directory: str | os.PathLike[str], name: str, mesh: str, **opti
 def choose_identity(directory: str | os.PathLike[str], chosen: str | None = None) -> str:
     """Who this process speaks as: ``chosen`` (``--identity``, else the embodiment's name), else the
     one private key in the certificates folder (a member's folder holds its own key only)."""
+    from cmion_mesh import certs
+
     if chosen:
         return chosen
     owned = sorted(p.stem for p in Path(directory).glob("*.key") if p.name != certs.CA_KEY)
@@ -323,6 +338,8 @@ def describe(*, certs_dir: str | os.PathLike[str] | None, identity: str | None =
     """One line for a daemon to print at start: which mode it runs in."""
     if not certs_dir:
         return PLAIN_WARNING
+    from cmion_mesh import certs
+
     who = choose_identity(certs_dir, identity or name)
     cred = load_credentials(certs_dir, who)
     trust = certs.Trust.load(certs_dir)

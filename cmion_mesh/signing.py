@@ -10,11 +10,11 @@ from __future__ import annotations
 import base64
 import functools
 
-from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-
 from cmion_mesh.errors import MeshError
+
+# cryptography is imported by the functions that sign or verify, not here: every daemon imports
+# this module (custody, records, migration), and its import costs start time that a daemon with
+# no companion to hand on never needs.
 
 KEY_BYTES = 32
 SIGNATURE_BYTES = 64
@@ -26,17 +26,25 @@ class SignatureRefused(MeshError):
 
 def new_key() -> bytes:
     """A fresh private key, raw 32 bytes."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
     return Ed25519PrivateKey.generate().private_bytes(
         serialization.Encoding.Raw, serialization.PrivateFormat.Raw, serialization.NoEncryption())
 
 
 @functools.lru_cache(maxsize=256)
 def public_of(private: bytes) -> bytes:
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
     return Ed25519PrivateKey.from_private_bytes(private).public_key().public_bytes(
         serialization.Encoding.Raw, serialization.PublicFormat.Raw)
 
 
 def sign(private: bytes, data: bytes) -> bytes:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
     return Ed25519PrivateKey.from_private_bytes(private).sign(data)
 
 
@@ -46,6 +54,9 @@ def valid(public: bytes, data: bytes, signature: bytes) -> bool:
     every migration, and the same links recur."""
     if len(public) != KEY_BYTES or len(signature) != SIGNATURE_BYTES:
         return False
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
     try:
         Ed25519PublicKey.from_public_bytes(public).verify(signature, data)
     except (InvalidSignature, ValueError):

@@ -104,6 +104,14 @@ def _join(path: Sequence[str]) -> str:
     return "/".join(path)
 
 
+def _everything(node: Node, key: str, out: list[tuple[str, bytes]]) -> None:
+    """``(key, wire)`` of ``node`` (at ``key``) and of every container and property below it."""
+    out.append((key, node.wire))
+    out.extend((f"{key}/{name}", prop.wire) for name, prop in node.properties.items())
+    for name, child in node.children.items():
+        _everything(child, f"{key}/{name}", out)
+
+
 class Store(Component):
     """A tree of containers of properties, mediated per update and served on its key-space."""
 
@@ -202,13 +210,18 @@ class Store(Component):
                 if not rest:
                     query.reply(self._key(path), node.wire)
                     return
-                found = [
-                    (self._key(p), item.wire)
-                    for p, item in self._walk(node, path)
-                    if keys.matches_chunks(rest, p[len(path) :])
-                ]
+                found: list[tuple[str, bytes]] = []
+                if rest == ["**"]:  # everything below: no matching, keys built chunk by chunk
+                    _everything(node, self._key(path), found)
+                else:
+                    found = [
+                        (self._key(p), item.wire)
+                        for p, item in self._walk(node, path)
+                        if keys.matches_chunks(rest, p[len(path) :])
+                    ]
+            reply = query.reply
             for key, wire in found:
-                query.reply(key, wire)
+                reply(key, wire)
         finally:
             query.finish()
 

@@ -157,6 +157,7 @@ def inthewild() -> Iterator[tuple[Embodiment, MeshClient]]:
             Embodiment.from_architecture(INTHEWILD / "ArchitectureConfiguration.xml", mesh="inthewild", transport=body_net) as body, \
             MeshClient(tester, "inthewild") as client:
         client.wait_for_embodiment(body.name, timeout=10)  # its watchers start here, not in a test
+        client.watch_actions(body.name)  # which act() keeps open from its first call on
         yield body, client
 
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh.client import MeshClient
+from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
 from cmion_mesh.competency import Competency, RunContext, load_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
@@ -36,6 +36,13 @@ def collect(client: MeshClient, embodiment: str = "robot", component: str = "*")
     seen: list[Event] = []
     client.events(seen.append, embodiment=embodiment, component=component)
     return seen
+
+
+def heard_end(events: list[Event], action_id: str) -> None:
+    """Wait until ``events`` (a ``collect`` of the manager's events) holds the end of ``action_id``:
+    the act returns on its own subscription, which this one may trail; its events are in order."""
+    wait_for(lambda: any(e.name in ACTION_END_EVENTS and e.data.get("action_id") == action_id for e in events), 10,
+             f"the end of {action_id} among the collected events")
 
 
 def test_cmion_test_scenario(transport: MemoryTransport, client: MeshClient, mesh: str) -> None:
@@ -204,6 +211,7 @@ def test_cancel_mid_plan_stops_running_competencies(tmp_path: Path, transport: M
         again = client.cancel("robot", "job-1")
         assert again.status == "rejected" and "job-1" in again.reason
     assert result[0].status == "cancelled" and result[0].action_id == "job-1"
+    heard_end(events, "job-1")
     names = [e.name for e in events]
     assert names.count("StepCancelled") == 3
     assert names.index("PlanCancelled") > max(i for i, n in enumerate(names) if n == "StepCancelled"), "reported once all stopped"
@@ -230,16 +238,15 @@ def test_most_specific_rule_first_then_fallback_in_order(tmp_path: Path, transpo
         events = collect(client, component="manager")
         report = client.act("robot", "Go", ["home", "no"], timeout=20)
         assert report.status == "succeeded"
-        def tried() -> list[str]:
-            return [e.data["rule"].rsplit(":", 1)[1] for e in events if e.name == "ActionAttempt"]
-        # The events come through their own subscription: the action's answer can overtake them.
-        wait_for(lambda: len(tried()) >= 3, 10, "three ActionAttempt events")
-        assert tried() == ["9", "6", "3"], "fewest wildcards first, each failure falls back to the next match"
+        heard_end(events, report.action_id)
+        tried = [e.data["rule"].rsplit(":", 1)[1] for e in events if e.name == "ActionAttempt"]
+        assert tried == ["9", "6", "3"], "fewest wildcards first, each failure falls back to the next match"
         assert report.rule.endswith(":3")
         events.clear()
-        assert client.act("robot", "Go", ["home", "yes"], timeout=20).rule.endswith(":6")
-        wait_for(tried, 10, "the second action's ActionAttempt event")
-        assert tried() == ["6"]
+        second = client.act("robot", "Go", ["home", "yes"], timeout=20)
+        assert second.rule.endswith(":6")
+        heard_end(events, second.action_id)
+        assert [e.data["rule"].rsplit(":", 1)[1] for e in events if e.name == "ActionAttempt"] == ["6"]
 
 
 def test_missing_competency_type_fails_the_action_with_reason(tmp_path: Path, transport: MemoryTransport, client: MeshClient,

@@ -6,13 +6,15 @@ key when the session refuses it; ``zenoh.ZError`` never escapes the adapter.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator
 
 import pytest
 
 from cmion_mesh.errors import ClosedError, TransportError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.transport import Transport, TransportConfig
+from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport import MAX_BATCH, Sample, Transport, TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 pytestmark = pytest.mark.timeout(30)
@@ -23,6 +25,7 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
     "publish (drop)": lambda t, k: t.publish(k, b"x", block=False),
     "delete": lambda t, k: t.delete(k),
     "subscribe": lambda t, k: t.subscribe(k, lambda sample: None),
+    "subscribe_batches": lambda t, k: t.subscribe_batches(k, lambda batch: None),
     "declare_queryable": lambda t, k: t.declare_queryable(k, lambda query: query.finish()),
     "get": lambda t, k: t.get(k, timeout=0.2),
     "declare_token": lambda t, k: t.declare_token(k),
@@ -32,7 +35,7 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
 }
 #: The operations zenoh checks the key expression of (it lets a publication or delete on a
 #: wildcard through).
-CHECKED = ["subscribe", "declare_queryable", "get", "declare_token", "alive", "watch_liveliness", "publish (drop)"]
+CHECKED = ["subscribe", "subscribe_batches", "declare_queryable", "get", "declare_token", "alive", "watch_liveliness", "publish (drop)"]
 
 
 @pytest.fixture
@@ -63,3 +66,50 @@ def test_peers_belong_to_the_interface(zenoh_transport: ZenohTransport, network:
     assert zenoh_transport.peers() == []  # no endpoint, no scouting: alone
     with MemoryTransport(network, "a") as a, MemoryTransport(network, "b") as b:
         assert a.peers() == [b.id] and b.peers() == [a.id]
+
+
+@pytest.fixture(params=["zenoh", "memory"])
+def any_transport(request: pytest.FixtureRequest, network: MemoryNetwork) -> Iterator[Transport]:
+    if request.param == "zenoh":
+        with ZenohTransport(TransportConfig(multicast=False, overrides=(("listen/endpoints", "[]"),))) as z:
+            yield z
+    else:
+        with MemoryTransport(network, "batches") as m:
+            yield m
+
+
+def test_batches_hand_over_what_arrived_in_order_and_whole(any_transport: Transport) -> None:
+    got: list[list[bytes]] = []
+    first = threading.Event()
+    release = threading.Event()
+
+    def on_batch(batch: list[Sample]) -> None:
+        got.append([s.payload for s in batch])
+        first.set()
+        release.wait(10.0)  # a slow handler: what arrives meanwhile waits in the channel
+
+    with any_transport.subscribe_batches("cmion/t/batch", on_batch):
+        any_transport.publish("cmion/t/batch", b"0")
+        wait_for(first.is_set, 10.0, "the first batch")
+        for i in range(1, 1000):
+            any_transport.publish("cmion/t/batch", str(i).encode())
+        release.set()
+        wait_for(lambda: sum(len(b) for b in got) == 1000, 10.0, "every sample")
+    assert [p for b in got for p in b] == [str(i).encode() for i in range(1000)]
+    assert max(len(b) for b in got) > 1, "what waited came in batches"
+    assert all(len(b) <= MAX_BATCH for b in got)
+
+
+def test_a_failing_handler_loses_no_other_sample(any_transport: Transport) -> None:
+    got: list[bytes] = []
+
+    def on_sample(sample: Sample) -> None:
+        if sample.payload == b"3":
+            raise RuntimeError("this one fails")
+        got.append(sample.payload)
+
+    with any_transport.subscribe("cmion/t/fail", on_sample):
+        for i in range(10):
+            any_transport.publish("cmion/t/fail", str(i).encode())
+        wait_for(lambda: len(got) == 9, 10.0, "the nine others")
+    assert got == [str(i).encode() for i in range(10) if i != 3]
