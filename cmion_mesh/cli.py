@@ -664,11 +664,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from cmion_mesh.demo import run_demo
-    from cmion_mesh.signals import terminate_as_interrupt, wait_for_stop_signal
+    from cmion_mesh.signals import Interrupter
 
-    terminate_as_interrupt()  # killed or interrupted, the demo still stops its daemons
-    return run_demo(mesh=args.mesh, web=args.web, wait=wait_for_stop_signal)
+    stop = Interrupter()  # before any thread: interrupted or terminated, the demo still stops its daemons
+    from cmion_mesh.demo import run_demo
+
+    return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait)
 
 
 def cmd_router(args: argparse.Namespace) -> int:

@@ -112,6 +112,10 @@ def mind_state(client: MeshClient, embodiment: str) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
+#: Longest the story's loop sleeps between events: a Ctrl-C (``KeyboardInterrupt``, raised when the
+#: main thread next runs) must not wait for the next event while a person takes their time.
+INTERRUPT_CHECK = 0.25
+
 #: Bodies serving a page in ``demo --web``.
 WEB_BODIES = ("screen", "phone")
 
@@ -144,7 +148,7 @@ def run_scenario(client: MeshClient, scenario: Scenario, tl: Timeline, *, timeou
             if left <= 0:
                 raise MeshError(f"the demo did not finish within {timeout:g} s")
             try:
-                event = events.get(timeout=left)
+                event = events.get(timeout=min(left, INTERRUPT_CHECK))
             except queue.Empty:
                 continue
             if _react(client, scenario, tl, event, play):

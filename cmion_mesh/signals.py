@@ -43,36 +43,32 @@ class Stopper:
             signal.pthread_kill(self._main, _WAKE)
 
 
-def terminate_as_interrupt() -> None:
-    """Make SIGTERM stop a foreground command as Ctrl-C does (``KeyboardInterrupt``), so its
-    ``finally`` blocks run: the demo's daemons live in sessions of their own and would outlive it."""
 
-    def interrupt(_signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt
+class Interrupter:
+    """For a foreground command that both runs (Ctrl-C or SIGTERM interrupts it, as
+    ``KeyboardInterrupt``, so its ``finally`` blocks run) and then may wait to be stopped.
 
-    signal.signal(signal.SIGTERM, interrupt)
-
-
-def wait_for_stop_signal() -> int:
-    """Block the main thread until SIGINT or SIGTERM, whichever thread the kernel hands it to.
-
-    For commands that started threads before they wait (so ``Stopper``'s mask comes too late): a
-    signal caught by another thread only flags the main thread, which would sleep on; the wakeup
-    fd is written whichever thread catches it.
+    Create on the main thread before any other thread: it blocks the signals there (threads
+    inherit the mask) and one thread of its own collects them with ``sigwait``, so no other
+    thread, nor a handler installed by a library, can swallow one.
     """
-    import socket
 
-    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
-    reader, writer = socket.socketpair()
-    writer.setblocking(False)
-    old_fd = signal.set_wakeup_fd(writer.fileno())
-    try:
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, lambda *_: None)  # the wakeup fd tells; nothing to raise
-        return reader.recv(1)[0]
-    finally:
-        signal.set_wakeup_fd(old_fd)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        reader.close()
-        writer.close()
+    def __init__(self) -> None:
+        self._stopper = Stopper()
+        self.stopped = threading.Event()
+        self._waiting = False
+        self._thread = threading.Thread(target=self._collect, name="signals", daemon=True)
+        self._thread.start()
+
+    def _collect(self) -> None:
+        import _thread
+
+        self._stopper.wait()
+        self.stopped.set()
+        if not self._waiting:
+            _thread.interrupt_main()  # KeyboardInterrupt on the main thread at its next step
+
+    def wait(self) -> None:
+        """Until SIGINT or SIGTERM (at once if one came already)."""
+        self._waiting = True
+        self.stopped.wait()

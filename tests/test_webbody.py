@@ -183,7 +183,8 @@ def test_demo_web_prints_the_pages_and_a_yes_on_the_screen_moves_the_companion_o
         demo.wait_line("journey: robot -> screen -> phone -> robot", WAIT)
         demo.wait_line("the pages stay open until Ctrl-C", WAIT)
         assert demo.proc.poll() is None
-        assert demo.stop(signal.SIGINT, grace=60) == 0  # it stops its three daemons first
+        stopped = demo.stop(signal.SIGINT, grace=60)
+        assert stopped == 0, "\n".join(demo.lines[-12:])  # it stops its three daemons first
         assert demo.lines[-1].endswith("done")
     finally:
         context.close()
