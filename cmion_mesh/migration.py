@@ -102,6 +102,14 @@ class _Refused(MeshError):
     """The target refused a step of the handshake before the prepare (the reason is its answer)."""
 
 
+def _sent_by_source(request: IncomingRequest, source: str, what: str) -> bool:
+    """A handshake message counts only from the embodiment it names as its source."""
+    if request.requester == source:
+        return True
+    request.reject(f"{request.requester!r} cannot send {what} on behalf of {source!r}")
+    return False
+
+
 def crash_point(point: str) -> None:
     """Die here, hard, if the crash tests asked for it (``CMION_MESH_CRASH_AT``)."""
     wanted = os.environ.get("CMION_MESH_CRASH_AT", "")
@@ -847,14 +855,10 @@ class MigrationManager(Component):
                 if out is not None:  # started: the end is reported by MigrationSucceeded/Failed events
                     request.accept({"attempt": out.attempt, "companion": out.companion, "target": out.target})
             case MigratePrepare() as payload:
-                if request.requester != payload.source:
-                    request.reject(f"{request.requester!r} cannot send a prepare on behalf of {payload.source!r}")
-                else:
+                if _sent_by_source(request, payload.source, "a prepare"):
                     self._on_prepare(request, payload)
             case MigrateCommit() as payload:
-                if request.requester != payload.source:
-                    request.reject(f"{request.requester!r} cannot send a commit on behalf of {payload.source!r}")
-                else:
+                if _sent_by_source(request, payload.source, "a commit"):
                     self._on_commit(request, payload)
             case MigrateAbort() as payload:
                 decision = handshake.on_abort(payload, self.records.get(payload.companion), requester=request.requester)
@@ -870,14 +874,10 @@ class MigrationManager(Component):
             case MigrateStatus() as payload:
                 request.answer(handshake.on_status(payload, self.records.get(payload.companion), requester=request.requester).outcome)
             case MigrateHave() as payload:
-                if request.requester != payload.source:
-                    request.reject(f"{request.requester!r} cannot send a have on behalf of {payload.source!r}")
-                else:
+                if _sent_by_source(request, payload.source, "a have"):
                     self._on_have(request, payload)
             case MigrateSections() as payload:
-                if request.requester != payload.source:
-                    request.reject(f"{request.requester!r} cannot send sections on behalf of {payload.source!r}")
-                else:
+                if _sent_by_source(request, payload.source, "sections"):
                     self._on_sections(request, payload)
             case SetPolicy() as payload:
                 self._on_policy(request, payload.accepts)
