@@ -13,6 +13,8 @@ from cmion_mesh.messages import Event
 from cmion_mesh.migration import MigrationManager
 from cmion_mesh.mind import Mind
 
+from .remote_helpers import diary_embodiment_config
+
 
 def blob_text(size: int, seed: int) -> str:
     """``size`` characters of incompressible text, the same for the same seed."""
@@ -68,14 +70,4 @@ class Carrier(Mind):
 
 def carrier_config(folder: Path, name: str) -> Path:
     """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a Carrier mind."""
-    from cmion_mesh.resources import embodiment_dir
-
-    cmion_test = embodiment_dir("cmion_test")
-    folder.mkdir(parents=True, exist_ok=True)
-    config = folder / "ArchitectureConfiguration.xml"
-    config.write_text(
-        f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{cmion_test / "CompManagerRulesTest.xml"}"'
-        f' CompetencyLibraryConfigurationFile="{cmion_test / "CompetencyLibrary.xml"}">\n'
-        '  <ArchitectureComponent ClassName="tests.delta_helpers:Carrier"/>\n'
-        "</ArchitectureConfiguration>\n")
-    return config
+    return diary_embodiment_config(folder, name, mind="tests.delta_helpers:Carrier")

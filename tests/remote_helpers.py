@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.mind import Mind
+from cmion_mesh.procs import Daemon, cli_argv
 
 
 class Arm(Competency):
@@ -79,8 +81,9 @@ class Diary(Mind):
         self.arrivals = list(state.get("arrivals", []))
 
 
-def diary_embodiment_config(folder: Path, name: str) -> Path:
-    """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a Diary mind."""
+def diary_embodiment_config(folder: Path, name: str, mind: str = "tests.remote_helpers:Diary") -> Path:
+    """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a test mind
+    (``package.module:Class``, a Diary unless told)."""
     from cmion_mesh.resources import embodiment_dir
 
     cmion_test = embodiment_dir("cmion_test")
@@ -89,6 +92,46 @@ def diary_embodiment_config(folder: Path, name: str) -> Path:
     config.write_text(
         f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="{cmion_test / "CompManagerRulesTest.xml"}"'
         f' CompetencyLibraryConfigurationFile="{cmion_test / "CompetencyLibrary.xml"}">\n'
-        '  <ArchitectureComponent ClassName="tests.remote_helpers:Diary"/>\n'
+        f'  <ArchitectureComponent ClassName="{mind}"/>\n'
         "</ArchitectureConfiguration>\n")
     return config
+
+
+@dataclass
+class Node:
+    """One daemon of a test mesh, restartable (each run is kept in ``history``; ``stop`` kills them all)."""
+
+    name: str
+    mesh: str
+    config: Path
+    state: Path
+    port: int
+    peers: list[str]
+    companion: str | None = None
+    env: dict[str, str] = field(default_factory=dict)
+    daemon: Daemon | None = None
+    history: list[Daemon] = field(default_factory=list)
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def start(self, crash_at: str = "") -> Node:
+        """``crash_at``: the durable record after which the daemon kills itself (``CMION_MESH_CRASH_AT``)."""
+        argv = ["up", str(self.config), "--mesh", self.mesh, "--listen", self.endpoint, "--no-multicast", "--state-dir", str(self.state)]
+        for peer in self.peers:
+            argv += ["--connect", peer]
+        if self.companion:
+            argv += ["--companion", self.companion]
+        self.daemon = Daemon(cli_argv(*argv), env={**self.env, "CMION_MESH_CRASH_AT": crash_at}, name=self.name)
+        self.history.append(self.daemon)
+        self.daemon.wait_line("up in mesh", 30)
+        return self
+
+    def died(self, timeout: float = 30) -> int:
+        assert self.daemon is not None
+        return self.daemon.proc.wait(timeout)
+
+    def stop(self) -> None:
+        for daemon in self.history:
+            daemon.kill()

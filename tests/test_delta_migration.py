@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,13 +26,13 @@ from cmion_mesh.identity import Identity, SectionMemo, SectionRef, max_section, 
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
 from cmion_mesh.migration import INLINE
-from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.procs import free_port
 from cmion_mesh.records import Record, Records, SectionStore
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
-from . import delta_helpers
+from . import delta_helpers, remote_helpers
 from .custody_helpers import Holder
 from .delta_helpers import carrier_config
 from .remote_helpers import Diary
@@ -47,36 +46,8 @@ MIB = 1024 * 1024
 # --- real daemons ---------------------------------------------------------------------------------
 
 
-@dataclass
-class Node:
-    name: str
-    mesh: str
-    config: Path
-    state: Path
-    port: int
-    peers: list[str]
-    companion: str | None = None
-    env: dict[str, str] = field(default_factory=dict)
-    daemon: Daemon | None = None
-
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
-
-    def start(self) -> Node:
-        argv = ["up", str(self.config), "--mesh", self.mesh, "--listen", self.endpoint, "--no-multicast",
-                "--state-dir", str(self.state)]
-        for peer in self.peers:
-            argv += ["--connect", peer]
-        if self.companion:
-            argv += ["--companion", self.companion]
-        self.daemon = Daemon(cli_argv(*argv), env=self.env, name=self.name)
-        self.daemon.wait_line("up in mesh", 30)
-        return self
-
-    def stop(self) -> None:
-        if self.daemon is not None:
-            self.daemon.kill()
+class Node(remote_helpers.Node):
+    """A daemon of the test mesh whose state folder the tests read."""
 
     # The state folder, read as files.
 

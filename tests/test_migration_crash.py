@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -19,52 +18,16 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Migrate, MindMessage, MindState
-from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
-from .remote_helpers import diary_embodiment_config
+from .remote_helpers import Node, diary_embodiment_config
 
 pytestmark = pytest.mark.timeout(180)
 
 
-
-
-@dataclass
-class Node:
-    name: str
-    mesh: str
-    config: Path
-    state: Path
-    port: int
-    peers: list[str]
-    companion: str | None = None
-    daemon: Daemon | None = None
-    history: list[Daemon] = field(default_factory=list)
-
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
-
-    def start(self, crash_at: str = "") -> Node:
-        argv = ["up", str(self.config), "--mesh", self.mesh, "--listen", self.endpoint, "--no-multicast", "--state-dir", str(self.state)]
-        for peer in self.peers:
-            argv += ["--connect", peer]
-        if self.companion:
-            argv += ["--companion", self.companion]
-        self.daemon = Daemon(cli_argv(*argv), env={"CMION_MESH_CRASH_AT": crash_at}, name=self.name)
-        self.history.append(self.daemon)
-        self.daemon.wait_line("up in mesh", 30)
-        return self
-
-    def died(self, timeout: float = 30) -> int:
-        assert self.daemon is not None
-        return self.daemon.proc.wait(timeout)
-
-    def stop(self) -> None:
-        for daemon in self.history:
-            daemon.kill()
 
 
 @pytest.fixture
