@@ -240,6 +240,13 @@ class MemoryTransport:
 
         return self._remember(unwatch)
 
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        # Subscriptions of one memory network are known at once: nothing to wait for.
+        self._check()
+        with self.net.lock:
+            return any(matches(sel, key) for sel, _, remote_only, owner in self.net.subs.values()
+                       if not (remote_only and owner is self))
+
     def peers(self) -> list[str]:
         """The other open transports of the network: each hears every other."""
         self._check()

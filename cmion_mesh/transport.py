@@ -137,6 +137,10 @@ class Transport(Protocol):
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
         """``handler(key, alive)`` for every token that appears (including present ones) or vanishes."""
 
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        """Whether a subscriber whose pattern matches ``key`` is known to this session, waiting up to
+        ``timeout`` for one: a publisher that must not publish into the void (``replay``) asks first."""
+
     def peers(self) -> list[str]:
         """Ids of the sessions this one is connected to (``router:<id>`` for routers), for diagnostics."""
 

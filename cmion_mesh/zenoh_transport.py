@@ -367,6 +367,25 @@ class ZenohTransport:
 
         return self._track(_Entity(sub.undeclare, _drain(f"live:{selector}", channel.recv, handle)))
 
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        with self._errors(f"matching subscribers of {key}"):
+            publisher = self._session.declare_publisher(key)
+        try:
+            found = threading.Event()
+            # The listener's callback runs on a zenoh thread: it only sets an Event (never blocks).
+            listener = publisher.declare_matching_listener(lambda status: found.set() if status.matching else None)
+            try:
+                # zenoh's stubs say bool; it is a MatchingStatus
+                return bool(getattr(publisher.matching_status, "matching", False)) or found.wait(max(0.0, timeout))
+            finally:
+                with contextlib.suppress(zenoh.ZError):
+                    listener.undeclare()  # type: ignore[no-untyped-call]
+        except zenoh.ZError as exc:
+            raise _mapped(f"matching subscribers of {key}", exc, self._closed) from None
+        finally:
+            with contextlib.suppress(zenoh.ZError):
+                publisher.undeclare()  # type: ignore[no-untyped-call]
+
     def peers(self) -> list[str]:
         """Zenoh ids of the peers and routers this session is connected to (for diagnostics)."""
         with self._errors("list peers"):
