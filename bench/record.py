@@ -107,12 +107,13 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                     continue
             else:
                 raise TimeoutError(f"{kind} group {group}: the subscriber never received a warm-up burst")
-        # The recorder's subscription must have reached the publisher too before a measured burst.
-        for _attempt in range(20):
+        # The recorder's subscription must have reached the publisher too before a measured burst
+        # (its file shows it once the chunk is written out, within its flush interval).
+        for _attempt in range(10):
             burst_id, _ = burst("mesh", RECORDED, 100)
             published += 101
             done(burst_id, 5.0)
-            if _recorded(output) >= 101:
+            if _file_holds(output, 101, 3.0):
                 break
         else:
             raise TimeoutError("the recorder never wrote a warm-up burst")
@@ -168,6 +169,18 @@ def _caught_up(path: Path, since: float, quiet: float = 4 * record.FLUSH_INTERVA
         elif now - grew >= quiet:
             break
     return grew - since
+
+
+def _file_holds(path: Path, events: int, timeout: float) -> bool:
+    """Whether ``path`` holds at least ``events`` events, within ``timeout`` (read every 0.1 s)."""
+    deadline = time.monotonic() + timeout
+    for _ in range(int(timeout / 0.1) + 1):  # bounded in time
+        if _recorded(path) >= events:
+            return True
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
+    return False
 
 
 def _recorded(path: Path) -> int:

@@ -586,7 +586,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     output = args.output or f"cmion-{args.mesh}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
     split_bytes = parse_size(args.split_size) if args.split_size else 0
     with session(args) as client, Recorder(client.transport, args.mesh, output, filters=args.filters or (),
-                                           split_bytes=split_bytes, split_seconds=args.split_time or 0.0) as recorder:
+                                           split_bytes=split_bytes, split_seconds=args.split_time or 0.0,
+                                           overwrite=args.force) as recorder:
         # Join before saying we record: the daemons' answers to describe come after they learnt of
         # this session's subscriptions (one link, in order), and describe what they are, in the file.
         alive: list[str] = []
@@ -1006,6 +1007,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="key expressions of what to record, relative to cmion/<mesh>/ (e.g. robot/ev/** */wm/**) or absolute "
                         "(default: the whole mesh; liveliness is always recorded); `info FILE...` summarises recordings instead")
     p.add_argument("-o", "--output", metavar="FILE", help="the file (default: cmion-<mesh>-<date>-<time>.mcap here)")
+    p.add_argument("--force", action="store_true", help="overwrite FILE if it exists (default: refuse)")
     p.add_argument("--split-size", metavar="SIZE", help="start a new file (FILE-0001.mcap...) past this size, e.g. 100M, 1G")
     p.add_argument("--split-time", type=float, metavar="SECONDS", help="start a new file after this many seconds")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: at Ctrl-C)")

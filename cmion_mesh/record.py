@@ -233,10 +233,15 @@ def part_path(output: Path, index: int, split: bool) -> Path:
 class _Part:
     """One MCAP file being written: its writer, schemas and channels."""
 
-    def __init__(self, path: Path, meta: dict[str, dict[str, str]]) -> None:
+    def __init__(self, path: Path, meta: dict[str, dict[str, str]], *, exclusive: bool = False) -> None:
         self.path = path
         self.started = time.monotonic()
-        self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115  (closed by close())
+        try:
+            self._stream: IO[bytes] = open(path, "xb" if exclusive else "wb")  # noqa: SIM115  (closed by close())
+        except FileExistsError:
+            raise ConfigError("exists already: not overwritten (another name, or --force)", path=str(path)) from None
+        except OSError as exc:
+            raise ConfigError(f"cannot write the recording: {exc.strerror}", path=str(path)) from None
         self.writer = Writer(self._stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
         self.writer.start(profile=PROFILE, library=f"cmion-mesh {__version__}")
         self._schemas: dict[str, int] = {}
@@ -305,7 +310,7 @@ class Recorder:
     def __init__(
         self, transport: Transport, mesh: str, output: str | Path, *, filters: Sequence[str] = (),
         split_bytes: int = 0, split_seconds: float = 0.0, flush_interval: float = FLUSH_INTERVAL,
-        max_queued: int = MAX_QUEUED_SAMPLES, report: Callable[[str], None] | None = None,
+        max_queued: int = MAX_QUEUED_SAMPLES, report: Callable[[str], None] | None = None, overwrite: bool = True,
     ) -> None:
         self.mesh = keys.check_name(mesh, "mesh")
         self.output = Path(output)
@@ -325,7 +330,8 @@ class Recorder:
         self._lock = threading.Lock()
         self._closed = False
         self._error: BaseException | None = None
-        self._part = _Part(part_path(self.output, 0, self._split), self._meta_for(0))
+        self._exclusive = not overwrite
+        self._part = _Part(part_path(self.output, 0, self._split), self._meta_for(0), exclusive=self._exclusive)
         self.stats.files.append(str(self._part.path))
         self._writer = threading.Thread(target=self._run, name="record-writer", daemon=True)
         self._writer.start()
@@ -454,7 +460,7 @@ class Recorder:
     def _next_part(self) -> None:
         self._part.close(self._end_record())
         index = len(self.stats.files)
-        self._part = _Part(part_path(self.output, index, True), self._meta_for(index))
+        self._part = _Part(part_path(self.output, index, True), self._meta_for(index), exclusive=self._exclusive)
         self.stats.files.append(str(self._part.path))
 
     def close(self) -> None:
