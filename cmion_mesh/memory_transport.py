@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 from cmion_mesh.errors import ClosedError
-from cmion_mesh.keys import matches
+from cmion_mesh.keys import matches as _matches
 from cmion_mesh.transport import (
     MAX_BATCH,
     BatchHandler,
@@ -28,6 +28,11 @@ from cmion_mesh.transport import (
 
 _STOP = object()
 log = logging.getLogger(__name__)
+
+
+def matches(pattern: str, key: str) -> bool:
+    """As zenoh matches: ``@`` chunks (``@alive``, ``@outcome``...) only by themselves."""
+    return _matches(pattern, key, verbatim=True)
 
 
 def _intersects(a: str, b: str) -> bool:
@@ -110,6 +115,25 @@ class _Handle(Handle):
         if not self._closed:
             self._closed = True
             self._close()
+
+
+class _MemMatching:
+    """``Transport.matching`` in one memory network: the subscriptions are looked at when asked."""
+
+    def __init__(self, transport: MemoryTransport, selector: str) -> None:
+        self._transport = transport
+        self._selector = selector
+        self._closed = False
+
+    @property
+    def matching(self) -> bool:
+        if self._closed or self._transport._closed:
+            return False
+        with self._transport.net.lock:
+            return any(_intersects(self._selector, sel) for sel, _, _, _ in self._transport.net.subs.values())
+
+    def close(self) -> None:
+        self._closed = True
 
 
 class MemoryTransport:
@@ -239,6 +263,10 @@ class MemoryTransport:
             worker.stop()
 
         return self._remember(unwatch)
+
+    def matching(self, selector: str) -> _MemMatching:
+        self._check()
+        return _MemMatching(self, selector)
 
     def wait_subscribers(self, key: str, timeout: float) -> bool:
         # Subscriptions of one memory network are known at once: nothing to wait for.

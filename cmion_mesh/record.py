@@ -12,13 +12,14 @@ and any MCAP reader open these files. What is recorded, one MCAP channel per key
 * liveliness: one channel per kind of token, ``cmion/<mesh>/@alive/*`` (embodiments),
   ``@claim``, ``@competency``, ``@custody`` (schema ``cmion_mesh.Liveliness``: comings and goings;
   the tokens alive when recording starts come first).
+* requests and their outcomes: one channel per request key,
+  ``cmion/<mesh>/<embodiment>/@outcome/<component>/<request>`` (schema ``cmion_mesh.RequestAnswered``:
+  status, code, reason, sender). Requests are zenoh queries, which a passive subscriber never
+  sees; each embodiment publishes how it answered one only while some session subscribes there
+  (``ion.Simulation``: one attribute read per request otherwise).
 * anything else under the recorded keys, and every payload that does not decode as what its key
   should carry, goes to ``raw:<key pattern>`` (schema ``cmion_mesh.RawSample``: the key and the
   bytes in base64), never lost.
-
-Requests are zenoh queries: a passive recorder does not see them nor their replies. What a
-request does is visible when it is accepted (an action's ``ActionStarted``, a write's storage
-change, a migration's steps); a rejected request leaves no trace (docs/record.md).
 
 Messages are JSON (``message_encoding`` ``json``) with a JSON Schema generated from the wire
 Structs, so any reader shows their fields; JSON keeps every plain value a message can carry
@@ -59,7 +60,7 @@ from mcap.writer import CompressionType, Writer
 
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
-from cmion_mesh.messages import Container, Event, Property, decode, decoder
+from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, decoder
 from cmion_mesh.transport import Closeable, Sample, Transport
 
 #: Uncompressed bytes of a chunk before it is compressed and written.
@@ -71,6 +72,8 @@ MAX_QUEUED_SAMPLES = 100_000
 MAX_QUEUED_BYTES = 64 * 1024 * 1024
 #: Channels in one file; events on keys beyond it share the overflow channel ``cmion/<mesh>/*/ev/**``.
 MAX_CHANNELS = 4096
+#: Requests not accepted that ``info`` lists (it counts them all).
+MAX_REFUSALS_LISTED = 20
 #: Most often a drop is reported on stderr.
 DROP_REPORT_INTERVAL = 1.0
 
@@ -78,6 +81,7 @@ EVENT_SCHEMA = "cmion_mesh.Event"
 STORAGE_SCHEMA = "cmion_mesh.StorageSample"
 LIVELINESS_SCHEMA = "cmion_mesh.Liveliness"
 RAW_SCHEMA = "cmion_mesh.RawSample"
+ANSWER_SCHEMA = "cmion_mesh.RequestAnswered"
 #: Liveliness token kinds recorded, each one channel.
 TOKEN_KINDS = (keys.ALIVE, keys.CLAIM, keys.COMPETENCY, keys.CUSTODY)
 PROFILE = "cmion-mesh"
@@ -121,10 +125,12 @@ SCHEMAS: dict[str, bytes] = {
     STORAGE_SCHEMA: _schema(StorageSample, STORAGE_SCHEMA),
     LIVELINESS_SCHEMA: _schema(Liveliness, LIVELINESS_SCHEMA),
     RAW_SCHEMA: _schema(RawSample, RAW_SCHEMA),
+    ANSWER_SCHEMA: _schema(RequestAnswered, ANSWER_SCHEMA),
 }
 
 _json = msgspec.json.Encoder()
 _decode_event = decoder(Event)
+_decode_answer = decoder(RequestAnswered)
 _Entry = Property | Container
 
 
@@ -158,6 +164,9 @@ def route(sample: Sample) -> Routed:
         if kind == keys.EVENTS and len(chunks) == 6 and not deleted:
             event = _decode_event(payload, key)
             return Routed(key, EVENT_SCHEMA, _json.encode(event), int(event.time * 1e9) if event.time > 0 else 0)
+        if kind == keys.OUTCOMES and len(chunks) == 6 and not deleted:
+            answer = _decode_answer(payload, key)
+            return Routed(key, ANSWER_SCHEMA, _json.encode(answer), int(answer.time * 1e9) if answer.time > 0 else 0)
         if kind in (keys.BLACKBOARD, keys.WORLD_MODEL):
             topic = "/".join((*chunks[:4], "**"))
             entry = None if deleted else decode(payload, _Entry, where=key)
@@ -314,7 +323,8 @@ class Recorder:
     ) -> None:
         self.mesh = keys.check_name(mesh, "mesh")
         self.output = Path(output)
-        self.filters = [mesh_filter(mesh, f) for f in filters] or [f"{keys.mesh_prefix(mesh)}/**"]
+        # ``**`` never matches ``@outcome`` (a verbatim chunk): the whole mesh is both patterns.
+        self.filters = [mesh_filter(mesh, f) for f in filters] or [f"{keys.mesh_prefix(mesh)}/**", keys.outcome_pattern(mesh)]
         self.split_bytes = split_bytes
         self.split_seconds = split_seconds
         self.flush_interval = flush_interval
@@ -598,6 +608,8 @@ def info(path: str | Path) -> dict[str, Any]:
     first = last = 0
     embodiments: set[str] = set()
     migrations: dict[str, Migration] = {}
+    answers: dict[str, int] = {}
+    refusals: list[dict[str, str]] = []
     with RecordingReader(path) as reader:
         for message in reader.messages():
             counts[message.topic] = counts.get(message.topic, 0) + 1
@@ -607,6 +619,13 @@ def info(path: str | Path) -> dict[str, Any]:
                 embodiments.add(message.decoded().get("name", ""))
             elif message.schema == EVENT_SCHEMA:
                 _follow_migration(message, migrations, embodiments)
+            elif message.schema == ANSWER_SCHEMA:
+                answer = message.decoded()
+                status = str(answer.get("status"))
+                answers[status] = answers.get(status, 0) + 1
+                if status != "accepted" and len(refusals) < MAX_REFUSALS_LISTED:
+                    refusals.append({k: str(answer.get(k, "")) for k in ("embodiment", "component", "request", "sender",
+                                                                         "status", "code", "reason")})
         meta = reader.metadata
         truncated, error = reader.truncated or not reader.complete, reader.error
     start = dict(next((m for n, m in meta if n == "cmion-mesh"), {}))
@@ -627,6 +646,8 @@ def info(path: str | Path) -> dict[str, Any]:
         "described": {name: {k: described[name].get(k, "") for k in ("version", "host", "pid", "inhabitant")}
                       for name in sorted(described)},
         "migrations": [dataclasses.asdict(m) for m in migrations.values()],
+        "requests": dict(sorted(answers.items())),
+        "refused": refusals,
         "dropped": max(drops, default=0),
         "truncated": truncated,
         "truncation": error or ("no end: the recorder did not close the file" if truncated else ""),
@@ -674,6 +695,12 @@ def format_info(summary: dict[str, Any]) -> str:
     for m in summary["migrations"]:
         lines.append(f"  {m['companion']} {m['source'] or '?'} -> {m['target'] or '?'} ({m['attempt']}): "
                      f"{' '.join(m['steps']) or 'no step'}; {m['outcome'] or 'no end recorded'}")
+    if summary["requests"]:
+        counts = ", ".join(f"{n} {status}" for status, n in summary["requests"].items())
+        lines.append(f"requests answered: {sum(summary['requests'].values())} ({counts})")
+        for r in summary["refused"]:
+            lines.append(f"  {r['embodiment']} {r['component']}/{r['request']}{' from ' + r['sender'] if r['sender'] else ''}: "
+                         f"{r['status']} {r['code']}: {r['reason']}")
     lines.append("channels:")
     width = max((len(t) for t in summary["channels"]), default=0)
     for topic, count in summary["channels"].items():

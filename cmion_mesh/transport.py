@@ -61,6 +61,15 @@ class IncomingQuery(Protocol):
 MAX_BATCH = 256
 
 
+class Matching(Protocol):
+    """Whether some subscriber's pattern intersects a key expression, kept current by the
+    transport (``Transport.matching``): reading ``matching`` costs an attribute read."""
+
+    @property
+    def matching(self) -> bool: ...
+    def close(self) -> None: ...
+
+
 class Closeable(Protocol):
     def close(self) -> None: ...
     def __enter__(self) -> Closeable: ...
@@ -136,6 +145,10 @@ class Transport(Protocol):
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
         """``handler(key, alive)`` for every token that appears (including present ones) or vanishes."""
+
+    def matching(self, selector: str) -> Matching:
+        """Follow whether any subscriber (of any session, this one included) intersects ``selector``:
+        a publication worth making only when someone listens checks ``matching`` first."""
 
     def wait_subscribers(self, key: str, timeout: float) -> bool:
         """Whether a subscriber whose pattern matches ``key`` is known to this session, waiting up to

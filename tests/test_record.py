@@ -116,6 +116,13 @@ def test_the_recording_opens_with_the_mcap_reader_and_holds_the_story(session: S
     hops = (("robot", "screen"), ("screen", "phone"), ("phone", "robot"))
     assert sorted(steps) == sorted(step for source, target in hops for step in
                                    ((source, "prepared"), (target, "incoming"), (source, "handed"), (target, "active")))
+    # How requests were answered: the operator's command, the migration handshake's steps.
+    answers = [e for topic, e in recorded if "/@outcome/" in topic]
+    assert {"embodiment": "robot", "component": "bb", "request": "set_property", "status": "accepted"}.items() \
+        <= next(a for a in answers if a["component"] == "bb" and a["embodiment"] == "robot").items()
+    handshake = {(a["embodiment"], a["request"], a["sender"], a["status"]) for a in answers if a["component"] == "migration"}
+    assert {("screen", "prepare", "robot", "accepted"), ("screen", "commit", "robot", "accepted"),
+            ("robot", "commit", "phone", "accepted")} <= handshake
     # Storage changes and liveliness are there too.
     assert any(topic == f"cmion/{session.mesh}/screen/bb/**" for topic, _ in recorded)
     assert {e["name"] for t, e in recorded if t.endswith("/@alive/*")} >= {"robot", "screen", "phone"}
@@ -179,6 +186,37 @@ def test_replay_filters_and_rejects_a_bad_rate(session: Session, tmp_path: Path)
             replay(MeshClient(t, "fresh"), session.clean, rate=-1)
 
 
+def test_answers_are_told_only_while_someone_listens() -> None:
+    from cmion_mesh import keys
+    from cmion_mesh.ion import Component, Simulation, send_request
+    from cmion_mesh.messages import Describe, RequestAnswered, decode
+
+    class Asked(Component):
+        requests = {"describe": Describe}
+
+        def on_request(self, request: Any) -> None:
+            request.accept({"ok": True})
+
+    network = MemoryNetwork()
+    with MemoryTransport(network, "daemon") as daemon_t, MemoryTransport(network, "tool") as tool_t, \
+            Simulation(daemon_t, mesh="m", embodiment="robot") as sim:
+        sim.add(Asked("asked"))
+        told: list[RequestAnswered] = []
+        published: list[str] = []
+        publish = daemon_t.publish
+        daemon_t.publish = lambda key, payload, block=True: (published.append(key), publish(key, payload, block=block))[-1]  # type: ignore[method-assign]
+        key = keys.request_key("m", "robot", "asked", "describe")
+        assert send_request(tool_t, key, Describe()).status == "accepted"
+        assert not [k for k in published if "@outcome" in k], "nobody listens: nothing told"
+        with tool_t.subscribe(keys.outcome_pattern("m"), lambda s: told.append(decode(s.payload, RequestAnswered))):
+            assert send_request(tool_t, key, Describe()).status == "accepted"
+            assert send_request(tool_t, keys.request_key("m", "robot", "asked", "nothing"), Describe()).status == "rejected"
+            wait_for(lambda: len(told) == 2, 10, "two answers told")
+    assert [(t.component, t.request, t.status, t.code) for t in told] == \
+        [("asked", "describe", "accepted", ""), ("asked", "nothing", "rejected", "unknown_request")]
+    assert told[1].reason and told[0].embodiment == "robot"
+
+
 # --- the recorder alone, on the in-memory transport ------------------------------------------------
 
 
@@ -239,3 +277,14 @@ def test_bad_input_is_named(tmp_path: Path) -> None:
     assert record.parse_size("100M") == 100 * 1024**2
     with pytest.raises(ConfigError, match="filter"):
         record.mesh_filter("m", "/abs")
+
+
+def test_a_recording_is_never_overwritten_unless_asked(tmp_path: Path) -> None:
+    (tmp_path / "kept.mcap").write_bytes(b"evidence")
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        with pytest.raises(ConfigError, match="exists already"):
+            Recorder(t, "m", tmp_path / "kept.mcap", overwrite=False)
+        assert (tmp_path / "kept.mcap").read_bytes() == b"evidence"
+        with Recorder(t, "m", tmp_path / "kept.mcap", overwrite=True):
+            pass
+    assert not record.info(tmp_path / "kept.mcap")["truncated"]
