@@ -285,6 +285,8 @@ class _Part:
         if self.pending:
             self.writer.flush()  # type: ignore[no-untyped-call]
             self.pending = 0
+        else:
+            self._stream.flush()  # metadata (drops, descriptions) written since, if any
 
     def size(self) -> int:
         return self._stream.tell()
@@ -313,7 +315,8 @@ class RecorderStats:
 class Recorder:
     """Records ``mesh`` through ``transport`` into ``output`` from construction until ``close()``
     (idempotent; a context manager). ``filters``: key expressions (see ``mesh_filter``) of the
-    publications recorded, default the whole mesh; liveliness is always recorded.
+    publications recorded, default the whole mesh and its requests' answers (``@outcome``);
+    liveliness is always recorded.
     ``split_bytes``/``split_seconds``: start a new file (``name-0001.mcap``...) past that size or age."""
 
     def __init__(
@@ -358,6 +361,11 @@ class Recorder:
 
     def __enter__(self) -> Recorder:
         return self
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped so far because the writer fell behind."""
+        return self._inbox.dropped
 
     def __exit__(self, *_: object) -> None:
         self.close()
