@@ -113,6 +113,7 @@ def replay(
                 raise MeshError(f"replay of {message.topic} (recorded at {message.log_time} ns) into mesh "
                                 f"{client.mesh!r}: {exc}") from None
             stats.published += 1
-        stats.truncated = reader.truncated or not reader.complete
+        else:  # read to its end (not stopped): whether that end is the file's
+            stats.truncated = reader.truncated or not reader.complete
     stats.seconds = time.monotonic() - started
     return stats
