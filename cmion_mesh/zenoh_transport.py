@@ -228,7 +228,7 @@ def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], Non
 class _Matching:
     """``Transport.matching``: ``matching`` as zenoh's matching listener last said."""
 
-    def __init__(self, publisher: zenoh.Publisher) -> None:
+    def __init__(self) -> None:
         self.matching = False
         self.entity: _Entity | None = None
 
@@ -387,7 +387,7 @@ class ZenohTransport:
         with self._errors(f"matching subscribers of {selector}"):
             publisher = self._session.declare_publisher(selector)
         try:
-            found = _Matching(publisher)
+            found = _Matching()
             # The listener's callback runs on a zenoh thread: it only sets a flag (never blocks).
             listener = publisher.declare_matching_listener(found.update)
         except zenoh.ZError as exc:
