@@ -155,7 +155,7 @@ _msg("action_msgs/msg/GoalInfo", "unique_identifier_msgs/msg/UUID goal_id", "bui
 _msg("action_msgs/msg/GoalStatus", "action_msgs/msg/GoalInfo goal_info", "int8 status")
 _msg("action_msgs/msg/GoalStatusArray", "action_msgs/msg/GoalStatus[] status_list")
 _srv("action_msgs/srv/CancelGoal", ("action_msgs/msg/GoalInfo goal_info",),
-     ("int8 return_code", "action_msgs/msg/GoalStatus[] goals_canceling"))
+     ("int8 return_code", "action_msgs/msg/GoalInfo[] goals_canceling"))
 _srv("example_interfaces/srv/AddTwoInts", ("int64 a", "int64 b"), ("int64 sum",))  # only to check the hashing
 _action("nav2_msgs/action/NavigateToPose",
         ("geometry_msgs/msg/PoseStamped pose", "string behavior_tree"),
@@ -187,8 +187,9 @@ KNOWN_HASHES = {
     "geometry_msgs/msg/Twist": "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a",
     "action_msgs/msg/GoalStatusArray": "RIHS01_6c1684b00f177d37438febe6e709fc4e2b0d4248dca4854946f9ed8b30cda83e",
     "nav_msgs/msg/Odometry": "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0",
+    # ros2_documentation "Understanding actions": ``ros2 action info --verbose`` output
+    "action_msgs/srv/CancelGoal": "RIHS01_573d8b0a534451d7bc2ac8c5ffde8ac14b8593b7001175d0cd6516dcbeb8689a",
 }
-# action_msgs/srv/CancelGoal has no public constant found; its hash is computed (same algorithm).
 
 
 def _type_json(name: str) -> dict[str, Any]:
@@ -380,7 +381,7 @@ class Goal:
     frame_id: str
     target: tuple[float, float, float]
     accepted_ns: int
-    status: int = 2
+    status: int = 1
     start: float = field(default_factory=time.monotonic)
     feedback_sent: int = 0
     result_queries: list[tuple[Any, int, bytes]] = field(default_factory=list)
@@ -613,6 +614,9 @@ class StandinRobot:
         goal = self.goals.get(goal_id)
         if goal is None or goal.status >= SUCCEEDED or goal.status == 3:
             return
+        if goal.status == 1:               # ACCEPTED -> EXECUTING, as rclcpp_action's execute()
+            goal.status = 2
+            self._publish_status()
         if goal.feedback_sent < self.args.feedback:
             goal.feedback_sent += 1
             self._send_feedback(goal)
@@ -673,21 +677,23 @@ class StandinRobot:
         goal_id = r.raw(16)
         stamp = (r.i32(), r.u32())
         every = goal_id == bytes(16)
+        stamp_ns = stamp[0] * 1_000_000_000 + stamp[1]
+        # action_msgs/srv/CancelGoal.srv: zero id and stamp: all goals; a stamp: also every goal
+        # accepted at or before it; an id: that goal.
         chosen = [g for g in self.goals.values()
-                  if (every and (stamp == (0, 0) or g.accepted_ns <= stamp[0] * 1_000_000_000 + stamp[1]))
-                  or g.goal_id == goal_id]
+                  if g.goal_id == goal_id or (every and stamp_ns == 0) or (stamp_ns and g.accepted_ns <= stamp_ns)]
         canceling = [g for g in chosen if g.status < SUCCEEDED]
         if canceling:
             code = 0                       # ERROR_NONE
-        elif not every and not chosen:
+        elif not every and all(g.goal_id != goal_id for g in chosen):
             code = 2                       # ERROR_UNKNOWN_GOAL_ID
         elif not every:
             code = 3                       # ERROR_GOAL_TERMINATED
         else:
             code = 1                       # ERROR_REJECTED
         w = CdrWriter().i8(code).u32(len(canceling))
-        for g in canceling:
-            w.raw(g.goal_id).i32(g.accepted_ns // 1_000_000_000).u32(g.accepted_ns % 1_000_000_000).i8(3)
+        for g in canceling:                # GoalInfo[] goals_canceling
+            w.raw(g.goal_id).i32(g.accepted_ns // 1_000_000_000).u32(g.accepted_ns % 1_000_000_000)
         self._reply("cancel_goal", query, sequence, gid, w.bytes())
         for g in canceling:
             emit("cancel", goal_id=g.goal_id.hex())
