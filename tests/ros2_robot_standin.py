@@ -1,4 +1,4 @@
-"""A stand-in ROS 2 robot speaking rmw_zenoh's wire format (ROS 2 Jazzy), for the issue-18 tests.
+"""A stand-in ROS 2 robot speaking rmw_zenoh's wire format (ROS 2 Jazzy), for the ROS 2 body's tests.
 
 Run as ``python -m tests.ros2_robot_standin [options]``; the command line and the JSON lines it
 prints are fixed by the stand-in contract (options in ``parse_args`` below). It plays a Nav2 robot:

@@ -30,6 +30,7 @@ GET_RESULT = ("7/robot1/navigate_to_pose/_action/get_result/nav2_msgs::action::d
 FEEDBACK = ("7/robot1/navigate_to_pose/_action/feedback/nav2_msgs::action::dds_::NavigateToPose_FeedbackMessage_/"
             "RIHS01_9d1f6fa2eb975ce733b419ac2e97b134d8ff92b6478b6559feed9a50bdfd82b3")
 CMD_VEL = "7/robot1/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+SPEECH = "7/robot1/speech/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 CLIENT_GID = bytes(range(100, 116))
 
 
@@ -163,6 +164,11 @@ def test_the_standin_speaks_rmw_zenoh(robot: Standin, session: zenoh.Session) ->
     twist = b"\x00\x01\x00\x00" + struct.pack("<6d", 0.5, 0.0, 0.0, 0.0, 0.0, -0.25)
     session.put(CMD_VEL, twist, attachment=attachment(1))
     assert robot.event("cmd_vel") == {"event": "cmd_vel", "linear": [0.5, 0.0, 0.0], "angular": [0.0, 0.0, -0.25]}
+
+    # speech: a std_msgs/String
+    text, _ = cdr_string("hello, robot", 0)
+    session.put(SPEECH, b"\x00\x01\x00\x00" + text, attachment=attachment(1))
+    assert robot.event("speech")["data"] == "hello, robot"
 
     # A malformed Twist is reported, and the stand-in goes on
     session.put(CMD_VEL, b"\x00\x01\x00\x00\x01\x02", attachment=attachment(2))
