@@ -56,8 +56,12 @@ What of rmw_zenoh it implements, and where each fact comes from:
   unique_identifier_msgs/UUID; builtin_interfaces Time/Duration; service_msgs/ServiceEventInfo.
 
 Not reproduced: rmw_zenoh's GIDs are an XXH3-128 of the liveliness key; these are the first 16
-bytes of its sha256 (GIDs are opaque to peers). The transient-local status topic is a plain
-publisher here (no publication cache). No parameter services, no ``ros_discovery_info``.
+bytes of its sha256 (GIDs are opaque to peers). No parameter services, no type description
+service, no ``ros_discovery_info``: only the entities listed above.
+
+The status topic is transient local (rcl_action), so, as rmw_publisher_data.cpp does for such
+publishers, it is a zenoh advanced publisher with a cache of one sample, publisher detection and
+sporadic heartbeats every 500 ms: a late subscriber asking for history gets the last status.
 """
 
 from __future__ import annotations
@@ -78,6 +82,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 # --------------------------------------------------------------------------------------------
 # Type descriptions and RIHS01 hashes (REP 2011)
@@ -451,6 +456,13 @@ class StandinRobot:
                 self.declared.append(self.session.declare_queryable(e.key, self._to_inbox(name), complete=True))
             elif e.kind == "MS":
                 self.declared.append(self.session.declare_subscriber(e.key, self._to_inbox(name)))
+            elif e.qos == QOS_STATUS:
+                # rmw_publisher_data.cpp: a transient-local publisher is an advanced publisher with a
+                # cache of ``depth`` samples, publisher detection and (reliable) sporadic heartbeats.
+                self.publishers[name] = zenoh.ext.declare_advanced_publisher(
+                    self.session, e.key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
+                    sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5))
+                self.declared.append(self.publishers[name])
             else:
                 self.publishers[name] = self.session.declare_publisher(e.key)
                 self.declared.append(self.publishers[name])
