@@ -67,11 +67,13 @@ sporadic heartbeats every 500 ms: a late subscriber asking for history gets the 
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import heapq
 import json
 import math
 import queue
+import re
 import signal
 import struct
 import sys
@@ -214,6 +216,7 @@ def _referenced(name: str, found: set[str]) -> set[str]:
     return found
 
 
+@functools.cache
 def type_hash(name: str) -> str:
     """The RIHS01 hash of a registered type (``"pkg/msg/Name"``), computed as REP 2011 says."""
     description = {"type_description": _type_json(name),
@@ -359,14 +362,8 @@ class Entity:
     eid: int = 0
     sequence: int = 0
     gid: bytes = b""
-    token_key: str = ""
-
-    @property
-    def key(self) -> str:
-        return f"{DOMAIN[0]}/{self.topic.strip('/')}/{dds_type_name(self.type_name)}/{type_hash(self.type_name)}"
-
-
-DOMAIN = [0]  # set from --domain before any key is built
+    key: str = ""          # the data key expression
+    token_key: str = ""    # the liveliness token
 
 
 def emit(event: str, **fields: Any) -> None:
@@ -421,10 +418,11 @@ class StandinRobot:
         return (self.namespace.rstrip("/") + "/" + name) if self.namespace != "/" else "/" + name
 
     def token_prefix(self, eid: int, kind: str) -> str:
-        return (f"@ros2_lv/{DOMAIN[0]}/{self.zid}/0/{eid}/{kind}/%/{mangle(self.namespace)}/{self.args.node_name}")
+        return f"@ros2_lv/{self.args.domain}/{self.zid}/0/{eid}/{kind}/%/{mangle(self.namespace)}/{mangle(self.args.node_name)}"
 
     def _entity(self, entity: Entity, eid: int) -> Entity:
         entity.eid = eid
+        entity.key = f"{self.args.domain}/{entity.topic.strip('/')}/{dds_type_name(entity.type_name)}/{type_hash(entity.type_name)}"
         entity.token_key = (f"{self.token_prefix(eid, entity.kind)}/{mangle(entity.topic)}/"
                             f"{dds_type_name(entity.type_name)}/{type_hash(entity.type_name)}/{entity.qos}")
         entity.gid = hashlib.sha256(entity.token_key.encode()).digest()[:16]
@@ -449,7 +447,7 @@ class StandinRobot:
         self.publishers: dict[str, Any] = {}
         liveliness = self.session.liveliness()
         self.declared.append(liveliness.declare_subscriber(
-            f"@ros2_lv/{DOMAIN[0]}/**", self._to_inbox("liveliness"), history=True))
+            f"@ros2_lv/{self.args.domain}/**", self._to_inbox("liveliness"), history=True))
         self.declared.append(liveliness.declare_token(self.token_prefix(0, "NN")))
         for name, e in self.entities.items():
             if e.kind == "SS":
@@ -731,6 +729,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--action-name", default="navigate_to_pose")
     p.add_argument("--max-seconds", type=float, default=600.0, help="exit after this long whatever happens")
     args = p.parse_args(argv)
+    # ROS names (design.ros2.org "Topic and Service name mapping"): a bad one would make an invalid key.
+    name, path = re.compile(r"[A-Za-z_][A-Za-z0-9_]*"), re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*")
+    if not name.fullmatch(args.node_name):
+        p.error(f"--node-name {args.node_name!r} is not a ROS node name")
+    for option in ("namespace", "cmd_vel_topic", "speech_topic", "action_name"):
+        value = getattr(args, option)
+        if not path.fullmatch(value) and not (option == "namespace" and value in ("", "/")):
+            p.error(f"--{option.replace('_', '-')} {value!r} is not a ROS name")
+    if args.domain < 0:
+        p.error("--domain must be >= 0")
     if args.feedback < 0 or args.feedback_interval < 0 or args.odom_hz < 0 or args.odom_hz > 1000:
         p.error("--feedback, --feedback-interval must be >= 0 and --odom-hz within 0..1000")
     return args
@@ -745,7 +753,6 @@ def _read_stdin(stop: threading.Event) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    DOMAIN[0] = args.domain
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
