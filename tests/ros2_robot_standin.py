@@ -33,9 +33,13 @@ What of rmw_zenoh it implements, and where each fact comes from:
 * Attachments (design.md "Publishers", "Service Clients", "Service Servers";
   attachment_helpers.cpp, zenoh ext serializer): 8 bytes sequence number (int64 LE), 8 bytes source
   timestamp (ns since the epoch, int64 LE), 1 byte GID length (16), 16 bytes GID. A service reply
-  carries the *request's* sequence number and client GID: that is how the client matches it.
+  carries the *request's* sequence number and client GID: that is how the client matches it
+  (rmw_client_data.cpp ``take_response``). rmw_zenoh drops a sample or request without one
+  (rmw_subscription_data.cpp, rmw_service_data.cpp); the stand-in reports it as an error.
 * Services are queryables declared ``complete`` (design.md "Service Servers"); a request is a
-  query whose payload is the CDR request and whose attachment is as above.
+  query whose payload is the CDR request and whose attachment is as above; rmw_zenoh's clients
+  ask with target ALL_COMPLETE, no consolidation and no timeout (rmw_client_data.cpp), so a
+  get_result may wait as long as the goal runs.
 * Actions (ROS 2 design "actions", rcl_action names): services ``<action>/_action/send_goal``,
   ``.../cancel_goal`` (action_msgs/srv/CancelGoal), ``.../get_result``; topics
   ``.../feedback`` (``<Action>_FeedbackMessage``) and ``.../status`` (action_msgs/msg/
