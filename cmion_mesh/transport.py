@@ -35,12 +35,16 @@ class Sample(NamedTuple):
     key: str
     payload: bytes
     deleted: bool = False
+    #: The zenoh attachment, only for a subscription made with ``attachments=True`` (ROS 2 over
+    #: rmw_zenoh carries its sequence number and source there); None otherwise.
+    attachment: bytes | None = None
 
 
 class Reply(NamedTuple):
     key: str
     payload: bytes
     ok: bool = True
+    attachment: bytes | None = None
 
 
 class IncomingQuery(Protocol):
@@ -52,7 +56,9 @@ class IncomingQuery(Protocol):
     def selector(self) -> str: ...
     @property
     def payload(self) -> bytes | None: ...
-    def reply(self, key: str, payload: bytes) -> None: ...
+    @property
+    def attachment(self) -> bytes | None: ...
+    def reply(self, key: str, payload: bytes, attachment: bytes | None = None) -> None: ...
     def reply_err(self, payload: bytes) -> None: ...
     def finish(self) -> None: ...
 
@@ -112,22 +118,29 @@ class Transport(Protocol):
     @property
     def id(self) -> str: ...
 
-    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
-        """Publish. ``block`` = wait rather than drop under congestion (events, changes)."""
+    def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
+        """Publish. ``block`` = wait rather than drop under congestion (events, changes);
+        ``attachment`` travels beside the payload (rmw_zenoh requires one on every ROS 2 sample)."""
 
     def delete(self, key: str) -> None: ...
 
-    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
+                  attachments: bool = False) -> Closeable:
         """``handler`` receives samples in order on one worker thread per subscription."""
 
-    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False) -> Closeable:
+    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False,
+                          attachments: bool = False) -> Closeable:
         """``handler`` receives, in order on one worker thread per subscription, lists of the samples
-        that arrived since its last call (at least one each; at most ``MAX_BATCH``)."""
+        that arrived since its last call (at least one each; at most ``MAX_BATCH``). ``attachments``:
+        fill ``Sample.attachment`` (off by default: the mesh's own keys never carry one)."""
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable: ...
 
-    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
-        """Query; all replies. Zero replies means nobody answered: outcome unknown, not success."""
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
+            attachment: bytes | None = None) -> list[Reply]:
+        """Query; all replies (with their attachments). Zero replies means nobody answered: outcome
+        unknown, not success. Blocks until every replier finished or ``timeout``; a caller that must
+        stay responsive meanwhile runs it on a thread of its own."""
 
     def declare_token(self, key: str) -> Closeable: ...
 
