@@ -102,7 +102,8 @@ def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon
         # Drive: Twist on cmd_vel for a bounded time, then a zero Twist.
         assert client.act(BODY, "Drive", ["0.2", "0.5", "0.3"], timeout=30).status == "succeeded"
         assert robot.event("cmd_vel")["linear"] == [0.2, 0.0, 0.0]
-        assert wait_for(lambda: any(e["linear"] == [0, 0, 0] and e["angular"] == [0, 0, 0] for e in robot.events("cmd_vel")), 10, "a zero Twist")
+        stopped = {"event": "cmd_vel", "linear": [0, 0, 0], "angular": [0, 0, 0]}
+        assert wait_for(lambda: stopped in robot.events("cmd_vel"), 10, "a zero Twist")
         # Say: the composed sentence on the speech topic.
         assert client.act(BODY, "Say", ["greeting", "Alice"], timeout=30).status == "succeeded"
         assert "Alice" in robot.event("speech")["data"]
