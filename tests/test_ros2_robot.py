@@ -10,6 +10,7 @@ what the stand-in received from its JSON lines.
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 from collections.abc import Iterator
 from typing import Any
@@ -19,7 +20,7 @@ import pytest
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
@@ -86,6 +87,12 @@ def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon
         # The daemon's node is in the robot's ROS graph (what `ros2 node list` reads).
         seen = robot.event("node_seen")
         assert seen["name"] == f"cmion_{BODY}" and seen["namespace"] == "/"
+        # ...and `doctor` sees both nodes, on domain 0.
+        doctor = subprocess.run(cli_argv("doctor", "--mesh", client.mesh, "--connect", endpoint, "--no-multicast", "--json"),
+                                capture_output=True, text=True, timeout=60, check=False)
+        nodes = json.loads(doctor.stdout)["ros2"]
+        assert any(n.startswith("/standin_robot ") for n in nodes["0"]), nodes
+        assert any(n.startswith(f"/cmion_{BODY} ") for n in nodes["0"]), nodes
 
         report = client.act(BODY, "GoTo", ["Kitchen"], timeout=60)
         assert report.status == "succeeded", report.reason
