@@ -20,7 +20,7 @@ import pytest
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
@@ -83,12 +83,14 @@ def bb(client: MeshClient, path: str) -> Any:
 
 def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon, str, MeshClient]) -> None:
     _, endpoint, client = body
-    with Standin(endpoint, "--feedback", "3", "--feedback-interval", "0.05", "--odom-hz", "20") as robot:
+    robot_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Standin(endpoint, "--listen", robot_endpoint, "--feedback", "3", "--feedback-interval", "0.05", "--odom-hz", "20") as robot:
         # The daemon's node is in the robot's ROS graph (what `ros2 node list` reads).
         seen = robot.event("node_seen")
         assert seen["name"] == f"cmion_{BODY}" and seen["namespace"] == "/"
-        # ...and `doctor` sees both nodes, on domain 0.
-        doctor = subprocess.run(cli_argv("doctor", "--mesh", client.mesh, "--connect", endpoint, "--no-multicast", "--json"),
+        # ...and `doctor` sees both nodes, on domain 0 (connected to both, as to a robot's router).
+        doctor = subprocess.run(cli_argv("doctor", "--mesh", client.mesh, "--connect", endpoint, "--connect", robot_endpoint,
+                                         "--no-multicast", "--json"),
                                 capture_output=True, text=True, timeout=60, check=False)
         nodes = json.loads(doctor.stdout)["ros2"]
         assert any(n.startswith("/standin_robot ") for n in nodes["0"]), nodes
@@ -146,3 +148,16 @@ def test_cancel_vanish_and_malformed(body: tuple[Daemon, str, MeshClient]) -> No
         daemon.wait_line("refused a message on /odom from node /standin_robot", 15)
         assert daemon.proc.poll() is None
         assert client.act(BODY, "Express", ["nod"], timeout=30).status == "succeeded"
+
+
+def test_the_companion_migrates_into_the_ros_robot_and_out(body: tuple[Daemon, str, MeshClient]) -> None:
+    _, endpoint, client = body
+    robot, _ = start_daemon(client.mesh, "robot", "robot", "--connect", endpoint)  # the companion is born there
+    with robot, Standin(endpoint) as standin:
+        client.join("robot", timeout=20)
+        assert client.migrate("spirit", BODY, timeout=60)["target"] == BODY
+        assert client.describe(BODY)["inhabitant"] == "spirit"
+        assert client.act(BODY, "GoTo", ["Lab"], timeout=60).status == "succeeded"
+        assert (standin.event("goal")["x"], standin.event("goal")["y"]) == (6.5, -2.0)
+        assert client.migrate("spirit", "robot", timeout=60)["target"] == "robot"
+        assert client.describe("robot")["inhabitant"] == "spirit"
