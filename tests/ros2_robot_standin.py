@@ -1,4 +1,4 @@
-"""A stand-in ROS 2 robot speaking rmw_zenoh's wire format (ROS 2 Jazzy), for the issue-18 tests.
+"""A stand-in ROS 2 robot speaking rmw_zenoh's wire format (ROS 2 Jazzy), for the ROS 2 body's tests.
 
 Run as ``python -m tests.ros2_robot_standin [options]``; the command line and the JSON lines it
 prints are fixed by the stand-in contract (options in ``parse_args`` below). It plays a Nav2 robot:
@@ -33,9 +33,13 @@ What of rmw_zenoh it implements, and where each fact comes from:
 * Attachments (design.md "Publishers", "Service Clients", "Service Servers";
   attachment_helpers.cpp, zenoh ext serializer): 8 bytes sequence number (int64 LE), 8 bytes source
   timestamp (ns since the epoch, int64 LE), 1 byte GID length (16), 16 bytes GID. A service reply
-  carries the *request's* sequence number and client GID: that is how the client matches it.
+  carries the *request's* sequence number and client GID: that is how the client matches it
+  (rmw_client_data.cpp ``take_response``). rmw_zenoh drops a sample or request without one
+  (rmw_subscription_data.cpp, rmw_service_data.cpp); the stand-in reports it as an error.
 * Services are queryables declared ``complete`` (design.md "Service Servers"); a request is a
-  query whose payload is the CDR request and whose attachment is as above.
+  query whose payload is the CDR request and whose attachment is as above; rmw_zenoh's clients
+  ask with target ALL_COMPLETE, no consolidation and no timeout (rmw_client_data.cpp), so a
+  get_result may wait as long as the goal runs.
 * Actions (ROS 2 design "actions", rcl_action names): services ``<action>/_action/send_goal``,
   ``.../cancel_goal`` (action_msgs/srv/CancelGoal), ``.../get_result``; topics
   ``.../feedback`` (``<Action>_FeedbackMessage``) and ``.../status`` (action_msgs/msg/
@@ -56,18 +60,24 @@ What of rmw_zenoh it implements, and where each fact comes from:
   unique_identifier_msgs/UUID; builtin_interfaces Time/Duration; service_msgs/ServiceEventInfo.
 
 Not reproduced: rmw_zenoh's GIDs are an XXH3-128 of the liveliness key; these are the first 16
-bytes of its sha256 (GIDs are opaque to peers). The transient-local status topic is a plain
-publisher here (no publication cache). No parameter services, no ``ros_discovery_info``.
+bytes of its sha256 (GIDs are opaque to peers). No parameter services, no type description
+service, no ``ros_discovery_info``: only the entities listed above.
+
+The status topic is transient local (rcl_action), so, as rmw_publisher_data.cpp does for such
+publishers, it is a zenoh advanced publisher with a cache of one sample, publisher detection and
+sporadic heartbeats every 500 ms: a late subscriber asking for history gets the last status.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import heapq
 import json
 import math
 import queue
+import re
 import signal
 import struct
 import sys
@@ -78,6 +88,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 # --------------------------------------------------------------------------------------------
 # Type descriptions and RIHS01 hashes (REP 2011)
@@ -209,6 +220,7 @@ def _referenced(name: str, found: set[str]) -> set[str]:
     return found
 
 
+@functools.cache
 def type_hash(name: str) -> str:
     """The RIHS01 hash of a registered type (``"pkg/msg/Name"``), computed as REP 2011 says."""
     description = {"type_description": _type_json(name),
@@ -354,14 +366,8 @@ class Entity:
     eid: int = 0
     sequence: int = 0
     gid: bytes = b""
-    token_key: str = ""
-
-    @property
-    def key(self) -> str:
-        return f"{DOMAIN[0]}/{self.topic.strip('/')}/{dds_type_name(self.type_name)}/{type_hash(self.type_name)}"
-
-
-DOMAIN = [0]  # set from --domain before any key is built
+    key: str = ""          # the data key expression
+    token_key: str = ""    # the liveliness token
 
 
 def emit(event: str, **fields: Any) -> None:
@@ -416,10 +422,11 @@ class StandinRobot:
         return (self.namespace.rstrip("/") + "/" + name) if self.namespace != "/" else "/" + name
 
     def token_prefix(self, eid: int, kind: str) -> str:
-        return (f"@ros2_lv/{DOMAIN[0]}/{self.zid}/0/{eid}/{kind}/%/{mangle(self.namespace)}/{self.args.node_name}")
+        return f"@ros2_lv/{self.args.domain}/{self.zid}/0/{eid}/{kind}/%/{mangle(self.namespace)}/{mangle(self.args.node_name)}"
 
     def _entity(self, entity: Entity, eid: int) -> Entity:
         entity.eid = eid
+        entity.key = f"{self.args.domain}/{entity.topic.strip('/')}/{dds_type_name(entity.type_name)}/{type_hash(entity.type_name)}"
         entity.token_key = (f"{self.token_prefix(eid, entity.kind)}/{mangle(entity.topic)}/"
                             f"{dds_type_name(entity.type_name)}/{type_hash(entity.type_name)}/{entity.qos}")
         entity.gid = hashlib.sha256(entity.token_key.encode()).digest()[:16]
@@ -444,13 +451,20 @@ class StandinRobot:
         self.publishers: dict[str, Any] = {}
         liveliness = self.session.liveliness()
         self.declared.append(liveliness.declare_subscriber(
-            f"@ros2_lv/{DOMAIN[0]}/**", self._to_inbox("liveliness"), history=True))
+            f"@ros2_lv/{self.args.domain}/**", self._to_inbox("liveliness"), history=True))
         self.declared.append(liveliness.declare_token(self.token_prefix(0, "NN")))
         for name, e in self.entities.items():
             if e.kind == "SS":
                 self.declared.append(self.session.declare_queryable(e.key, self._to_inbox(name), complete=True))
             elif e.kind == "MS":
                 self.declared.append(self.session.declare_subscriber(e.key, self._to_inbox(name)))
+            elif e.qos == QOS_STATUS:
+                # rmw_publisher_data.cpp: a transient-local publisher is an advanced publisher with a
+                # cache of ``depth`` samples, publisher detection and (reliable) sporadic heartbeats.
+                self.publishers[name] = zenoh.ext.declare_advanced_publisher(
+                    self.session, e.key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
+                    sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5))
+                self.declared.append(self.publishers[name])
             else:
                 self.publishers[name] = self.session.declare_publisher(e.key)
                 self.declared.append(self.publishers[name])
@@ -719,6 +733,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--action-name", default="navigate_to_pose")
     p.add_argument("--max-seconds", type=float, default=600.0, help="exit after this long whatever happens")
     args = p.parse_args(argv)
+    # ROS names (design.ros2.org "Topic and Service name mapping"): a bad one would make an invalid key.
+    name, path = re.compile(r"[A-Za-z_][A-Za-z0-9_]*"), re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*")
+    if not name.fullmatch(args.node_name):
+        p.error(f"--node-name {args.node_name!r} is not a ROS node name")
+    for option in ("namespace", "cmd_vel_topic", "speech_topic", "action_name"):
+        value = getattr(args, option)
+        if not path.fullmatch(value) and not (option == "namespace" and value in ("", "/")):
+            p.error(f"--{option.replace('_', '-')} {value!r} is not a ROS name")
+    if args.domain < 0:
+        p.error("--domain must be >= 0")
     if args.feedback < 0 or args.feedback_interval < 0 or args.odom_hz < 0 or args.odom_hz > 1000:
         p.error("--feedback, --feedback-interval must be >= 0 and --odom-hz within 0..1000")
     return args
@@ -733,7 +757,6 @@ def _read_stdin(stop: threading.Event) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    DOMAIN[0] = args.domain
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

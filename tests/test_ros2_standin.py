@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 import zenoh
+import zenoh.ext
 
 from cmion_mesh.procs import Daemon, free_port
 from tests import ros2_robot_standin as standin
@@ -29,7 +30,10 @@ GET_RESULT = ("7/robot1/navigate_to_pose/_action/get_result/nav2_msgs::action::d
               "RIHS01_c407920357d566771e8882b4ef4d1f1a84ee922d609920ccd57faa6d6e391dc5")
 FEEDBACK = ("7/robot1/navigate_to_pose/_action/feedback/nav2_msgs::action::dds_::NavigateToPose_FeedbackMessage_/"
             "RIHS01_9d1f6fa2eb975ce733b419ac2e97b134d8ff92b6478b6559feed9a50bdfd82b3")
+STATUS = ("7/robot1/navigate_to_pose/_action/status/action_msgs::msg::dds_::GoalStatusArray_/"
+          "RIHS01_6c1684b00f177d37438febe6e709fc4e2b0d4248dca4854946f9ed8b30cda83e")
 CMD_VEL = "7/robot1/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+SPEECH = "7/robot1/speech/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 CLIENT_GID = bytes(range(100, 116))
 
 
@@ -159,10 +163,23 @@ def test_the_standin_speaks_rmw_zenoh(robot: Standin, session: zenoh.Session) ->
     assert sample.attachment is not None and len(sample.attachment.to_bytes()) == 33
     feedback_sub.undeclare()  # type: ignore[no-untyped-call]
 
+    # status is transient local: a subscriber arriving now still gets the last GoalStatusArray
+    statuses: queue.SimpleQueue[zenoh.Sample] = queue.SimpleQueue()
+    late = zenoh.ext.declare_advanced_subscriber(
+        session, STATUS, statuses.put, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+    last = statuses.get(timeout=10).payload.to_bytes()
+    assert last[4:8] == b"\x01\x00\x00\x00" and last[8:24] == goal_id and last[-1] == 4  # one goal, SUCCEEDED
+    late.undeclare()  # type: ignore[no-untyped-call]
+
     # cmd_vel: a Twist published with an rmw_zenoh attachment becomes a cmd_vel event
     twist = b"\x00\x01\x00\x00" + struct.pack("<6d", 0.5, 0.0, 0.0, 0.0, 0.0, -0.25)
     session.put(CMD_VEL, twist, attachment=attachment(1))
     assert robot.event("cmd_vel") == {"event": "cmd_vel", "linear": [0.5, 0.0, 0.0], "angular": [0.0, 0.0, -0.25]}
+
+    # speech: a std_msgs/String
+    text, _ = cdr_string("hello, robot", 0)
+    session.put(SPEECH, b"\x00\x01\x00\x00" + text, attachment=attachment(1))
+    assert robot.event("speech")["data"] == "hello, robot"
 
     # A malformed Twist is reported, and the stand-in goes on
     session.put(CMD_VEL, b"\x00\x01\x00\x00\x01\x02", attachment=attachment(2))
