@@ -20,6 +20,7 @@ from cmion_mesh.transport import (
     Closeable,
     Handle,
     LivelinessHandler,
+    QueryCancel,
     QueryHandler,
     Reply,
     Sample,
@@ -192,7 +193,7 @@ class MemoryTransport:
         return self._remember(undeclare)
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
-            attachment: bytes | None = None) -> list[Reply]:
+            attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
         self._check()
         key = selector.split("?")[0]
         with self.net.lock:
@@ -203,6 +204,12 @@ class MemoryTransport:
             done = threading.Event()
             worker.queue.put(_MemQuery(selector, payload, replies, done, attachment))
             dones.append(done)
+        if cancel is not None:
+            def finish_all() -> None:
+                for done in dones:
+                    done.set()
+
+            cancel.on_cancel(finish_all)
         for done in dones:
             done.wait(timeout)
         return list(replies)

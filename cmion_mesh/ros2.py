@@ -47,7 +47,7 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError
-from cmion_mesh.transport import Closeable, Sample, Transport
+from cmion_mesh.transport import Closeable, QueryCancel, Sample, Transport
 
 log = logging.getLogger(__name__)
 
@@ -572,13 +572,15 @@ class Client:
     def servers(self) -> list[Entity]:
         return self.node.graph.servers(self.name, self.type_name)
 
-    def call(self, request: Any, *, timeout: float) -> Any:
-        """The response to ``request``. ``OutcomeUnknown`` when no server answered in ``timeout``;
+    def call(self, request: Any, *, timeout: float, cancel: QueryCancel | None = None) -> Any:
+        """The response to ``request``. ``OutcomeUnknown`` when no server answered in ``timeout``
+        (or before ``cancel``);
         ``ProtocolError`` (naming the service and the node that answered) for a reply that is not
         a response, or an error reply."""
         sequence = next(self._sequence)
         payload = self.node.types.encode(f"{self.type_name}_Request", request)
-        replies = self.node.transport.get(self.key, payload, timeout=timeout, attachment=encode_attachment(sequence, self.gid))
+        replies = self.node.transport.get(self.key, payload, timeout=timeout, attachment=encode_attachment(sequence, self.gid),
+                                          cancel=cancel)
         if not replies:
             raise OutcomeUnknown(f"no answer from the ROS 2 service {self.name} within {timeout:g} s "
                                  f"(servers: {describe_peers(self.servers()) if self.servers() else 'none'})")
@@ -659,9 +661,9 @@ class ActionClient:
         response = self.send_goal.call({"goal_id": self.uuid(goal_id), "goal": goal}, timeout=timeout)
         return bool(response.accepted)
 
-    def result(self, goal_id: bytes, *, timeout: float) -> tuple[int, Any]:
-        """Wait for the goal's end: (GoalStatus, result message)."""
-        response = self.get_result.call({"goal_id": self.uuid(goal_id)}, timeout=timeout)
+    def result(self, goal_id: bytes, *, timeout: float, cancel: QueryCancel | None = None) -> tuple[int, Any]:
+        """Wait for the goal's end: (GoalStatus, result message); ``cancel`` stops waiting."""
+        response = self.get_result.call({"goal_id": self.uuid(goal_id)}, timeout=timeout, cancel=cancel)
         return int(response.status), response.result
 
     def cancel(self, goal_id: bytes, timeout: float) -> int:

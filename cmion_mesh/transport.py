@@ -24,6 +24,7 @@ query that nobody answers is not an error: ``get`` returns no replies (outcome u
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
@@ -61,6 +62,38 @@ class IncomingQuery(Protocol):
     def reply(self, key: str, payload: bytes, attachment: bytes | None = None) -> None: ...
     def reply_err(self, payload: bytes) -> None: ...
     def finish(self) -> None: ...
+
+
+class QueryCancel:
+    """Ends, from any thread, the ``get`` calls it was given to: they return the replies they had.
+    For a query answered only when something ends (a ROS 2 action's result), so that the caller
+    can stop waiting when it stops caring. Cancelling twice, or before the query, is harmless."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._cancelled = False
+        self._hooks: list[Callable[[], None]] = []
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled
+
+    def cancel(self) -> None:
+        with self._lock:
+            if self._cancelled:
+                return
+            self._cancelled = True
+            hooks, self._hooks = self._hooks, []
+        for hook in hooks:
+            hook()
+
+    def on_cancel(self, hook: Callable[[], None]) -> None:
+        """For transports: run ``hook`` on ``cancel`` (at once if it was cancelled already)."""
+        with self._lock:
+            if not self._cancelled:
+                self._hooks.append(hook)
+                return
+        hook()
 
 
 #: Most samples ``subscribe_batches`` hands over at once (bounds the latency of the first one).
@@ -137,10 +170,10 @@ class Transport(Protocol):
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable: ...
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
-            attachment: bytes | None = None) -> list[Reply]:
+            attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
         """Query; all replies (with their attachments). Zero replies means nobody answered: outcome
-        unknown, not success. Blocks until every replier finished or ``timeout``; a caller that must
-        stay responsive meanwhile runs it on a thread of its own."""
+        unknown, not success. Blocks until every replier finished, ``timeout`` or ``cancel``; a
+        caller that must stay responsive meanwhile runs it on a thread of its own."""
 
     def declare_token(self, key: str) -> Closeable: ...
 

@@ -31,6 +31,7 @@ from cmion_mesh.transport import (
     Closeable,
     Handle,
     LivelinessHandler,
+    QueryCancel,
     QueryHandler,
     Reply,
     Sample,
@@ -346,9 +347,9 @@ class ZenohTransport:
         return self._track(_Entity(queryable.undeclare, _drain(f"qbl:{selector}", channel.recv, handle)))
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
-            attachment: bytes | None = None) -> list[Reply]:
-        if attachment is not None:
-            return self._get_attached(selector, payload, timeout, attachment)
+            attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
+        if attachment is not None or cancel is not None:
+            return self._get_attached(selector, payload, timeout, attachment, cancel)
         if self._closed:
             raise ClosedError(f"query {selector}: the transport is closed")
         # A concrete key intersects only itself: every reply to it is on it (no conversion back).
@@ -366,13 +367,18 @@ class ZenohTransport:
             raise _mapped(f"query {selector}", exc, self._closed) from None
         return out
 
-    def _get_attached(self, selector: str, payload: bytes | None, timeout: float, attachment: bytes) -> list[Reply]:
-        """``get`` with an attachment, the replies' attachments kept (ROS 2 services: the reply's
-        sequence number pairs it with its request)."""
+    def _get_attached(self, selector: str, payload: bytes | None, timeout: float, attachment: bytes | None,
+                      cancel: QueryCancel | None) -> list[Reply]:
+        """``get`` with an attachment or a cancel, the replies' attachments kept (ROS 2 services:
+        the reply's sequence number pairs it with its request)."""
         out: list[Reply] = []
+        token = None
+        if cancel is not None:
+            token = zenoh.CancellationToken()
+            cancel.on_cancel(token.cancel)
         with self._errors(f"query {selector}"):
             for reply in self._session.get(selector, payload=payload, timeout=timeout, target=_ALL, consolidation=_NONE,
-                                           attachment=attachment):
+                                           attachment=attachment, cancellation_token=token):
                 ok = reply.ok
                 if ok is not None:
                     extra = ok.attachment

@@ -137,3 +137,28 @@ def test_competency_parameters() -> None:
     assert bridge.sensors == {"odom": ("odom", "nav_msgs/msg/Odometry")}
     with pytest.raises(ConfigError, match="topic and its type"):
         Ros2SensorBridge("sensor.odom=odom")
+
+
+def test_a_query_ends_when_cancelled() -> None:
+    """A get that nobody answers yet (a ROS 2 action's result) ends when its caller cancels it."""
+    from cmion_mesh.transport import IncomingQuery, QueryCancel
+
+    held: list[IncomingQuery] = []
+    arrived = threading.Event()
+
+    def hold(query: IncomingQuery) -> None:
+        held.append(query)  # answered only when the test says so: never, here
+        arrived.set()
+
+    with MemoryTransport(MemoryNetwork()) as transport:
+        transport.declare_queryable("0/result", hold)
+        cancel = QueryCancel()
+        out: list[object] = []
+        waiter = threading.Thread(target=lambda: out.append(transport.get("0/result", b"", timeout=60, cancel=cancel)))
+        waiter.start()
+        assert arrived.wait(5)
+        cancel.cancel()
+        waiter.join(5)
+        assert not waiter.is_alive() and out == [[]]
+        held[0].finish()
+        cancel.cancel()  # twice: harmless

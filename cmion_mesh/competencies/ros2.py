@@ -49,6 +49,7 @@ from cmion_mesh.competencies.spirit import SELF, _bb_set, _quietly, _seconds, _t
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Simulation
+from cmion_mesh.transport import QueryCancel
 
 __all__ = ["Ros2Competency", "Ros2Navigation", "Ros2SensorBridge", "Ros2Speech", "Ros2Velocity"]
 
@@ -288,16 +289,26 @@ class Ros2Navigation(Ros2Competency):
                 events: queue.SimpleQueue[tuple[str, Any]]) -> bool:
         timeout = self.seconds("timeout")
 
+        stop_waiting = QueryCancel()
+
         def wait_result() -> None:
             try:
-                events.put(("result", client.result(goal_id, timeout=timeout)))
+                events.put(("result", client.result(goal_id, timeout=timeout, cancel=stop_waiting)))
             except MeshError as exc:
                 events.put(("error", exc))
 
         # get_result is answered when the goal ends: a call of its own, so that feedback, a
-        # cancel and the server's departure are seen meanwhile.
+        # cancel and the server's departure are seen meanwhile; whatever ends the run ends it.
         waiter = threading.Thread(target=wait_result, name=f"{self.name}-result", daemon=True)
         waiter.start()
+        try:
+            return self._wait(ctx, client, goal_id, target, who, events, timeout)
+        finally:
+            stop_waiting.cancel()
+            waiter.join(5.0)
+
+    def _wait(self, ctx: RunContext, client: ros2.ActionClient, goal_id: bytes, target: str, who: str,
+              events: queue.SimpleQueue[tuple[str, Any]], timeout: float) -> bool:
         interval = self.seconds("feedback_interval")
         last_feedback = -math.inf
         deadline = time.monotonic() + timeout
