@@ -133,6 +133,13 @@ def test_cancel_vanish_and_malformed(body: tuple[Daemon, str, MeshClient]) -> No
         assert robot.event("cancel")["goal_id"] == goal["goal_id"]
         assert bb(client, "navigation/state") == "stopped"
 
+        # Drive stops the robot on cancel: a zero Twist, long before its 5 s are over.
+        with client.start_action(BODY, "Drive", ["0.3", "0", "5"]) as run:
+            assert robot.event("cmd_vel")["linear"] == [0.3, 0.0, 0.0]
+            client.cancel(BODY, run.action_id)
+            assert run.wait(30).status == "cancelled"
+        assert wait_for(lambda: robot.events("cmd_vel")[-1]["linear"] == [0, 0, 0], 10, "a zero Twist last")
+
         # A robot node that vanishes mid-goal fails the action, naming it.
         with client.start_action(BODY, "GoTo", ["Office"]) as run:
             wait_for(lambda: len(robot.events("goal")) == 2, 15, "the second goal")
