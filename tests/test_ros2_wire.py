@@ -137,6 +137,8 @@ def test_competency_parameters() -> None:
     assert bridge.sensors == {"odom": ("odom", "nav_msgs/msg/Odometry")}
     with pytest.raises(ConfigError, match="topic and its type"):
         Ros2SensorBridge("sensor.odom=odom")
+    with pytest.raises(ConfigError, match="blackboard or worldmodel"):
+        Ros2SensorBridge("store=disk")
 
 
 def test_a_query_ends_when_cancelled() -> None:

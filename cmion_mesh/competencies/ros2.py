@@ -24,8 +24,10 @@ same three share one node.
   ``field=data``) on ``topic=speech``; writes BB ``speech/last``, WM ``Self.lastUtterance`` and
   raises ``Spoke``.
 * ``Ros2SensorBridge`` (background, type ``Ros2Sensors``): ``sensor.<alias>=<topic> <type>``
-  (as many as wanted); writes each topic's latest message to BB ``ros2/<alias>`` at most every
-  ``interval=0.5`` s (the last one is never lost, only the ones between).
+  (as many as wanted); writes each topic's latest message to BB ``<container>/<alias>``
+  (``container=ros2``), or with ``store=worldmodel`` to the property ``<alias>`` of the WM
+  entity ``<container>``, at most every ``interval=0.5`` s (the last one is never lost, only the
+  ones between).
 
 The publishing competencies wait (``subscriber_timeout=2`` s) for a subscriber on the robot and
 fail naming the topic when there is none: a message nobody receives is not success. A message
@@ -482,13 +484,16 @@ class Ros2Speech(Ros2Competency):
 class Ros2SensorBridge(Ros2Competency):
     type = "Ros2Sensors"
     background = True
-    defaults: ClassVar[dict[str, str]] = {"interval": "0.5", "container": "ros2"}
+    defaults: ClassVar[dict[str, str]] = {"interval": "0.5", "container": "ros2", "store": "blackboard"}
     prefixes = ("sensor.",)
 
     def __init__(self, *parameters: str, name: str | None = None) -> None:
         super().__init__(*parameters, name=name)
         self.interval = self.seconds("interval")
         self.container = keys.check_name(self.options["container"], "Ros2SensorBridge: container")
+        self.store = self.options["store"]
+        if self.store not in ("blackboard", "worldmodel"):
+            raise ConfigError(f"Ros2SensorBridge: store {self.store!r} (blackboard or worldmodel)")
         self.sensors: dict[str, tuple[str, str]] = {}
         for key, value in self.options.items():
             if key.startswith("sensor."):
@@ -538,7 +543,10 @@ class Ros2SensorBridge(Ros2Competency):
                 waiting = bool(self._latest)
             for alias, message in due.items():
                 written[alias] = now
-                _quietly(f"sensor {alias}", _bb_set, ctx, f"{self.container}/{alias}", ros2.plain(message))
+                if self.store == "blackboard":
+                    _quietly(f"sensor {alias}", _bb_set, ctx, f"{self.container}/{alias}", ros2.plain(message))
+                else:
+                    _quietly(f"sensor {alias}", _wm_set, ctx, self.container, alias, ros2.plain(message))
             if waiting:
                 # Something arrived too soon after its last write: come back when it is due.
                 if not ctx.wait(self.interval):
