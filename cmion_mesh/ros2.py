@@ -80,7 +80,7 @@ def qualify(name: str, namespace: str = "") -> str:
 
 def dds_type(type_name: str) -> str:
     """``std_msgs/msg/String`` -> ``std_msgs::msg::dds_::String_`` (the name rmw_zenoh keys carry)."""
-    pkg, kind, name = _split_type(type_name)
+    pkg, kind, name = split_type(type_name)
     return f"{pkg}::{kind}::dds_::{name}_"
 
 
@@ -92,7 +92,7 @@ def ros_type(dds: str) -> str:
     return dds
 
 
-def _split_type(type_name: str) -> tuple[str, str, str]:
+def split_type(type_name: str) -> tuple[str, str, str]:
     parts = type_name.split("/")
     if len(parts) != 3 or not all(parts) or parts[1] not in ("msg", "srv", "action"):
         raise ConfigError(f"invalid ROS 2 type name {type_name!r} (expected package/msg/Name)")
@@ -250,7 +250,7 @@ class Types:
         """Register message types from ``.msg`` text (``pkg/msg/Name`` or ``pkg/srv/Name_Request``...)."""
         found: dict[str, Any] = {}
         for name, text in definitions:
-            _split_type(name)
+            split_type(name)
             try:
                 found.update(get_types_from_msg(text, name))
             except Exception as exc:  # rosbags' parser raises its own exception types

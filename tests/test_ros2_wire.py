@@ -137,6 +137,12 @@ def test_competency_parameters() -> None:
     assert bridge.sensors == {"odom": ("odom", "nav_msgs/msg/Odometry")}
     with pytest.raises(ConfigError, match="topic and its type"):
         Ros2SensorBridge("sensor.odom=odom")
+    with pytest.raises(ConfigError, match="not a ROS 2 Jazzy type known here"):
+        Ros2SensorBridge("sensor.people=people my_msgs/msg/People")
+    with pytest.raises(ConfigError, match="type name"):
+        Ros2SensorBridge("sensor.odom=odom Odometry")
+    with pytest.raises(ConfigError, match="invalid ROS 2 name"):
+        Ros2Velocity("topic=cmd-vel")
     with pytest.raises(ConfigError, match="blackboard or worldmodel"):
         Ros2SensorBridge("store=disk")
 

@@ -147,6 +147,15 @@ class Ros2Competency(Competency):
         self.node_name = options.get("node", "")
         self.node: ros2.Node | None = None
 
+    def check_type(self, type_name: str, what: str) -> str:
+        """``type_name`` if it is a ROS 2 type this library knows; else ``ConfigError`` (at load
+        time, so that the library file's line is named, not a failure when the daemon starts)."""
+        ros2.split_type(type_name)
+        if not _shared_types().known(type_name):
+            raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is not a ROS 2 Jazzy type known here "
+                              "(std_msgs, geometry_msgs, nav_msgs, sensor_msgs... and nav2_msgs/action/NavigateToPose)")
+        return type_name
+
     def seconds(self, key: str) -> float:
         return _seconds(self.options[key], f"{type(self).__name__}: {key}")
 
@@ -199,6 +208,8 @@ class Ros2Navigation(Ros2Competency):
         for key in ("server_timeout", "goal_timeout", "timeout", "cancel_timeout", "feedback_interval"):
             self.seconds(key)
         self.agent = keys.check_name(self.options["agent"], "Ros2Navigation: agent")
+        self.check_type(self.options["action_type"] + "_SendGoal", "action_type (its SendGoal service)")
+        ros2.qualify(self.options["action"], self.namespace)
         self.places: dict[str, tuple[float, float, float]] = {}
         for key, value in self.options.items():
             if key.startswith("place."):
@@ -397,6 +408,7 @@ class Ros2Velocity(Ros2Competency):
             raise ConfigError(f"Ros2Velocity: rate {self.rate:g} Hz out of range (0..1000]")
         for key in ("max_duration", "max_linear", "max_angular", "subscriber_timeout"):
             self.seconds(key)  # non-negative finite numbers
+        ros2.qualify(self.options["topic"], self.namespace)
         self.publisher: ros2.Publisher | None = None
         self._wake = threading.Event()
 
@@ -451,6 +463,8 @@ class Ros2Speech(Ros2Competency):
     def __init__(self, *parameters: str, name: str | None = None) -> None:
         super().__init__(*parameters, name=name)
         self.agent = keys.check_name(self.options["agent"], "Ros2Speech: agent")
+        self.check_type(self.options["type"], "type")
+        ros2.qualify(self.options["topic"], self.namespace)
         self.seconds("subscriber_timeout")
         self.publisher: ros2.Publisher | None = None
 
@@ -502,7 +516,7 @@ class Ros2SensorBridge(Ros2Competency):
                 if len(parts) != 2:
                     raise ConfigError(f"Ros2SensorBridge: {key}={value!r}: give the topic and its type (odom nav_msgs/msg/Odometry)")
                 ros2.qualify(parts[0], self.namespace)
-                self.sensors[alias] = (parts[0], parts[1])
+                self.sensors[alias] = (parts[0], self.check_type(parts[1], f"{key}: type"))
         self._wake = threading.Event()
         self._latest: dict[str, Any] = {}
         self._lock = threading.Lock()
