@@ -204,7 +204,7 @@ def cmd_store(args: argparse.Namespace) -> int:
 
 def resolve_config(path: str) -> str:
     """``up`` takes a configuration file, a folder holding ``ArchitectureConfiguration.xml``, or the
-    name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``)."""
+    name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``, ``ros_robot``)."""
     from cmion_mesh.resources import data_dir
 
     candidate = Path(path)
