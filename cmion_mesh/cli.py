@@ -672,6 +672,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait)
 
 
+def cmd_launch(args: argparse.Namespace) -> int:
+    from cmion_mesh import launch
+
+    plan = launch.load(launch.resolve_file(args.file), mesh=args.mesh)
+    if args.check:
+        described = launch.describe(plan)
+        if args.json:
+            print(json.dumps({"file": str(plan.path), "mesh": plan.mesh, "network": plan.network, "processes": described}))
+            return ExitCode.OK
+        print(f"ok: {plan.path}: {len(described)} processes in mesh {plan.mesh!r} (on_failure {plan.on_failure}; "
+              f"network {plan.network}{', ports chosen at each start' if plan.network == 'loopback' else ''})")
+        for item in described:
+            after = f" after {', '.join(item['after'])}" if item["after"] else ""
+            ready = f", ready at a line with {item['ready']!r}" if item["ready"] else ""
+            print(f"  {item['name']} ({item['kind']}{after}{ready}): {' '.join(item['command'])}")
+        return ExitCode.OK
+    stop = Stopper()  # before any thread: the launcher collects Ctrl-C and SIGTERM itself, then stops its children
+    return launch.Launcher(plan, stop).run()
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     from cmion_mesh.router import DEFAULT_LISTEN, RouterOptions, run
 
@@ -962,6 +982,17 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="a competency type served by another process (serve-competency): rules may use it; repeatable")
     _json(p)
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("launch", help="start several processes of a mesh from one TOML file; Ctrl-C stops them all",
+                       description="Start the embodiments, router, minds, remote competencies and other processes a "
+                                   "launch file names (docs/launch.md), each line of their output prefixed with their "
+                                   "name; stop them all on Ctrl-C or SIGTERM, or when one fails (the file's on_failure). "
+                                   "Exit code 0 when everything stopped cleanly, 1 when a process failed, 2 for a bad file.")
+    p.add_argument("file", metavar="FILE", help="a launch file (TOML), or a shipped one's name (spirit)")
+    p.add_argument("--check", action="store_true", help="check the file and print what would run, start nothing")
+    p.add_argument("--mesh", help="run in this mesh instead of the file's")
+    _json(p)
+    p.set_defaults(func=cmd_launch)
 
     p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")
