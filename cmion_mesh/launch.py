@@ -403,8 +403,11 @@ class _Output:
         if code and stream.isatty():
             label = f"\x1b[{code}m{label}\x1b[0m"
         with self.lock:
-            stream.write(f"{label} {line}\n")
-            stream.flush()
+            try:
+                stream.write(f"{label} {line}\n")
+                stream.flush()
+            except (OSError, ValueError):  # our output is gone (a closed pipe): the children still run and are stopped
+                pass
 
     def say(self, text: str, *, error: bool = False) -> None:
         self.write("launch", text, sys.stderr if error else sys.stdout)
