@@ -596,6 +596,8 @@ def _run_until(stop: Stopper, done: threading.Event, duration: float, every: flo
 def cmd_hz(args: argparse.Namespace) -> int:
     from cmion_mesh import tap
 
+    if args.window < 1 or args.count < 0 or args.duration < 0:
+        raise ConfigError("--window must be at least 1, --count and --duration at least 0")
     stop = Stopper()
     expression = tap.resolve(args.mesh, args.key)
     hz = tap.Hz(args.window, per_key=args.per_key)
@@ -632,6 +634,8 @@ def cmd_hz(args: argparse.Namespace) -> int:
 def cmd_echo(args: argparse.Namespace) -> int:
     from cmion_mesh import tap
 
+    if args.count < 0 or args.duration < 0:
+        raise ConfigError("--count and --duration must be at least 0")
     stop = Stopper()
     expression = tap.resolve(args.mesh, args.key)
     printer = tap.Printer(as_json=args.json, raw=args.raw)

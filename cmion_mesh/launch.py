@@ -12,7 +12,7 @@ writes is printed with its name in front; a child starts once the ones it comes 
 ready (their ``ready`` line written); a child that fails stops them all (``on_failure``:
 ``stop_all``, ``continue`` or ``restart``, bounded). Stopping sends SIGINT (SIGTERM when the
 launcher got SIGTERM) to every group, waits up to ``stop_timeout``, then SIGKILLs what is left; a
-second Ctrl-C SIGKILLs at once. Children get SIGTERM from the kernel if the launcher dies, even
+second Ctrl-C (a second or more after the first) SIGKILLs at once. Children get SIGTERM from the kernel if the launcher dies, even
 SIGKILLed (``procs.child_setup``), so none is left running for ever.
 """
 
@@ -48,6 +48,9 @@ READY_LINES = {"embodiment": "up in mesh", "router": "router up", "mind": "servi
 MAX_BACKOFF = 10.0
 #: After SIGKILL, how long a process may take to be reaped before the launcher gives up on it.
 KILL_WAIT = 5.0
+#: A second stop signal kills at once only this long after the first: some tools deliver one
+#: signal twice at once (GNU timeout signals its child, then its whole process group).
+SECOND_SIGNAL_GAP = 1.0
 
 _COMMON = {"name": str, "args": list, "env": dict, "after": list, "on_failure": str, "ready": str, "cwd": str}
 _KEYS: dict[str, dict[str, type]] = {
@@ -92,7 +95,7 @@ class LaunchFile:
 
     @property
     def folder(self) -> Path:
-        return self.path.parent
+        return self.path.resolve().parent
 
 
 def resolve_file(given: str) -> Path:
@@ -244,8 +247,8 @@ def _specs(check: _Checker, data: dict[str, Any], default_failure: str) -> list[
     specs: list[Spec] = []
     for kind in KINDS:
         entries = data.get(kind, [])
-        if isinstance(entries, dict):
-            check.found.error(f"[{kind}] must be written [[{kind}]] (one per process)", check.path, check.headers.get((kind, 0)))
+        if not isinstance(entries, list):
+            check.found.error(f"[{kind}] must be written [[{kind}]], one table per process", check.path, check.headers.get((kind, 0)))
             continue
         for index, raw in enumerate(entries):
             line = check.headers.get((kind, index))
@@ -591,13 +594,14 @@ class Launcher:
             assert child.proc is not None
             _signal_group(child.proc.pid, sig)
         clean = True
-        deadline = time.monotonic() + self.launch.stop_timeout
+        began = time.monotonic()
+        deadline = began + self.launch.stop_timeout
         for _ in range(100_000):
             left = [c for c in running if c.proc is not None and c.proc.poll() is None]
             remaining = deadline - time.monotonic()
             if not left or remaining <= 0:
                 break
-            if self.stopper.wait(min(remaining, 0.1)) is not None:
+            if self.stopper.wait(min(remaining, 0.1)) is not None and time.monotonic() - began >= SECOND_SIGNAL_GAP:
                 self.out.say("second signal: killing everything now", error=True)
                 break
         for child in running:
