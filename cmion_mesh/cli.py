@@ -1105,7 +1105,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("file", metavar="FILE", help="a launch file (TOML), or a shipped one's name (spirit)")
     p.add_argument("--check", action="store_true", help="check the file and print what would run, start nothing")
     p.add_argument("--mesh", help="run in this mesh instead of the file's")
-    _json(p)
+    p.add_argument("--json", action="store_true", help="with --check: what would run, as JSON")
     p.set_defaults(func=cmd_launch)
 
     p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")

@@ -233,6 +233,8 @@ def load(path: str | Path, *, mesh: str | None = None) -> LaunchFile:
     if not keys.is_name(chosen_mesh):
         found.error(f"[launch]: mesh {chosen_mesh!r} is not a valid name", path, _key_line(text, top_line, "mesh"))
     specs = _ordered(_specs(check, data, on_failure), check)
+    if not specs and not found.errors:
+        found.error(f"nothing to launch: no {', '.join(f'[[{k}]]' for k in KINDS)}", path, 1)
     certs = top.get("certs")
     by_line = Diagnostics()  # the problems from the top of the file down
     by_line.extend(sorted(found, key=lambda d: d.line or 0))
@@ -491,7 +493,7 @@ class Launcher:
 
         out = threading.Thread(target=self._read, args=(child, generation, proc.stdout, sys.stdout, ready, ended),
                                name=f"launch-out-{child.name}", daemon=True)
-        child.readers = [err, out]
+        child.readers += [err, out]  # a run before a restart may still be reading (a grandchild holding its pipes)
         err.start()
         out.start()
         self.out.say(f"started {child.name} (pid {proc.pid}): {' '.join(_short(command.argv))}")
