@@ -9,6 +9,7 @@ import os
 import re
 import signal
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -134,3 +135,15 @@ def test_a_sigkilled_launcher_leaves_no_child(tmp_path: Path) -> None:
         assert running(pid)
         launcher.kill()  # SIGKILL: no cleanup runs in the launcher
     wait_for(lambda: not running(pid), 10, f"the sleeper (pid {pid}) ended with its launcher")
+
+
+def test_a_sigkilled_demo_style_parent_leaves_no_daemon() -> None:
+    """``procs.Daemon(die_with_parent=True)``, as the demo starts its daemons: they go with their parent."""
+    parent_code = ("import sys; from cmion_mesh.procs import Daemon\n"
+                   "d = Daemon(['sleep', '300'], name='sleeper', die_with_parent=True)\n"
+                   "print(d.proc.pid, flush=True); sys.stdin.read()")
+    with Daemon([sys.executable, "-c", parent_code], name="parent", stdin=True) as parent:
+        pid = int(parent.wait_line("", 30))  # its first line: the daemon's pid
+        assert running(pid)
+        parent.kill()
+    wait_for(lambda: not running(pid), 10, f"the parent's daemon (pid {pid}) ended with it")
