@@ -208,6 +208,12 @@ BENCHMARKS: list[Benchmark] = [
         "migration command -> companion awake at the target, 10 KiB / 1 MiB / 10 MiB, vs raw transfer + fsync",
     ),
     Benchmark(
+        "ros2",
+        "bench.ros2:run",
+        ("ros2",),
+        "a ROS 2 robot as a body: mind action -> Nav2 goal at the ROS 2 node, goal result -> action succeeded",
+    ),
+    Benchmark(
         "flood",
         "bench.flood:run",
         ("flood",),

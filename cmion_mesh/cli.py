@@ -204,7 +204,7 @@ def cmd_store(args: argparse.Namespace) -> int:
 
 def resolve_config(path: str) -> str:
     """``up`` takes a configuration file, a folder holding ``ArchitectureConfiguration.xml``, or the
-    name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``)."""
+    name of a shipped embodiment (``robot``, ``screen``, ``phone``, ``cmion_test``, ``ros_robot``)."""
     from cmion_mesh.resources import data_dir
 
     candidate = Path(path)
@@ -664,6 +664,92 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return ExitCode.INTERRUPTED if halt.is_set() else ExitCode.OK
 
 
+def _run_until(stop: Stopper, done: threading.Event, duration: float, every: float | None = None,
+               tick: Callable[[], None] | None = None) -> None:
+    """Wait for a signal, ``done`` or ``duration`` seconds (0: no limit), calling ``tick`` every ``every`` s."""
+    now = time.monotonic()
+    deadline = now + duration if duration else None
+    next_tick = now + every if every else None
+    for _ in range(10_000_000):  # bounded; each round ends on a signal, ``done``, a tick or the deadline
+        now = time.monotonic()
+        if done.is_set() or (deadline is not None and now >= deadline):
+            return
+        if next_tick is not None and tick is not None and now >= next_tick:
+            tick()
+            next_tick += every or 1.0
+        ends = [t for t in (deadline, next_tick) if t is not None]
+        if stop.wait(max(0.0, min(ends) - now) if ends else None) is not None:
+            return
+
+
+def cmd_hz(args: argparse.Namespace) -> int:
+    from cmion_mesh import tap
+
+    if args.window < 1 or args.count < 0 or args.duration < 0:
+        raise ConfigError("--window must be at least 1, --count and --duration at least 0")
+    stop = Stopper()
+    expression = tap.resolve(args.mesh, args.key)
+    hz = tap.Hz(args.window, per_key=args.per_key)
+    done = threading.Event()
+    shown: dict[str, int] = {}
+
+    def on_seen(seen: tap.Seen) -> None:
+        if done.is_set():
+            return
+        if hz.add(seen, expression) >= (args.count or sys.maxsize):
+            done.set()
+            stop.stop()
+
+    def report(final: bool = False) -> None:
+        for name, stats in hz.report().items():
+            if not final and shown.get(name) == stats["count"]:
+                continue  # nothing new on it since the last report
+            shown[name] = stats["count"]
+            if args.json:
+                print(json.dumps({"key": name, **stats, **({"final": True} if final else {})}), flush=True)
+            else:
+                print(tap.format_rate(name, stats, with_name=args.per_key or final), flush=True)
+
+    with session(args) as client, tap.Tap(client.transport, expression, on_seen, liveliness=args.liveliness or None):
+        print(f"rate of {expression} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        _run_until(stop, done, args.duration, 1.0, report)
+    if not hz.report():
+        print(f"error: fewer than two messages on {expression}: no rate", file=sys.stderr)
+        return ExitCode.FAILED
+    report(final=True)
+    return ExitCode.OK
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    from cmion_mesh import tap
+
+    if args.count < 0 or args.duration < 0:
+        raise ConfigError("--count and --duration must be at least 0")
+    stop = Stopper()
+    expression = tap.resolve(args.mesh, args.key)
+    printer = tap.Printer(as_json=args.json, raw=args.raw)
+    count = 1 if args.once else args.count
+    done = threading.Event()
+    lock = threading.Lock()
+    seen_so_far = [0]
+
+    def on_seen(seen: tap.Seen) -> None:
+        with lock:  # exactly --count, however many arrive before the main thread stops
+            if done.is_set():
+                return
+            seen_so_far[0] += 1
+            printer.show(seen)
+            if count and seen_so_far[0] >= count:
+                done.set()
+                stop.stop()
+
+    with session(args) as client, tap.Tap(client.transport, expression, on_seen, liveliness=args.liveliness or None):
+        if not args.json:
+            print(f"echo of {expression} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        _run_until(stop, done, args.duration)
+    return ExitCode.OK
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     from cmion_mesh.view import MeshView
     from cmion_mesh.webserver import WebServer, parse_bind
@@ -759,6 +845,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.demo import run_demo
 
     return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait)
+
+
+def cmd_launch(args: argparse.Namespace) -> int:
+    from cmion_mesh import launch
+
+    plan = launch.load(launch.resolve_file(args.file), mesh=args.mesh)
+    if args.check:
+        described = launch.describe(plan)
+        if args.json:
+            print(json.dumps({"file": str(plan.path), "mesh": plan.mesh, "network": plan.network, "processes": described}))
+            return ExitCode.OK
+        print(f"ok: {plan.path}: {len(described)} processes in mesh {plan.mesh!r} (on_failure {plan.on_failure}; "
+              f"network {plan.network}{', ports chosen at each start' if plan.network == 'loopback' else ''})")
+        for item in described:
+            after = f" after {', '.join(item['after'])}" if item["after"] else ""
+            ready = f", ready at a line with {item['ready']!r}" if item["ready"] else ""
+            print(f"  {item['name']} ({item['kind']}{after}{ready}): {' '.join(item['command'])}")
+        return ExitCode.OK
+    stop = Stopper()  # before any thread: the launcher collects Ctrl-C and SIGTERM itself, then stops its children
+    return launch.Launcher(plan, stop).run()
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -1030,6 +1136,35 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _common(p)
     p.set_defaults(func=cmd_replay)
 
+
+    keys_help = ("a key expression: relative to the mesh (robot/ev/**, robot/bb/**, @alive/*, ** for all it publishes) "
+                 "or absolute (cmion/MESH/..., or any zenoh key expression after a leading /)")
+    p = sub.add_parser("hz", help="the rate of publications on a key expression (as ros2 topic hz)",
+                       description="Print, every second, the rate of what is published on KEY (average rate, min, max and "
+                                   "standard deviation of the period, over the last --window periods), as ros2 topic hz "
+                                   "does; a final report at the end. Exit 1 when fewer than two messages came.")
+    p.add_argument("key", metavar="KEY", help=keys_help)
+    p.add_argument("--window", "-w", type=int, default=10_000, help="periods the statistics cover (default: %(default)s)")
+    p.add_argument("--per-key", action="store_true", help="one rate per key rather than one for the whole expression")
+    p.add_argument("--count", type=int, default=0, help="stop after this many messages")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    p.add_argument("--liveliness", action="store_true", help="count liveliness tokens appearing and going (automatic "
+                                                              "when a chunk of KEY starts with @)")
+    _common(p)
+    p.set_defaults(func=cmd_hz)
+
+    p = sub.add_parser("echo", help="print what is published on a key expression, decoded (as ros2 topic echo)",
+                       description="Print what is published on KEY: mesh messages (events, storage values and changes...) "
+                                   "decoded, anything else raw (UTF-8 text, or hex); liveliness tokens as they appear and go.")
+    p.add_argument("key", metavar="KEY", help=keys_help)
+    p.add_argument("--count", type=int, default=0, help="stop after exactly this many messages")
+    p.add_argument("--once", action="store_true", help="stop after the first message (--count 1)")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    p.add_argument("--raw", action="store_true", help="never decode: show every payload raw")
+    p.add_argument("--liveliness", action="store_true", help="watch liveliness tokens (automatic when a chunk of KEY starts with @)")
+    _common(p)
+    p.set_defaults(func=cmd_echo)
+
     p = sub.add_parser("view", help="a live view of the mesh in the browser (embodiments, companions, migrations, events, "
                                     "blackboard, world model, plans)",
                        description="Serve a page that shows the mesh as it happens: every embodiment alive and who "
@@ -1085,6 +1220,17 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="a competency type served by another process (serve-competency): rules may use it; repeatable")
     _json(p)
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("launch", help="start several processes of a mesh from one TOML file; Ctrl-C stops them all",
+                       description="Start the embodiments, router, minds, remote competencies and other processes a "
+                                   "launch file names (docs/launch.md), each line of their output prefixed with their "
+                                   "name; stop them all on Ctrl-C or SIGTERM, or when one fails (the file's on_failure). "
+                                   "Exit code 0 when everything stopped cleanly, 1 when a process failed, 2 for a bad file.")
+    p.add_argument("file", metavar="FILE", help="a launch file (TOML), or a shipped one's name (spirit)")
+    p.add_argument("--check", action="store_true", help="check the file and print what would run, start nothing")
+    p.add_argument("--mesh", help="run in this mesh instead of the file's")
+    p.add_argument("--json", action="store_true", help="with --check: what would run, as JSON")
+    p.set_defaults(func=cmd_launch)
 
     p = sub.add_parser("demo", help="run the demonstration scenario (three daemons in a mesh of their own)")
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")

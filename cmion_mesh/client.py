@@ -170,7 +170,7 @@ class MeshClient:
     def read(self, selector: str, *, timeout: float = 5.0) -> dict[str, Entry]:
         """All properties and containers under a zenoh selector, by key (in key order)."""
         found: list[tuple[str, Entry]] = []
-        for key, payload, ok in self.transport.get(selector, timeout=timeout):
+        for key, payload, ok, _ in self.transport.get(selector, timeout=timeout):
             if ok:
                 try:
                     found.append((key, decode(payload, Entry, where=key)))
@@ -635,7 +635,7 @@ class ActionWatch(Handle):
                 del self._runs[run.action_id]
 
     def _on_samples(self, batch: list[Sample]) -> None:
-        for key, payload, deleted in batch:
+        for key, payload, deleted, _ in batch:
             if deleted or key not in self._ends:
                 continue
             try:

@@ -72,8 +72,10 @@ class Scenario:
     hops: list[Hop] = field(default_factory=list)
 
 
-def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = (), per_body: dict[str, tuple[str, ...]] | None = None) -> Scenario:
-    """The three daemons, each with ``extra`` arguments and its own from ``per_body``."""
+def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = (), per_body: dict[str, tuple[str, ...]] | None = None,
+                 die_with_parent: bool = False) -> Scenario:
+    """The three daemons, each with ``extra`` arguments and its own from ``per_body``;
+    ``die_with_parent``: they get SIGTERM if this process dies, even SIGKILLed (``procs.child_setup``)."""
     ports = {name: free_port() for name in BODIES}
     scenario = Scenario(mesh, {name: f"tcp/127.0.0.1:{port}" for name, port in ports.items()})
     try:
@@ -83,7 +85,7 @@ def start_bodies(mesh: str, state: Path, *, extra: tuple[str, ...] = (), per_bod
             for other in BODIES:
                 if other != name:
                     argv += ["--connect", scenario.endpoints[other]]
-            scenario.daemons[name] = Daemon(cli_argv(*argv), name=name)
+            scenario.daemons[name] = Daemon(cli_argv(*argv), name=name, die_with_parent=die_with_parent)
         for daemon in scenario.daemons.values():
             daemon.wait_line("up in mesh", 30)
     except BaseException:
@@ -211,7 +213,8 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
     serve = ("--web", "127.0.0.1:0")
     with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state, contextlib.ExitStack() as stack:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
-        scenario = start_bodies(mesh, Path(state), per_body=dict.fromkeys(WEB_BODIES, serve) if web else None)
+        # From the main thread, which lives as long as the demo: a SIGKILLed demo leaves no daemon behind.
+        scenario = start_bodies(mesh, Path(state), per_body=dict.fromkeys(WEB_BODIES, serve) if web else None, die_with_parent=True)
         try:
             config = TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)
             with ZenohTransport(config) as transport:

@@ -4,7 +4,8 @@ Looks at the network interfaces (up, multicast-capable, addresses), the effectiv
 (mode, multicast scouting, endpoints, config file), then joins the mesh briefly and reports the
 zenoh peers it connected to, the embodiments alive in this mesh (and what is wrong there: two
 daemons with one name, a companion two embodiments claim), and embodiments alive in *other*
-meshes (the most common mistake: a different ``--mesh``).
+meshes (the most common mistake: a different ``--mesh``); and the ROS 2 nodes (rmw_zenoh) this
+session can see, by domain, for a ``ros_robot`` beside a ROS 2 robot.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient, mesh_problems
 from cmion_mesh.errors import ExitCode
+from cmion_mesh.ros2 import ADMIN_SPACE, parse_token
 from cmion_mesh.transport import TransportConfig
 
 IFF_UP, IFF_LOOPBACK, IFF_MULTICAST = 0x1, 0x8, 0x1000
@@ -78,6 +80,7 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
         # then look at the other meshes this session reached.
         described = client.describe_all(timeout=timeout)
         seen = set(transport.alive(f"{keys.ROOT}/*/{keys.ALIVE}/*", timeout=max(0.1, min(1.0, timeout))))
+        ros_tokens = transport.alive(f"{ADMIN_SPACE}/**", timeout=max(0.1, min(1.0, timeout)))
         report["session"] = {"open_seconds": round(opened, 3), "zenoh_id": transport.id, "connected_to": transport.peers()}
     here = sorted({str(d["name"]) for d in described})
     elsewhere: dict[str, list[str]] = {}
@@ -89,6 +92,7 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     report["problems"].extend(mesh_problems(described))
     report["problems"].extend(f"{d['name']} does not answer: {d['error']}" for d in described if d.get("error"))
     report["embodiments"] = here
+    report["ros2"] = ros2_nodes(ros_tokens)
     report["other_meshes"] = elsewhere
     if not report["session"]["connected_to"]:
         report["problems"].append("no zenoh peer or router reached")
@@ -98,6 +102,16 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     if not here and not elsewhere and report["session"]["connected_to"]:
         report["hints"].append("zenoh peers answer but no embodiment is up: start one with `cmion-mesh up`")
     return report
+
+
+def ros2_nodes(tokens: list[str]) -> dict[str, list[str]]:
+    """The ROS 2 nodes that rmw_zenoh liveliness tokens show, by domain: ``{"0": ["/nav2 (zenoh ab12...)"]}``."""
+    found: dict[str, set[str]] = {}
+    for token in tokens:
+        entity = parse_token(token)
+        if entity is not None and entity.kind == "NN":
+            found.setdefault(str(entity.domain), set()).add(f"{entity.node_path} (zenoh {entity.zid})")
+    return {domain: sorted(nodes) for domain, nodes in sorted(found.items(), key=lambda kv: int(kv[0]))}
 
 
 def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: bool = False) -> int:
@@ -122,6 +136,11 @@ def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: b
     print(f"embodiments in mesh {mesh!r}: {', '.join(report['embodiments']) or 'none'}")
     for other, names in report["other_meshes"].items():
         print(f"  (mesh {other!r}: {', '.join(names)})")
+    if report["ros2"]:
+        for domain, nodes in report["ros2"].items():
+            print(f"ROS 2 nodes (rmw_zenoh) on domain {domain}: {', '.join(nodes)}")
+    else:
+        print("ROS 2 nodes (rmw_zenoh): none visible (for a ROS 2 robot, connect to its zenoh router: docs/ros2.md)")
     for problem in report["problems"]:
         print(f"problem: {problem}")
     for hint in report["hints"]:

@@ -458,7 +458,7 @@ class Simulation:
         # subscription's pattern; an event's fields must name that same key.
         events: list[tuple[Event, str, _Subscription | None]] = []
         keys_of = self._event_keys
-        for key, payload, deleted in batch:
+        for key, payload, deleted, _ in batch:
             if deleted:
                 continue
             try:

@@ -20,6 +20,7 @@ from cmion_mesh.transport import (
     Closeable,
     Handle,
     LivelinessHandler,
+    QueryCancel,
     QueryHandler,
     Reply,
     Sample,
@@ -80,7 +81,7 @@ class MemoryNetwork:
 
     def __init__(self) -> None:
         self.lock = threading.RLock()
-        self.subs: dict[int, tuple[str, _Worker, bool, MemoryTransport]] = {}
+        self.subs: dict[int, tuple[str, _Worker, bool, MemoryTransport, bool]] = {}
         self.queryables: dict[int, tuple[str, _Worker, MemoryTransport]] = {}
         self.tokens: dict[int, str] = {}
         self.watchers: dict[int, tuple[str, _Worker]] = {}
@@ -89,15 +90,17 @@ class MemoryNetwork:
 
 
 class _MemQuery:
-    def __init__(self, selector: str, payload: bytes | None, sink: list[Reply], done: threading.Event) -> None:
+    def __init__(self, selector: str, payload: bytes | None, sink: list[Reply], done: threading.Event,
+                 attachment: bytes | None = None) -> None:
         self.key = selector.split("?")[0]
         self.selector = selector
         self.payload = payload
+        self.attachment = attachment
         self._sink = sink
         self._done = done
 
-    def reply(self, key: str, payload: bytes) -> None:
-        self._sink.append(Reply(key, payload, True))
+    def reply(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        self._sink.append(Reply(key, payload, True, attachment))
 
     def reply_err(self, payload: bytes) -> None:
         self._sink.append(Reply(self.key, payload, False))
@@ -130,7 +133,7 @@ class _MemMatching:
         if self._closed or self._transport._closed:
             return False
         with self._transport.net.lock:
-            return any(_intersects(self._selector, sel) for sel, _, _, _ in self._transport.net.subs.values())
+            return any(_intersects(self._selector, sub[0]) for sub in self._transport.net.subs.values())
 
     def close(self) -> None:
         self._closed = True
@@ -159,8 +162,8 @@ class MemoryTransport:
         if self._closed:
             raise ClosedError(f"transport {self._id} is closed")
 
-    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
-        self._deliver(Sample(key, payload, False))
+    def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
+        self._deliver(Sample(key, payload, False, attachment))
 
     def delete(self, key: str) -> None:
         self._deliver(Sample(key, b"", True))
@@ -169,19 +172,22 @@ class MemoryTransport:
         self._check()
         with self.net.lock:
             targets = [
-                w for sel, w, remote_only, owner in self.net.subs.values()
+                (w, attached) for sel, w, remote_only, owner, attached in self.net.subs.values()
                 if matches(sel, sample.key) and not (remote_only and owner is self)
             ]
-        for worker in targets:
-            worker.queue.put(sample)
+        bare = sample._replace(attachment=None)
+        for worker, attached in targets:
+            worker.queue.put(sample if attached else bare)
 
-    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
-        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler), remote_only)
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
+                  attachments: bool = False) -> Closeable:
+        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler), remote_only, attachments)
 
-    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False) -> Closeable:
-        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler, batches=True), remote_only)
+    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False,
+                          attachments: bool = False) -> Closeable:
+        return self._subscribe(selector, _Worker(f"mem-sub:{selector}", handler, batches=True), remote_only, attachments)
 
-    def _subscribe(self, selector: str, worker: _Worker, remote_only: bool) -> Closeable:
+    def _subscribe(self, selector: str, worker: _Worker, remote_only: bool, attachments: bool = False) -> Closeable:
         try:
             self._check()
         except ClosedError:
@@ -189,7 +195,7 @@ class MemoryTransport:
             raise
         with self.net.lock:
             sid = next(self.net.ids)
-            self.net.subs[sid] = (selector, worker, remote_only, self)
+            self.net.subs[sid] = (selector, worker, remote_only, self, attachments)
         def unsubscribe() -> None:
             with self.net.lock:
                 self.net.subs.pop(sid, None)
@@ -210,7 +216,8 @@ class MemoryTransport:
 
         return self._remember(undeclare)
 
-    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
+            attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
         self._check()
         key = selector.split("?")[0]
         with self.net.lock:
@@ -219,8 +226,14 @@ class MemoryTransport:
         dones = []
         for worker in targets:
             done = threading.Event()
-            worker.queue.put(_MemQuery(selector, payload, replies, done))
+            worker.queue.put(_MemQuery(selector, payload, replies, done, attachment))
             dones.append(done)
+        if cancel is not None:
+            def finish_all() -> None:
+                for done in dones:
+                    done.set()
+
+            cancel.on_cancel(finish_all)
         for done in dones:
             done.wait(timeout)
         return list(replies)
@@ -272,7 +285,7 @@ class MemoryTransport:
         # Subscriptions of one memory network are known at once: nothing to wait for.
         self._check()
         with self.net.lock:
-            return any(matches(sel, key) for sel, _, remote_only, owner in self.net.subs.values()
+            return any(matches(sel, key) for sel, _, remote_only, owner, *_ in self.net.subs.values()
                        if not (remote_only and owner is self))
 
     def peers(self) -> list[str]:

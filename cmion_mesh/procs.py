@@ -1,12 +1,17 @@
-"""Starting and stopping daemon processes: used by the demo, the benchmarks and the tests.
+"""Starting and stopping daemon processes: used by the demo, ``launch``, the benchmarks and the tests.
 
 Processes are started with ``subprocess`` (never ``fork`` after zenoh is open: the child hangs),
 always stopped (SIGTERM, then SIGKILL after a grace period), and their output is read by a
 thread so that waiting for a line has a deadline.
+
+A parent that is itself SIGKILLed cannot stop its children: ``child_setup`` has the kernel send
+them SIGTERM when it dies (Linux's ``PR_SET_PDEATHSIG``), so a killed ``launch`` or ``demo``
+leaves no daemon running for ever.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import queue
 import signal
@@ -16,7 +21,10 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+
+#: ``prctl`` option: the signal the kernel sends this process when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
 
 
 def free_port() -> int:
@@ -31,11 +39,47 @@ def unique_mesh(prefix: str = "t") -> str:
     return f"{prefix}-{uuid.uuid4().hex[:12]}"
 
 
+def _prctl() -> Callable[..., int] | None:
+    """libc's ``prctl``, looked up before any fork (nothing may be loaded between fork and exec);
+    None where there is none (not Linux)."""
+    try:
+        function: Callable[..., int] = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return function
+
+
+def child_setup(die_with_parent: bool = True) -> Callable[[], None]:
+    """A ``preexec_fn`` for ``subprocess.Popen``, run in the child between fork and exec.
+
+    * It unblocks every signal: a parent waiting with ``signals.Stopper`` blocks SIGINT and SIGTERM,
+      and a blocked mask survives exec, so a child that does not ``sigwait`` itself (any program
+      but cmion-mesh) could never be stopped by them.
+    * ``die_with_parent``: the kernel sends the child SIGTERM when the parent dies, even by SIGKILL.
+      A pipe the child watches would need every child's cooperation; this needs none. The kernel
+      ties it to the *thread* that forked: start children from a thread that lives as long as the
+      parent (the main thread). Without ``prctl`` (not Linux) nothing is set.
+    """
+    prctl = _prctl() if die_with_parent else None
+    parent = os.getpid()
+
+    def setup() -> None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, ())
+        if prctl is not None:
+            prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+            if os.getppid() != parent:  # the parent died before prctl: nobody would ever send it
+                os._exit(1)
+
+    return setup
+
+
 class Daemon:
     """A child process whose output lines are collected; a context manager that always stops it."""
 
-    def __init__(self, argv: Sequence[str], *, env: dict[str, str] | None = None, name: str = "", stdin: bool = False) -> None:
-        """``stdin``: a pipe to the child's standard input (``send`` writes a line to it); else none."""
+    def __init__(self, argv: Sequence[str], *, env: dict[str, str] | None = None, name: str = "", stdin: bool = False,
+                 die_with_parent: bool = False) -> None:
+        """``stdin``: a pipe to the child's standard input (``send`` writes a line to it); else none.
+        ``die_with_parent``: see ``child_setup`` (only from a thread that lives as long as this process)."""
         self.name = name or os.path.basename(argv[0])
         self.argv = list(argv)
         full_env = dict(os.environ)
@@ -44,7 +88,7 @@ class Daemon:
             full_env.update(env)
         self.proc = subprocess.Popen(
             self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
-            env=full_env, text=True, start_new_session=True,
+            env=full_env, text=True, start_new_session=True, preexec_fn=child_setup(die_with_parent) if die_with_parent else None,
         )
         self.lines: list[str] = []
         self._queue: queue.SimpleQueue[str | None] = queue.SimpleQueue()

@@ -157,7 +157,7 @@ class Routed:
 
 def route(sample: Sample) -> Routed:
     """The channel and message of a published sample (never raises: what does not decode goes raw)."""
-    key, payload, deleted = sample
+    key, payload, deleted = sample.key, sample.payload, sample.deleted
     chunks = key.split("/")
     kind = chunks[3] if len(chunks) >= 4 and chunks[0] == keys.ROOT else ""
     try:
@@ -453,7 +453,7 @@ class Recorder:
         add = part.writer.add_message
         encode_json = _json.encode
         for sample in batch:
-            key, payload, deleted = sample
+            key, payload, deleted = sample.key, sample.payload, sample.deleted
             channel = channels.get(key)
             if channel is not None and not deleted:
                 try:

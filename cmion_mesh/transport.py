@@ -24,6 +24,7 @@ query that nobody answers is not an error: ``get`` returns no replies (outcome u
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
@@ -35,12 +36,16 @@ class Sample(NamedTuple):
     key: str
     payload: bytes
     deleted: bool = False
+    #: The zenoh attachment, only for a subscription made with ``attachments=True`` (ROS 2 over
+    #: rmw_zenoh carries its sequence number and source there); None otherwise.
+    attachment: bytes | None = None
 
 
 class Reply(NamedTuple):
     key: str
     payload: bytes
     ok: bool = True
+    attachment: bytes | None = None
 
 
 class IncomingQuery(Protocol):
@@ -52,9 +57,43 @@ class IncomingQuery(Protocol):
     def selector(self) -> str: ...
     @property
     def payload(self) -> bytes | None: ...
-    def reply(self, key: str, payload: bytes) -> None: ...
+    @property
+    def attachment(self) -> bytes | None: ...
+    def reply(self, key: str, payload: bytes, attachment: bytes | None = None) -> None: ...
     def reply_err(self, payload: bytes) -> None: ...
     def finish(self) -> None: ...
+
+
+class QueryCancel:
+    """Ends, from any thread, the ``get`` calls it was given to: they return the replies they had.
+    For a query answered only when something ends (a ROS 2 action's result), so that the caller
+    can stop waiting when it stops caring. Cancelling twice, or before the query, is harmless."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._cancelled = False
+        self._hooks: list[Callable[[], None]] = []
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled
+
+    def cancel(self) -> None:
+        with self._lock:
+            if self._cancelled:
+                return
+            self._cancelled = True
+            hooks, self._hooks = self._hooks, []
+        for hook in hooks:
+            hook()
+
+    def on_cancel(self, hook: Callable[[], None]) -> None:
+        """For transports: run ``hook`` on ``cancel`` (at once if it was cancelled already)."""
+        with self._lock:
+            if not self._cancelled:
+                self._hooks.append(hook)
+                return
+        hook()
 
 
 #: Most samples ``subscribe_batches`` hands over at once (bounds the latency of the first one).
@@ -121,22 +160,29 @@ class Transport(Protocol):
     @property
     def id(self) -> str: ...
 
-    def publish(self, key: str, payload: bytes, *, block: bool = True) -> None:
-        """Publish. ``block`` = wait rather than drop under congestion (events, changes)."""
+    def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
+        """Publish. ``block`` = wait rather than drop under congestion (events, changes);
+        ``attachment`` travels beside the payload (rmw_zenoh requires one on every ROS 2 sample)."""
 
     def delete(self, key: str) -> None: ...
 
-    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False) -> Closeable:
+    def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
+                  attachments: bool = False) -> Closeable:
         """``handler`` receives samples in order on one worker thread per subscription."""
 
-    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False) -> Closeable:
+    def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False,
+                          attachments: bool = False) -> Closeable:
         """``handler`` receives, in order on one worker thread per subscription, lists of the samples
-        that arrived since its last call (at least one each; at most ``MAX_BATCH``)."""
+        that arrived since its last call (at least one each; at most ``MAX_BATCH``). ``attachments``:
+        fill ``Sample.attachment`` (off by default: the mesh's own keys never carry one)."""
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable: ...
 
-    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> list[Reply]:
-        """Query; all replies. Zero replies means nobody answered: outcome unknown, not success."""
+    def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
+            attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
+        """Query; all replies (with their attachments). Zero replies means nobody answered: outcome
+        unknown, not success. Blocks until every replier finished, ``timeout`` or ``cancel``; a
+        caller that must stay responsive meanwhile runs it on a thread of its own."""
 
     def declare_token(self, key: str) -> Closeable: ...
 

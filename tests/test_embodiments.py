@@ -31,7 +31,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.validate import validate_file
 
 pytestmark = pytest.mark.timeout(60)
-SHIPPED = ["robot", "screen", "phone", "cmion_test"]
+SHIPPED = ["robot", "screen", "phone", "cmion_test", "ros_robot"]
 WAIT = 10.0  # upper bound for conditions that normally hold within a few tens of ms
 
 
@@ -91,6 +91,7 @@ def test_each_embodiment_offers_its_actions(transport: MemoryTransport, mesh: st
         "robot": ["Say * *", "GoTo *", "Greet *", "Express *"],
         "screen": ["Say * *", "Greet *", "AskIsGuest *", "AskIsGuest * *", "Express *"],
         "phone": ["Say * *", "Greet *", "Express *"],
+        "ros_robot": ["Say * *", "GoTo *", "Greet *", "Express *", "Drive * * *"],
     }
     for name, actions in expected.items():
         body = up(name, transport, mesh)  # not started: the description needs no loop

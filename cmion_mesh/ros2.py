@@ -1,0 +1,677 @@
+"""ROS 2 over rmw_zenoh (ROS 2 Jazzy): the wire format, and a mesh-side ROS 2 node.
+
+rmw_zenoh maps ROS 2 onto plain zenoh, so a cmion-mesh session can talk to ROS 2 nodes with no
+ROS installation, no DDS and no bridge process. What goes on the wire (rmw_zenoh's
+``docs/design.md``, ``liveliness_utils.cpp``, ``attachment_helpers.cpp``):
+
+* **Data keys**: ``<domain>/<fully qualified name without the outer "/">/<DDS type>/<type hash>``,
+  e.g. ``0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...``. Services use the service's
+  type and hash (not its Request's); an action is three services (``<action>/_action/send_goal``,
+  ``cancel_goal``, ``get_result``) and two topics (``feedback``, ``status``).
+* **Type hashes**: REP 2011's RIHS01 (SHA-256 of the type description); services are described
+  as ``request_message``, ``response_message`` and ``event_message`` (``<Name>_Event``: ``info``
+  and request and response as sequences of at most one). A ``.msg`` ``char`` is ``uint8`` there.
+* **Payloads**: CDR with its 4-byte encapsulation header (little endian written, either read).
+* **Attachments** (required: rmw_zenoh drops a sample without one): int64 sequence number, int64
+  source time (ns), one byte GID length (16), the 16-byte GID; a service reply carries its
+  request's sequence number and the client's GID.
+* **Liveliness tokens** (the ROS graph: ``ros2 node list`` reads them):
+  ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>`` for a node, and
+  ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<MP|MS|SS|SC>/<enclave>/<namespace>/<node>/<name>/<DDS type>/<hash>/<qos>``
+  for its entities, ``/`` in a name written ``%`` (the root namespace and no enclave are ``%``).
+
+CDR and the type descriptions come from ``rosbags`` (its ROS 2 Jazzy type store: the standard
+messages, and the Nav2 and action types registered here from their ``.msg``/``.action`` text);
+this module adds what rosbags has no notion of: services and actions as rmw_zenoh names and hashes
+them, keys, tokens and attachments. Only this module knows the format; the competencies
+(``competencies/ros2.py``) use ``Ros2Node``.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import itertools
+import logging
+import math
+import os
+import struct
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple
+
+import numpy
+from rosbags.interfaces import Nodetype
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError
+from cmion_mesh.transport import Closeable, QueryCancel, Sample, Transport
+
+log = logging.getLogger(__name__)
+
+ADMIN_SPACE = "@ros2_lv"
+#: rmw_zenoh's compact QoS for the default profile (reliable, volatile, keep last 10).
+DEFAULT_QOS = "::,10:,:,:,,"
+#: An action's status topic: transient local, keep last 1.
+STATUS_QOS = ":1:,1:,:,:,,"
+GID_SIZE = 16
+_ATTACHMENT = struct.Struct("<qqB")
+
+# action_msgs/msg/GoalStatus
+STATUS_UNKNOWN, STATUS_ACCEPTED, STATUS_EXECUTING, STATUS_CANCELING = 0, 1, 2, 3
+STATUS_SUCCEEDED, STATUS_CANCELED, STATUS_ABORTED = 4, 5, 6
+STATUS_NAMES = {0: "unknown", 1: "accepted", 2: "executing", 3: "canceling", 4: "succeeded", 5: "canceled", 6: "aborted"}
+
+# --- names, keys, tokens -----------------------------------------------------------------------
+
+
+def qualify(name: str, namespace: str = "") -> str:
+    """The fully qualified name of ``name`` in ``namespace`` (``odom`` in ``/robot1``: ``/robot1/odom``);
+    an absolute name stays as it is. ``ConfigError`` for a name ROS 2 would refuse."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    full = name if name.startswith("/") else f"{ns}/{name}"
+    parts = full.strip("/").split("/")
+    if not name or any(not p or not all(c.isalnum() or c == "_" for c in p) or p[0].isdigit() for p in parts):
+        raise ConfigError(f"invalid ROS 2 name {name!r} (namespace {namespace!r}): use letters, digits, _ and /")
+    return "/" + "/".join(parts)
+
+
+def dds_type(type_name: str) -> str:
+    """``std_msgs/msg/String`` -> ``std_msgs::msg::dds_::String_`` (the name rmw_zenoh keys carry)."""
+    pkg, kind, name = split_type(type_name)
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def ros_type(dds: str) -> str:
+    """The inverse of ``dds_type``; a name of another form is returned as it is."""
+    parts = dds.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    return dds
+
+
+def split_type(type_name: str) -> tuple[str, str, str]:
+    parts = type_name.split("/")
+    if len(parts) != 3 or not all(parts) or parts[1] not in ("msg", "srv", "action"):
+        raise ConfigError(f"invalid ROS 2 type name {type_name!r} (expected package/msg/Name)")
+    return parts[0], parts[1], parts[2]
+
+
+def mangle(name: str) -> str:
+    return name.replace("/", "%") if name else "%"
+
+
+def demangle(chunk: str) -> str:
+    return "" if chunk == "%" else chunk.replace("%", "/")
+
+
+def topic_key(domain: int, name: str, type_name: str, type_hash: str) -> str:
+    return f"{domain}/{name.strip('/')}/{dds_type(type_name)}/{type_hash}"
+
+
+def node_token(domain: int, zid: str, nid: int, namespace: str, node: str) -> str:
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
+    return f"{ADMIN_SPACE}/{domain}/{zid}/{nid}/{nid}/NN/%/{mangle(ns)}/{node}"
+
+
+def entity_token(domain: int, zid: str, nid: int, eid: int, kind: str, namespace: str, node: str,
+                 name: str, type_name: str, type_hash: str, qos: str = DEFAULT_QOS) -> str:
+    if kind not in ("MP", "MS", "SS", "SC"):
+        raise ValueError(f"entity kind {kind!r}")
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
+    return (f"{ADMIN_SPACE}/{domain}/{zid}/{nid}/{eid}/{kind}/%/{mangle(ns)}/{node}/"
+            f"{mangle(name)}/{dds_type(type_name)}/{type_hash}/{qos}")
+
+
+class Entity(NamedTuple):
+    """One liveliness token of the ROS graph, parsed."""
+
+    domain: int
+    zid: str
+    nid: str
+    eid: str
+    kind: str  # NN, MP, MS, SS, SC
+    namespace: str  # "/" for the root
+    node: str
+    name: str = ""  # the topic or service, fully qualified
+    type: str = ""  # the ROS type name (pkg/msg/Name)
+    type_hash: str = ""
+
+    @property
+    def node_path(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.node}"
+
+
+def parse_token(key: str) -> Entity | None:
+    """The entity a ``@ros2_lv`` token names, or None for one that is not of that form."""
+    parts = key.split("/")
+    if len(parts) < 9 or parts[0] != ADMIN_SPACE or any(not p for p in parts):
+        return None
+    kind = parts[5]
+    try:
+        domain = int(parts[1])
+    except ValueError:
+        return None
+    if kind == "NN":
+        return Entity(domain, parts[2], parts[3], parts[4], kind, demangle(parts[7]) or "/", parts[8])
+    if kind not in ("MP", "MS", "SS", "SC") or len(parts) < 13:
+        return None
+    return Entity(domain, parts[2], parts[3], parts[4], kind, demangle(parts[7]) or "/", parts[8],
+                  demangle(parts[9]), ros_type(parts[10]), parts[11])
+
+
+# --- attachments -------------------------------------------------------------------------------
+
+
+class Attachment(NamedTuple):
+    sequence: int
+    timestamp_ns: int
+    gid: bytes
+
+
+def encode_attachment(sequence: int, gid: bytes, timestamp_ns: int | None = None) -> bytes:
+    if len(gid) != GID_SIZE:
+        raise ValueError(f"a GID is {GID_SIZE} bytes, not {len(gid)}")
+    stamp = time.time_ns() if timestamp_ns is None else timestamp_ns
+    return _ATTACHMENT.pack(sequence, stamp, GID_SIZE) + gid
+
+
+def decode_attachment(data: bytes | None) -> Attachment:
+    """The attachment of a sample or reply; ``ProtocolError`` when missing or malformed."""
+    if data is None:
+        raise ProtocolError("no rmw_zenoh attachment")
+    if len(data) != _ATTACHMENT.size + GID_SIZE:
+        raise ProtocolError(f"rmw_zenoh attachment of {len(data)} bytes (expected {_ATTACHMENT.size + GID_SIZE})")
+    sequence, stamp, size = _ATTACHMENT.unpack_from(data)
+    if size != GID_SIZE:
+        raise ProtocolError(f"rmw_zenoh attachment with a GID of {size} bytes")
+    return Attachment(sequence, stamp, bytes(data[_ATTACHMENT.size:]))
+
+
+def gid_of(token: str) -> bytes:
+    """A 16-byte GID for the entity of ``token``: unique per token, stable for its life (rmw_zenoh
+    hashes the token too; peers only compare GIDs, they never recompute them)."""
+    return hashlib.sha256(token.encode()).digest()[:GID_SIZE]
+
+
+# --- types: rosbags' Jazzy store, plus services, actions and Nav2 -------------------------------
+
+ACTION_MSGS_CANCEL_GOAL = (
+    "action_msgs/srv/CancelGoal",
+    "action_msgs/msg/GoalInfo goal_info",
+    "int8 ERROR_NONE=0\nint8 ERROR_REJECTED=1\nint8 ERROR_UNKNOWN_GOAL_ID=2\nint8 ERROR_GOAL_TERMINATED=3\n"
+    "int8 return_code\naction_msgs/msg/GoalInfo[] goals_canceling",
+)
+
+#: nav2_msgs/action/NavigateToPose as in Nav2 for ROS 2 Jazzy.
+NAVIGATE_TO_POSE = (
+    "nav2_msgs/action/NavigateToPose",
+    "geometry_msgs/msg/PoseStamped pose\nstring behavior_tree",
+    "uint16 NONE=0\nuint16 UNKNOWN=9000\nuint16 FAILED_TO_LOAD_BEHAVIOR_TREE=9001\nuint16 TF_ERROR=9002\n"
+    "uint16 TIMEOUT=9003\nuint16 error_code\nstring error_msg",
+    "geometry_msgs/msg/PoseStamped current_pose\nbuiltin_interfaces/msg/Duration navigation_time\n"
+    "builtin_interfaces/msg/Duration estimated_time_remaining\nint16 number_of_recoveries\nfloat32 distance_remaining",
+)
+
+
+def _rename(desc: Any, fix: Callable[[str], str]) -> Any:
+    if desc[0] == Nodetype.NAME:
+        return (desc[0], fix(desc[1]))
+    if desc[0] in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return (desc[0], (_rename(desc[1][0], fix), desc[1][1]))
+    return desc
+
+
+def _as_uint8(desc: Any) -> Any:
+    if desc[0] == Nodetype.BASE and desc[1][0] == "char":
+        return (desc[0], ("uint8", desc[1][1]))
+    if desc[0] in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return (desc[0], (_as_uint8(desc[1][0]), desc[1][1]))
+    return desc
+
+
+class Types:
+    """ROS 2 Jazzy types by name: CDR encoding and decoding, and their RIHS01 hashes."""
+
+    def __init__(self) -> None:
+        self._store = get_typestore(Stores.ROS2_JAZZY)
+        self._hashes: dict[str, str] = {}
+        self._services: set[str] = set()
+        self._lock = threading.Lock()
+        self.register_service(*ACTION_MSGS_CANCEL_GOAL)
+        self.register_action(*NAVIGATE_TO_POSE)
+
+    def known(self, type_name: str) -> bool:
+        return type_name in self._store.fielddefs or type_name in self._services
+
+    def register_messages(self, definitions: Iterable[tuple[str, str]]) -> None:
+        """Register message types from ``.msg`` text (``pkg/msg/Name`` or ``pkg/srv/Name_Request``...)."""
+        found: dict[str, Any] = {}
+        for name, text in definitions:
+            split_type(name)
+            try:
+                found.update(get_types_from_msg(text, name))
+            except Exception as exc:  # rosbags' parser raises its own exception types
+                raise ConfigError(f"ROS 2 type {name}: cannot parse its definition: {exc}") from None
+
+        # rosbags files anything outside msg/ and action/ under msg/: put srv types back in place.
+        def fix(n: str) -> str:
+            return n.replace("/srv/msg/", "/srv/")
+
+        fixed = {fix(k): (consts, [(f, _rename(d, fix)) for f, d in fields]) for k, (consts, fields) in found.items()}
+        with self._lock:
+            try:
+                self._store.register(fixed)
+            except Exception as exc:
+                raise ConfigError(f"ROS 2 types {sorted(fixed)}: {exc}") from None
+            self._hashes.clear()
+
+    def register_service(self, name: str, request: str, response: str) -> None:
+        """A service from the two halves of its ``.srv`` text, with the ``_Event`` type and the
+        description its hash is taken from."""
+        self.register_messages([
+            (f"{name}_Request", request),
+            (f"{name}_Response", response),
+            (f"{name}_Event", f"service_msgs/msg/ServiceEventInfo info\n{name}_Request[<=1] request\n{name}_Response[<=1] response"),
+            (name, f"{name}_Request request_message\n{name}_Response response_message\n{name}_Event event_message"),
+        ])
+        self._services.add(name)
+
+    def register_action(self, name: str, goal: str, result: str, feedback: str) -> None:
+        """An action from the three parts of its ``.action`` text: its goal, result and feedback
+        messages, its send_goal and get_result services and its feedback message, as rosidl
+        generates them."""
+        self.register_messages([(f"{name}_Goal", goal), (f"{name}_Result", result), (f"{name}_Feedback", feedback),
+                                (f"{name}_FeedbackMessage", f"unique_identifier_msgs/msg/UUID goal_id\n{name}_Feedback feedback")])
+        self.register_service(f"{name}_SendGoal", f"unique_identifier_msgs/msg/UUID goal_id\n{name}_Goal goal",
+                              "bool accepted\nbuiltin_interfaces/msg/Time stamp")
+        self.register_service(f"{name}_GetResult", "unique_identifier_msgs/msg/UUID goal_id", f"int8 status\n{name}_Result result")
+
+    def hash(self, type_name: str) -> str:
+        """The RIHS01 hash of a message or service type."""
+        with self._lock:
+            found = self._hashes.get(type_name)
+            if found is not None:
+                return found
+            if type_name not in self._store.fielddefs:
+                raise ConfigError(f"unknown ROS 2 type {type_name!r}")
+            # The type description has rosidl's field types, where a .msg char is a uint8.
+            hashing = copy.copy(self._store)
+            hashing.fielddefs = {k: (c, [(f, _as_uint8(d)) for f, d in fields]) for k, (c, fields) in self._store.fielddefs.items()}
+            found = hashing.hash_rihs01(type_name)
+            self._hashes[type_name] = found
+            return found
+
+    def encode(self, type_name: str, values: Any) -> bytes:
+        """CDR (little endian, with its header) of ``values``: a message object, or a dict whose
+        missing fields take their defaults."""
+        message = values if not isinstance(values, dict) else self.build(type_name, values)
+        return bytes(self._store.serialize_cdr(message, type_name))
+
+    def decode(self, type_name: str, data: bytes) -> Any:
+        """The message ``data`` holds; ``ProtocolError`` saying why it is not one."""
+        try:
+            return self._store.deserialize_cdr(data, type_name)
+        except Exception as exc:  # rosbags raises struct.error, IndexError, its own errors...
+            raise ProtocolError(f"malformed CDR for {type_name} ({len(data)} bytes): {type(exc).__name__}: {exc}") from None
+
+    def build(self, type_name: str, values: dict[str, Any] | None = None) -> Any:
+        """A message object from a dict (nested dicts for nested messages), defaults for the rest."""
+        values = values or {}
+        if type_name not in self._store.fielddefs:
+            raise ConfigError(f"unknown ROS 2 type {type_name!r}")
+        _, fields = self._store.fielddefs[type_name]
+        unknown = set(values) - {f for f, _ in fields}
+        if unknown:
+            raise ConfigError(f"{type_name} has no field {', '.join(sorted(unknown))}")
+        cls = self._store.types[type_name]
+        return cls(**{f: self._value(desc, values.get(f), f"{type_name}.{f}") for f, desc in fields})
+
+    def _value(self, desc: Any, value: Any, where: str) -> Any:
+        kind, rest = desc
+        if kind == Nodetype.BASE:
+            base = rest[0]
+            if base == "string":
+                return "" if value is None else str(value)
+            if base == "bool":
+                return bool(value)
+            if base in ("float32", "float64"):
+                return 0.0 if value is None else float(value)
+            return 0 if value is None else int(value)
+        if kind == Nodetype.NAME:
+            if value is not None and not isinstance(value, dict):
+                return value
+            return self.build(rest, value)
+        inner, count = rest
+        if inner[0] == Nodetype.BASE and inner[1][0] not in ("string", "bool"):
+            dtype = numpy.dtype({"char": "uint8", "byte": "uint8", "float32": "float32", "float64": "float64"}.get(
+                inner[1][0], inner[1][0]))
+            items = numpy.zeros(count if kind == Nodetype.ARRAY else 0, dtype=dtype) if value is None else numpy.asarray(value, dtype=dtype)
+            if kind == Nodetype.ARRAY and len(items) != count:
+                raise ConfigError(f"{where}: {count} values needed, {len(items)} given")
+            return items
+        listed = [self._value(inner, v, where) for v in (value or [])]
+        if kind == Nodetype.ARRAY and not listed:
+            listed = [self._value(inner, None, where) for _ in range(count)]
+        return listed
+
+
+def plain(message: Any, *, limit: int = 64) -> Any:
+    """A message as plain values for the blackboard (dicts, lists, numbers, strings); sequences
+    longer than ``limit`` are cut to it (a laser scan is not a blackboard value)."""
+    if isinstance(message, numpy.ndarray):
+        return [plain(v) for v in message.tolist()[:limit]]
+    if isinstance(message, (list, tuple)):
+        return [plain(v) for v in message[:limit]]
+    if isinstance(message, float):
+        return message if math.isfinite(message) else None
+    if isinstance(message, (str, int, bool)) or message is None:
+        return message
+    if isinstance(message, (numpy.integer, numpy.floating)):
+        return plain(message.item())
+    fields = getattr(message, "__dataclass_fields__", None)
+    if fields is None:
+        return str(message)
+    return {name: plain(getattr(message, name)) for name in fields if not name.startswith("__")}
+
+
+# --- the mesh side of the ROS graph --------------------------------------------------------------
+
+_ids = itertools.count(int.from_bytes(os.urandom(2), "big"))
+
+
+class Graph:
+    """The ROS graph of one domain as liveliness tokens show it; ``wait_for`` blocks until a
+    predicate over it holds, ``watch`` tells a function (on the transport's worker) of each change."""
+
+    def __init__(self, transport: Transport, domain: int) -> None:
+        self.domain = domain
+        self._entities: dict[str, Entity] = {}
+        self._changed = threading.Condition()
+        self._watchers: list[Callable[[Entity, bool], None]] = []
+        self._handle = transport.watch_liveliness(f"{ADMIN_SPACE}/{domain}/**", self._on_token)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        entity = parse_token(key)
+        if entity is None:
+            return
+        with self._changed:
+            if alive:
+                self._entities[key] = entity
+            else:
+                self._entities.pop(key, None)
+            watchers = list(self._watchers)
+            self._changed.notify_all()
+        for watcher in watchers:
+            try:
+                watcher(entity, alive)
+            except Exception:
+                log.exception("ROS graph watcher failed")
+
+    def entities(self) -> list[Entity]:
+        with self._changed:
+            return list(self._entities.values())
+
+    def servers(self, service: str, type_name: str | None = None) -> list[Entity]:
+        return [e for e in self.entities() if e.kind == "SS" and e.name == service and (type_name is None or e.type == type_name)]
+
+    def publishers(self, topic: str) -> list[Entity]:
+        return [e for e in self.entities() if e.kind == "MP" and e.name == topic]
+
+    def nodes(self) -> list[Entity]:
+        return [e for e in self.entities() if e.kind == "NN"]
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float, cancelled: threading.Event | None = None) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0 or (cancelled is not None and cancelled.is_set()):
+                    return False
+                self._changed.wait(min(left, 0.1) if cancelled is not None else left)
+        return True
+
+    def watch(self, watcher: Callable[[Entity, bool], None]) -> Callable[[], None]:
+        with self._changed:
+            self._watchers.append(watcher)
+
+        def unwatch() -> None:
+            with self._changed:
+                if watcher in self._watchers:
+                    self._watchers.remove(watcher)
+
+        return unwatch
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+def describe_peers(entities: list[Entity]) -> str:
+    """``node /standin_robot (zenoh 1a2b...)`` for the nodes behind some entities, for messages."""
+    named = sorted({f"{e.node_path} (zenoh {e.zid})" for e in entities})
+    return "node " + ", ".join(named) if named else "an unknown peer (no ROS 2 node announces it)"
+
+
+class Node:
+    """A ROS 2 node on the mesh side: its liveliness token and those of its publishers,
+    subscriptions and clients, so that ``ros2 node list`` and ``ros2 topic list`` on the robot see
+    it; and the publishing, subscribing and calling that go with them.
+
+    A context manager; ``close`` withdraws every token and subscription (idempotent).
+    """
+
+    def __init__(self, transport: Transport, name: str, *, domain: int = 0, namespace: str = "", types: Types | None = None) -> None:
+        if not name or not all(c.isalnum() or c == "_" for c in name) or name[0].isdigit():
+            raise ConfigError(f"invalid ROS 2 node name {name!r}: use letters, digits and _")
+        if not 0 <= domain <= 232:
+            raise ConfigError(f"ROS 2 domain id {domain} out of range (0..232)")
+        self.transport = transport
+        self.name = name
+        self.domain = domain
+        self.namespace = qualify("x", namespace)[: -len("/x")] or "/"
+        self.types = types or Types()
+        self.zid = transport.id
+        self.nid = next(_ids)
+        self._handles: list[Closeable] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        self.graph = Graph(transport, domain)
+        self._handles.append(transport.declare_token(node_token(domain, self.zid, self.nid, self.namespace, name)))
+
+    @property
+    def path(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.name}"
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def qualify(self, name: str) -> str:
+        return qualify(name, self.namespace)
+
+    def _declare(self, kind: str, name: str, type_name: str, qos: str = DEFAULT_QOS) -> tuple[str, str]:
+        """Declare an entity's token; (its data key, its token)."""
+        if not self.types.known(type_name):
+            raise ConfigError(f"unknown ROS 2 type {type_name!r} for {name}")
+        type_hash = self.types.hash(type_name)
+        token = entity_token(self.domain, self.zid, self.nid, next(_ids), kind, self.namespace, self.name, name, type_name, type_hash, qos)
+        handle = self.transport.declare_token(token)
+        with self._lock:
+            self._handles.append(handle)
+        return topic_key(self.domain, name, type_name, type_hash), token
+
+    def publisher(self, topic: str, type_name: str, qos: str = DEFAULT_QOS) -> Publisher:
+        name = self.qualify(topic)
+        key, token = self._declare("MP", name, type_name, qos)
+        return Publisher(self, name, type_name, key, gid_of(token))
+
+    def subscribe(self, topic: str, type_name: str, handler: Callable[[Any], None], *, qos: str = DEFAULT_QOS,
+                  on_malformed: Callable[[str], None] | None = None) -> Closeable:
+        """``handler(message)`` for each message on ``topic``, on the transport's worker thread. A
+        sample that is not a ``type_name`` is refused: logged, naming the topic and the node(s)
+        publishing it, and passed to ``on_malformed``; the subscription goes on."""
+        name = self.qualify(topic)
+        key, _ = self._declare("MS", name, type_name, qos)
+
+        def each(sample: Sample) -> None:
+            try:
+                message = self.types.decode(type_name, sample.payload)
+            except ProtocolError as exc:
+                reason = f"refused a message on {name} from {describe_peers(self.graph.publishers(name))}: {exc}"
+                log.warning("%s", reason)
+                if on_malformed is not None:
+                    on_malformed(reason)
+                return
+            handler(message)
+
+        handle = self.transport.subscribe(key, each, attachments=True)
+        with self._lock:
+            self._handles.append(handle)
+        return handle
+
+    def client(self, service: str, type_name: str) -> Client:
+        name = self.qualify(service)
+        key, token = self._declare("SC", name, type_name)
+        return Client(self, name, type_name, key, gid_of(token))
+
+    def action_client(self, action: str, type_name: str) -> ActionClient:
+        return ActionClient(self, action, type_name)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            handles, self._handles = self._handles, []
+        for handle in reversed(handles):
+            handle.close()
+        self.graph.close()
+
+
+class Publisher:
+    def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
+        self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self._sequence = itertools.count(1)
+
+    def publish(self, values: Any) -> None:
+        payload = self.node.types.encode(self.type_name, values)
+        self.node.transport.publish(self.key, payload, attachment=encode_attachment(next(self._sequence), self.gid))
+
+
+class Client:
+    """A ROS 2 service client: ``call`` sends a request and returns the response."""
+
+    def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
+        self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self._sequence = itertools.count(1)
+
+    def servers(self) -> list[Entity]:
+        return self.node.graph.servers(self.name, self.type_name)
+
+    def call(self, request: Any, *, timeout: float, cancel: QueryCancel | None = None) -> Any:
+        """The response to ``request``. ``OutcomeUnknown`` when no server answered in ``timeout``
+        (or before ``cancel``);
+        ``ProtocolError`` (naming the service and the node that answered) for a reply that is not
+        a response, or an error reply."""
+        sequence = next(self._sequence)
+        payload = self.node.types.encode(f"{self.type_name}_Request", request)
+        replies = self.node.transport.get(self.key, payload, timeout=timeout, attachment=encode_attachment(sequence, self.gid),
+                                          cancel=cancel)
+        if not replies:
+            raise OutcomeUnknown(f"no answer from the ROS 2 service {self.name} within {timeout:g} s "
+                                 f"(servers: {describe_peers(self.servers()) if self.servers() else 'none'})")
+        reply = replies[0]
+        who = describe_peers(self.servers())
+        if not reply.ok:
+            raise ProtocolError(f"{self.name}: error reply from {who}: {reply.payload[:200]!r}")
+        try:
+            attached = decode_attachment(reply.attachment)
+        except ProtocolError as exc:
+            log.debug("%s: reply from %s: %s", self.name, who, exc)
+        else:
+            if attached.sequence != sequence:
+                raise ProtocolError(f"{self.name}: reply from {who} answers request {attached.sequence}, not {sequence}")
+        try:
+            return self.node.types.decode(f"{self.type_name}_Response", reply.payload)
+        except ProtocolError as exc:
+            raise ProtocolError(f"{self.name}: refused the reply from {who}: {exc}") from None
+
+
+class ActionClient:
+    """A ROS 2 action client over rmw_zenoh: three service clients and two subscriptions under
+    ``<action>/_action/``, as rclcpp's action client declares them."""
+
+    def __init__(self, node: Node, action: str, type_name: str) -> None:
+        self.node = node
+        self.type_name = type_name
+        self.name = node.qualify(action)
+        base = f"{self.name}/_action"
+        self.send_goal = node.client(f"{base}/send_goal", f"{type_name}_SendGoal")
+        self.get_result = node.client(f"{base}/get_result", f"{type_name}_GetResult")
+        self.cancel_goal = node.client(f"{base}/cancel_goal", "action_msgs/srv/CancelGoal")
+        self._feedback: dict[bytes, Callable[[Any], None]] = {}
+        self._malformed: dict[bytes, Callable[[str], None]] = {}
+        self._lock = threading.Lock()
+        node.subscribe(f"{base}/feedback", f"{type_name}_FeedbackMessage", self._on_feedback, on_malformed=self._on_malformed)
+        node.subscribe(f"{base}/status", "action_msgs/msg/GoalStatusArray", lambda _: None, qos=STATUS_QOS)
+
+    def servers(self) -> list[Entity]:
+        return self.send_goal.servers()
+
+    def follow(self, goal_id: bytes, on_feedback: Callable[[Any], None], on_malformed: Callable[[str], None]) -> Callable[[], None]:
+        """Route the feedback of one goal to ``on_feedback`` (and malformed feedback to
+        ``on_malformed``) until the returned function is called."""
+        with self._lock:
+            self._feedback[goal_id] = on_feedback
+            self._malformed[goal_id] = on_malformed
+
+        def stop() -> None:
+            with self._lock:
+                self._feedback.pop(goal_id, None)
+                self._malformed.pop(goal_id, None)
+
+        return stop
+
+    def _on_feedback(self, message: Any) -> None:
+        goal_id = bytes(numpy.asarray(message.goal_id.uuid, dtype=numpy.uint8).tobytes())
+        with self._lock:
+            handler = self._feedback.get(goal_id)
+        if handler is not None:
+            handler(message.feedback)
+
+    def _on_malformed(self, reason: str) -> None:
+        with self._lock:
+            handlers = list(self._malformed.values())
+        for handler in handlers:
+            handler(reason)
+
+    @staticmethod
+    def new_goal_id() -> bytes:
+        return uuid.uuid4().bytes
+
+    def uuid(self, goal_id: bytes) -> dict[str, Any]:
+        return {"uuid": numpy.frombuffer(goal_id, dtype=numpy.uint8).copy()}
+
+    def send(self, goal_id: bytes, goal: dict[str, Any], *, timeout: float) -> bool:
+        """Send a goal; whether the server accepted it."""
+        response = self.send_goal.call({"goal_id": self.uuid(goal_id), "goal": goal}, timeout=timeout)
+        return bool(response.accepted)
+
+    def result(self, goal_id: bytes, *, timeout: float, cancel: QueryCancel | None = None) -> tuple[int, Any]:
+        """Wait for the goal's end: (GoalStatus, result message); ``cancel`` stops waiting."""
+        response = self.get_result.call({"goal_id": self.uuid(goal_id)}, timeout=timeout, cancel=cancel)
+        return int(response.status), response.result
+
+    def cancel(self, goal_id: bytes, timeout: float) -> int:
+        """Ask the server to cancel a goal; CancelGoal's return code (0: it is canceling)."""
+        response = self.cancel_goal.call({"goal_info": {"goal_id": self.uuid(goal_id)}}, timeout=timeout)
+        return int(response.return_code)
+
+
+def yaw_quaternion(yaw: float) -> dict[str, float]:
+    """The orientation of a planar heading (radians) as a quaternion."""
+    return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2.0), "w": math.cos(yaw / 2.0)}

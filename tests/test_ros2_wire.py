@@ -1,0 +1,172 @@
+"""The ROS 2 wire format (rmw_zenoh, Jazzy) against the examples of rmw_zenoh's design.md and
+REP 2011's hashes: keys, liveliness tokens, attachments, type hashes, CDR; and the competency
+library's parameters. No network here (tests/test_ros2_robot.py drives a stand-in robot)."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from cmion_mesh import ros2
+from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Velocity
+from cmion_mesh.errors import ConfigError, ProtocolError
+from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport import Sample
+
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+
+
+@pytest.fixture(scope="module")
+def types() -> ros2.Types:
+    found = ros2.Types()
+    found.register_service("example_interfaces/srv/AddTwoInts", "int64 a\nint64 b", "int64 sum")
+    return found
+
+
+def test_type_hashes_are_rosidl_ones(types: ros2.Types) -> None:
+    assert types.hash("std_msgs/msg/String") == STRING_HASH
+    assert types.hash("geometry_msgs/msg/Twist") == "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+    # A service's hash covers request, response and the synthesized event (whose ServiceEventInfo
+    # has a char[16], a uint8[16] in rosidl's description).
+    assert types.hash("example_interfaces/srv/AddTwoInts") == ADD_TWO_INTS_HASH
+    assert types.hash("service_msgs/msg/ServiceEventInfo") == "RIHS01_41bcbbe07a75c9b52bc96bfd5c24d7f0fc0a08c0cb7921b3373c5732345a6f45"
+    for name in ("nav2_msgs/action/NavigateToPose_SendGoal", "nav2_msgs/action/NavigateToPose_GetResult",
+                 "nav2_msgs/action/NavigateToPose_FeedbackMessage", "action_msgs/srv/CancelGoal"):
+        assert types.hash(name).startswith("RIHS01_") and len(types.hash(name)) == 7 + 64
+
+
+def test_data_keys_match_the_design_examples(types: ros2.Types) -> None:
+    assert ros2.topic_key(0, ros2.qualify("chatter"), "std_msgs/msg/String", STRING_HASH) == \
+        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    assert ros2.topic_key(0, ros2.qualify("chatter", "/robot1"), "std_msgs/msg/String", STRING_HASH) == \
+        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    assert ros2.topic_key(2, "/add_two_ints", "example_interfaces/srv/AddTwoInts", types.hash("example_interfaces/srv/AddTwoInts")) == \
+        f"2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/{ADD_TWO_INTS_HASH}"
+
+
+def test_liveliness_tokens_match_the_design_examples() -> None:
+    zid = "aac3178e146ba6f1fc6e6a4085e77f21"
+    assert ros2.node_token(2, zid, 0, "", "listener") == f"@ros2_lv/2/{zid}/0/0/NN/%/%/listener"
+    token = ros2.entity_token(2, zid, 0, 10, "MS", "/", "listener", "/chatter", "std_msgs/msg/String", STRING_HASH)
+    assert token == f"@ros2_lv/2/{zid}/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/{STRING_HASH}/::,10:,:,:,,"
+    server = ("@ros2_lv/2/f9980ee0495eaafb3e38f0d19e2eae12/0/10/SS/%/%/add_two_ints_server/%add_two_ints/"
+              f"example_interfaces::srv::dds_::AddTwoInts_/{ADD_TWO_INTS_HASH}/::,10:,:,:,,")
+    parsed = ros2.parse_token(server)
+    assert parsed == ros2.Entity(2, "f9980ee0495eaafb3e38f0d19e2eae12", "0", "10", "SS", "/", "add_two_ints_server",
+                                 "/add_two_ints", "example_interfaces/srv/AddTwoInts", ADD_TWO_INTS_HASH)
+    assert parsed.node_path == "/add_two_ints_server"
+    assert ros2.parse_token(ros2.node_token(0, zid, 3, "/robot1", "nav")) == ros2.Entity(0, zid, "3", "3", "NN", "/robot1", "nav")
+    for junk in ("@ros2_lv/x/1/2/3/NN/%/%/n", "@ros2_lv/0/z/0/0/XX/%/%/n", "cmion/m/e", "@ros2_lv/0/z/0/1/MP/%/%/n"):
+        assert ros2.parse_token(junk) is None
+
+
+def test_names() -> None:
+    assert ros2.qualify("/odom", "/ns") == "/odom"
+    assert ros2.qualify("scan", "robot1/") == "/robot1/scan"
+    assert ros2.dds_type("nav2_msgs/action/NavigateToPose_SendGoal") == "nav2_msgs::action::dds_::NavigateToPose_SendGoal_"
+    assert ros2.ros_type("nav2_msgs::action::dds_::NavigateToPose_SendGoal_") == "nav2_msgs/action/NavigateToPose_SendGoal"
+    for bad in ("", "a//b", "9lives", "bad-name"):
+        with pytest.raises(ConfigError):
+            ros2.qualify(bad)
+    with pytest.raises(ConfigError, match="type name"):
+        ros2.dds_type("std_msgs/String")
+
+
+def test_attachments() -> None:
+    gid = bytes(range(16))
+    data = ros2.encode_attachment(7, gid, timestamp_ns=123)
+    assert len(data) == 33 and data[16] == 16
+    assert ros2.decode_attachment(data) == ros2.Attachment(7, 123, gid)
+    for bad in (None, b"", data[:-1], data[:16] + b"\x08" + data[17:]):
+        with pytest.raises(ProtocolError):
+            ros2.decode_attachment(bad)
+
+
+def test_cdr_round_trips_and_refuses_malformed(types: ros2.Types) -> None:
+    assert types.encode("std_msgs/msg/String", {"data": "hi"})[:11] == bytes.fromhex("00010000030000006869 00".replace(" ", ""))
+    goal_id = bytes(range(16))
+    request = {"goal_id": {"uuid": list(goal_id)},
+               "goal": {"pose": {"header": {"frame_id": "map"},
+                                 "pose": {"position": {"x": 4.0, "y": 2.5}, "orientation": ros2.yaw_quaternion(1.5708)}}}}
+    data = types.encode("nav2_msgs/action/NavigateToPose_SendGoal_Request", request)
+    back = ros2.plain(types.decode("nav2_msgs/action/NavigateToPose_SendGoal_Request", data))
+    assert back["goal_id"]["uuid"] == list(goal_id)
+    assert back["goal"]["pose"]["header"]["frame_id"] == "map"
+    assert back["goal"]["pose"]["pose"]["position"] == {"x": 4.0, "y": 2.5, "z": 0.0}
+    assert back["goal"]["pose"]["pose"]["orientation"]["w"] == pytest.approx(0.7071, abs=1e-3)
+    for cut in (0, 3, 4, 20, len(data) - 8):
+        with pytest.raises(ProtocolError, match="malformed CDR for nav2_msgs/action/NavigateToPose_SendGoal_Request"):
+            types.decode("nav2_msgs/action/NavigateToPose_SendGoal_Request", data[:cut])
+    with pytest.raises(ConfigError, match="no field"):
+        types.encode("geometry_msgs/msg/Twist", {"linaer": {}})
+
+
+def test_attachments_travel_only_to_subscriptions_that_ask() -> None:
+    with MemoryTransport(MemoryNetwork()) as transport:
+        got: dict[str, Sample] = {}
+        both = threading.Event()
+
+        def keep(name: str):  # type: ignore[no-untyped-def]
+            def handler(sample: Sample) -> None:
+                got[name] = sample
+                if len(got) == 2:
+                    both.set()
+            return handler
+
+        transport.subscribe("0/x", keep("plain"))
+        transport.subscribe("0/x", keep("attached"), attachments=True)
+        transport.publish("0/x", b"p", attachment=b"a")
+        assert both.wait(5)
+        assert got["attached"].attachment == b"a" and got["plain"].attachment is None
+
+
+def test_competency_parameters() -> None:
+    nav = Ros2Navigation("action=navigate_to_pose", "place.Kitchen=4 2.5 1.57", "place.Lab=1 2", "domain=3")
+    assert nav.places == {"Kitchen": (4.0, 2.5, 1.57), "Lab": (1.0, 2.0, 0.0)} and nav.domain == 3
+    with pytest.raises(ConfigError, match="unknown parameter 'acton'"):
+        Ros2Navigation("acton=x")
+    with pytest.raises(ConfigError, match="x y"):
+        Ros2Navigation("place.Kitchen=4")
+    with pytest.raises(ConfigError, match="domain"):
+        Ros2Velocity("domain=300")
+    with pytest.raises(ConfigError, match="rate"):
+        Ros2Velocity("rate=0")
+    bridge = Ros2SensorBridge("sensor.odom=odom nav_msgs/msg/Odometry", "interval=0.1")
+    assert bridge.sensors == {"odom": ("odom", "nav_msgs/msg/Odometry")}
+    with pytest.raises(ConfigError, match="topic and its type"):
+        Ros2SensorBridge("sensor.odom=odom")
+    with pytest.raises(ConfigError, match="not a ROS 2 Jazzy type known here"):
+        Ros2SensorBridge("sensor.people=people my_msgs/msg/People")
+    with pytest.raises(ConfigError, match="type name"):
+        Ros2SensorBridge("sensor.odom=odom Odometry")
+    with pytest.raises(ConfigError, match="invalid ROS 2 name"):
+        Ros2Velocity("topic=cmd-vel")
+    with pytest.raises(ConfigError, match="blackboard or worldmodel"):
+        Ros2SensorBridge("store=disk")
+
+
+def test_a_query_ends_when_cancelled() -> None:
+    """A get that nobody answers yet (a ROS 2 action's result) ends when its caller cancels it."""
+    from cmion_mesh.transport import IncomingQuery, QueryCancel
+
+    held: list[IncomingQuery] = []
+    arrived = threading.Event()
+
+    def hold(query: IncomingQuery) -> None:
+        held.append(query)  # answered only when the test says so: never, here
+        arrived.set()
+
+    with MemoryTransport(MemoryNetwork()) as transport:
+        transport.declare_queryable("0/result", hold)
+        cancel = QueryCancel()
+        out: list[object] = []
+        waiter = threading.Thread(target=lambda: out.append(transport.get("0/result", b"", timeout=60, cancel=cancel)))
+        waiter.start()
+        assert arrived.wait(5)
+        cancel.cancel()
+        waiter.join(5)
+        assert not waiter.is_alive() and out == [[]]
+        held[0].finish()
+        cancel.cancel()  # twice: harmless
