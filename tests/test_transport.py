@@ -113,3 +113,16 @@ def test_a_failing_handler_loses_no_other_sample(any_transport: Transport) -> No
             any_transport.publish("cmion/t/fail", str(i).encode())
         wait_for(lambda: len(got) == 9, 10.0, "the nine others")
     assert got == [str(i).encode() for i in range(10) if i != 3]
+
+
+@pytest.mark.parametrize("selector", ["cmion/t/whole", "cmion/t/*"])
+def test_a_sample_has_every_field(any_transport: Transport, selector: str) -> None:
+    """Samples are made without the named tuple's constructor on the hot path: each must still
+    carry every field (a missing default broke unpacking ``key, payload, deleted, attachment``)."""
+    got: list[Sample] = []
+    with any_transport.subscribe(selector, got.append):
+        any_transport.publish("cmion/t/whole", b"x")
+        wait_for(lambda: bool(got), 10.0, "the sample")
+    key, payload, deleted, attachment = got[0]
+    assert (key, payload, deleted, attachment) == ("cmion/t/whole", b"x", False, None)
+    assert len(got[0]) == len(Sample._fields)
