@@ -174,10 +174,14 @@ def _drain(name: str, recv: Callable[[], Any], handle: Callable[[Any], None]) ->
 
 
 _DELETE = zenoh.SampleKind.DELETE
+#: Samples are made with the tuple's own constructor: a named tuple's ``__new__`` is a Python
+#: function, a frame per sample received.
+_tuple_new = tuple.__new__
 
 
 def _sample(sample: zenoh.Sample) -> Sample:
-    return Sample(str(sample.key_expr), sample.payload.to_bytes(), sample.kind == _DELETE)
+    made: Sample = _tuple_new(Sample, (str(sample.key_expr), sample.payload.to_bytes(), sample.kind == _DELETE))
+    return made
 
 
 def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
@@ -185,7 +189,8 @@ def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
     so the key is not converted back to a string per sample."""
 
     def convert(sample: zenoh.Sample) -> Sample:
-        return Sample(key, sample.payload.to_bytes(), sample.kind == _DELETE)
+        made: Sample = _tuple_new(Sample, (key, sample.payload.to_bytes(), sample.kind == _DELETE))
+        return made
 
     return convert
 
