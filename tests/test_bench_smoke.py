@@ -26,10 +26,10 @@ def bench(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
 @pytest.mark.timeout(240)
 def test_quick_benchmarks_and_short_soak(tmp_path: Path) -> None:
     out = tmp_path / "quick.json"
-    result = bench("--quick", "--only", "core,actions,mindproto,discovery,idle,migration", "--json", str(out), timeout=200)
+    result = bench("--quick", "--only", "core,actions,mindproto,discovery,idle,migration,eventcpu", "--json", str(out), timeout=200)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     doc = json.loads(out.read_text())
-    assert set(doc["benchmarks"]) == {"core", "actions", "mindproto", "discovery", "idle", "migration"}
+    assert set(doc["benchmarks"]) == {"core", "actions", "mindproto", "discovery", "idle", "migration", "eventcpu"}
     for name, run in doc["benchmarks"].items():
         assert run["rows"], name
         assert all(row["n"] > 0 and not row["failures"] for row in run["rows"]), name
