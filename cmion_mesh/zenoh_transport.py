@@ -404,6 +404,19 @@ class ZenohTransport:
                     out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
         return out
 
+    def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
+        if self._closed:
+            raise ClosedError(f"query {selector}: the transport is closed")
+        out: dict[str, bytes] = {}
+        try:
+            for reply in self._session.get(selector, timeout=timeout, target=_ALL, consolidation=_NONE):
+                ok = reply.ok
+                if ok is not None:
+                    out[str(ok.key_expr)] = ok.payload.to_bytes()
+        except zenoh.ZError as exc:
+            raise _mapped(f"query {selector}", exc, self._closed) from None
+        return out
+
     def declare_token(self, key: str) -> Closeable:
         with self._errors(f"declare token {key}"):
             token = self._session.liveliness().declare_token(key)
