@@ -820,6 +820,33 @@ def _router_parser(parser: argparse.ArgumentParser) -> None:
                            "the router then forwards only between its clients, its peers and other routers)")
 
 
+#: Every sub-command (``build_parser`` adds each; ``test_cli`` checks that the two agree).
+_COMMANDS = ("up", keys.BLACKBOARD, keys.WORLD_MODEL, "serve-competency", "serve-mind", "peers", "act", "cancel", "events",
+             "view", "migrate", "invite", "router", "certs", "doctor", "validate", "demo")
+
+
+class _Absorb:
+    """Takes the argument definitions of a sub-command that is not about to run, and keeps none."""
+
+    def __getattr__(self, _name: str) -> Callable[..., _Absorb]:
+        return lambda *_args, **_kwargs: self
+
+
+class _Only:
+    """The sub-command parsers, of which only ``command``'s (or all, when it is not one of them) get
+    their arguments: argparse builds about 300 of them otherwise, a tenth of a one-shot command's start."""
+
+    def __init__(self, sub: Any, command: str | None) -> None:
+        self._sub = sub
+        self._command = command
+
+    def add_parser(self, name: str, **kwargs: Any) -> Any:
+        parser = self._sub.add_parser(name, **kwargs)  # every command is listed and known to the top level
+        if self._command is None or self._command not in _COMMANDS or name == self._command:
+            return parser
+        return _Absorb()
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; given the ``command`` about to run, the sub-commands of ``certs``
     are left out unless it is ``certs`` (they import cryptography, which the others never need)."""
@@ -828,7 +855,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         epilog="exit codes: 0 succeeded, 1 failed or refused, 2 usage or configuration error, 3 cancelled, "
                "4 outcome unknown (no answer, the target vanished), 130 left on a second Ctrl-C")
     parser.add_argument("--version", action="version", version=f"cmion-mesh {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = _Only(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"), command)
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")

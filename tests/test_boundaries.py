@@ -3,6 +3,7 @@ import cycle between certs and security, one set of exit codes."""
 
 from __future__ import annotations
 
+import argparse
 import ast
 import subprocess
 import sys
@@ -88,3 +89,16 @@ def test_one_set_of_exit_codes() -> None:
     for path in PACKAGE.rglob("*.py"):
         source = path.read_text()
         assert "EXIT_OK" not in source and "EXIT_FAILED" not in source, f"{path.name} defines exit codes of its own"
+
+
+def test_the_parser_of_one_command_parses_as_the_whole_one() -> None:
+    # build_parser(command) gives only that command its arguments (start time): the list of commands
+    # it knows must be the parser's, and what it parses must not change
+    from cmion_mesh import cli
+
+    whole = cli.build_parser()
+    subs = next(a for a in whole._actions if isinstance(a, argparse._SubParsersAction))  # argparse has no public walk
+    assert sorted(subs.choices) == sorted(cli._COMMANDS)
+    for argv in (["peers", "--mesh", "m", "--json"], ["up", "robot", "--name", "x", "--connect", "tcp/127.0.0.1:1"],
+                 ["bb", "set", "e", "a/b", "3", "--persistent"], ["certs", "init", "d"]):
+        assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(whole.parse_args(argv))
