@@ -241,12 +241,10 @@ def _existing(path: str | None, option: str) -> str | None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    # Only what it takes to know the name and the endpoints is imported before the mesh is joined:
+    # the rest is imported and built while the mesh answers the name claim (``presence.Joining``).
     from cmion_mesh import devices
     from cmion_mesh.diagnostics import Diagnostics
-    from cmion_mesh.embodiment import Embodiment
-    from cmion_mesh.ion import Component
-    from cmion_mesh.statedir import default_state_dir
-    from cmion_mesh.validate import check_embodiment, render
 
     stop = Stopper()
     rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
@@ -287,25 +285,37 @@ def cmd_up(args: argparse.Namespace) -> int:
         filled = devices.with_table_endpoints(TransportConfig(connect=tuple(args.connect or ()), listen=tuple(args.listen or ()),
                                                               config_file=args.config), table)
         args.connect, args.listen = list(filled.connect), list(filled.listen)
-    ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
-                                             check_types=arch is None or library is not None)
-    if arch is not None:
-        components = arch.build_components(found)
-    for item in found:
-        print(render(item), file=sys.stderr, flush=True)
-    if found.errors:
-        return ExitCode.USAGE
-    state = args.state_dir or str(default_state_dir(args.mesh, name))
-    pages = contextlib.ExitStack()
-    web = _web_bodies(args, components)
-    with pages:
-        # Pages are served before the mesh is joined: an address in use is refused before anything else starts.
-        for body in web:
-            pages.enter_context(body)
-        embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
-                                rules=ruleset, competencies=competencies, components=components, state_dir=state,
-                                companion=companion, admit=admitted, join=join_window(args), devices=table)
-        _run_daemon(args, embodiment, table, companion, state, stop, web)
+    with contextlib.ExitStack() as joining_stack:
+        joined = None
+        if name and not found.errors and keys.is_name(name) and keys.is_name(args.mesh):
+            joined = _join(args, name, joining_stack)
+        from cmion_mesh.embodiment import Embodiment
+        from cmion_mesh.ion import Component
+        from cmion_mesh.statedir import default_state_dir
+        from cmion_mesh.validate import check_embodiment, render
+
+        ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
+                                                 check_types=arch is None or library is not None)
+        if arch is not None:
+            components = arch.build_components(found)
+        for item in found:
+            print(render(item), file=sys.stderr, flush=True)
+        if found.errors:
+            return ExitCode.USAGE
+        state = args.state_dir or str(default_state_dir(args.mesh, name))
+        pages = contextlib.ExitStack()
+        web = _web_bodies(args, components)
+        with pages:
+            # Pages are served before the embodiment is announced: an address in use is refused before
+            # anything but the name claim is on the mesh.
+            for body in web:
+                pages.enter_context(body)
+            joining_stack.pop_all()  # from here on the embodiment owns the session and the claim
+            embodiment = Embodiment(name, mesh=args.mesh, transport_config=None if joined else transport_config(args, name),
+                                    world_model_init=world_model, rules=ruleset, competencies=competencies,
+                                    components=components, state_dir=state, companion=companion, admit=admitted,
+                                    joined=joined, devices=table)
+            _run_daemon(args, embodiment, table, companion, state, stop, web)
     left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
     if left:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
@@ -315,6 +325,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     # Said only when it is true: everything is closed and on disk, so leave now rather than let
     # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
     os._exit(ExitCode.OK)
+
+
+def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> Any:
+    """The daemon's session, opened now, and its name claim under way on it (``presence.Joining``);
+    ``stack`` closes both unless the embodiment takes them (``pop_all``)."""
+    from cmion_mesh.presence import Joining
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    transport = stack.enter_context(ZenohTransport(transport_config(args, name)))
+    return stack.enter_context(Joining(transport, args.mesh, name, window=join_window(args)))
 
 
 def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
