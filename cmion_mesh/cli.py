@@ -860,11 +860,13 @@ class _Only:
         self._sub = sub
         self._command = command
 
+    def builds(self, name: str) -> bool:
+        """Whether command ``name`` gets its arguments."""
+        return self._command is None or self._command not in _COMMANDS or name == self._command
+
     def add_parser(self, name: str, **kwargs: Any) -> Any:
         parser = self._sub.add_parser(name, **kwargs)  # every command is listed and known to the top level
-        if self._command is None or self._command not in _COMMANDS or name == self._command:
-            return parser
-        return _Absorb()
+        return parser if self.builds(name) else _Absorb()
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -987,7 +989,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_invite)
 
     p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh (no --mesh: it routes every mesh)")
-    _router_parser(p)
+    if sub.builds("router"):  # its defaults come from the router module (sockets): only for it
+        _router_parser(p)
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("certs", help="a certificate authority and certificates for an authenticated mesh (mutual TLS)")
