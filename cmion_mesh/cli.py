@@ -26,11 +26,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import msgspec
-
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, ExitCode, MeshError, exit_code
-from cmion_mesh.messages import Container, Property
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
@@ -132,15 +129,26 @@ def parse_value(text: str, as_string: bool) -> Any:
     """CLI values are JSON when they parse as JSON (``3``, ``true``, ``[1,2]``), else plain strings."""
     if as_string:
         return text
+    import msgspec
+
     try:
         return msgspec.json.decode(text)
     except msgspec.DecodeError:
         return text
 
 
+def to_builtins(value: Any) -> Any:
+    """A message as JSON-ready data (``--json`` output)."""
+    import msgspec  # imported when a command prints: `up` opens its session before it loads msgspec
+
+    return msgspec.to_builtins(value)
+
+
 def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
+    from cmion_mesh.messages import Container, Property
+
     if as_json:
-        print(json.dumps({k: msgspec.to_builtins(v) for k, v in entries.items()}))
+        print(json.dumps({k: to_builtins(v) for k, v in entries.items()}))
         return
     width = max(len(k[len(prefix):]) for k in entries) if entries else 0
     for key, entry in entries.items():
@@ -187,7 +195,7 @@ def cmd_store(args: argparse.Namespace) -> int:
         def show(key: str, entry: Any) -> None:
             short = key[len(prefix):]
             if args.json:
-                print(json.dumps({"key": key, "entry": msgspec.to_builtins(entry)}), flush=True)
+                print(json.dumps({"key": key, "entry": to_builtins(entry)}), flush=True)
             elif entry is None:
                 print(f"- {short}", flush=True)
             else:
@@ -537,7 +545,7 @@ def cmd_act(args: argparse.Namespace) -> int:
                     deadline = min(deadline, time.monotonic() + CANCEL_WAIT)
             report = run.result(args.timeout)
     if args.json:
-        print(json.dumps(msgspec.to_builtins(report)))
+        print(json.dumps(to_builtins(report)))
     else:
         extra = f": {report.reason}" if report.reason else ""
         print(f"{report.action_id} {report.status}{extra}" + (f" (rule {report.rule})" if report.rule else ""))
@@ -568,7 +576,7 @@ def cmd_events(args: argparse.Namespace) -> int:
                 return
             seen[0] += 1
             if args.json:
-                print(json.dumps(msgspec.to_builtins(event)), flush=True)
+                print(json.dumps(to_builtins(event)), flush=True)
             else:
                 stamp = time.strftime("%H:%M:%S", time.localtime(event.time)) + f".{int(event.time * 1000) % 1000:03d}"
                 data = json.dumps(event.data) if event.data is not None else ""

@@ -32,14 +32,15 @@ from cmion_mesh import keys, xmlsafe
 from cmion_mesh.classes import construct, split_parameters
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.messages import RemoveProperty, RunStatus, SetProperty, StorageWrite, tag
 
 if TYPE_CHECKING:
     from cmion_mesh.ion import Simulation
+    from cmion_mesh.messages import RunStatus, StorageWrite
     from cmion_mesh.storage import Store
 
-# The client, the update loop and the stores are imported where they are used: reading a library
-# (``read_library``; ``up`` does, for the device table, before it joins the mesh) needs none of them.
+# The client, the update loop, the stores and the messages (msgspec) are imported where they are
+# used: reading a library (``read_library``; ``up`` does, for the device table, before it opens
+# its session) needs none of them.
 
 log = logging.getLogger(__name__)
 
@@ -109,14 +110,19 @@ class RunContext:
         """Send a write request to a local store and wait for its outcome; ``RequestRejected``
         (whose ``code`` says why) unless accepted."""
         from cmion_mesh.ion import require_accepted
+        from cmion_mesh.messages import tag
 
         require_accepted(self.competency.sim.request(store, tag(type(message)), message).result(timeout), store)
 
     def bb_set(self, path: str, value: Any, *, persistent: bool = False) -> None:
+        from cmion_mesh.messages import SetProperty
+
         container, _, name = path.rpartition("/")
         self.write(keys.BLACKBOARD, SetProperty(container, name, value, persistent))
 
     def bb_remove(self, path: str) -> None:
+        from cmion_mesh.messages import RemoveProperty
+
         container, _, name = path.rpartition("/")
         self.write(keys.BLACKBOARD, RemoveProperty(container, name))
 
