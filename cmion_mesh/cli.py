@@ -848,11 +848,6 @@ def _router_parser(parser: argparse.ArgumentParser) -> None:
                            "the router then forwards only between its clients, its peers and other routers)")
 
 
-#: Every sub-command (``build_parser`` adds each; ``test_cli`` checks that the two agree).
-_COMMANDS = ("up", keys.BLACKBOARD, keys.WORLD_MODEL, "serve-competency", "serve-mind", "peers", "act", "cancel", "events",
-             "view", "migrate", "invite", "router", "certs", "doctor", "validate", "demo")
-
-
 class _Absorb:
     """Takes the argument definitions of a sub-command that is not about to run, and keeps none."""
 
@@ -861,20 +856,25 @@ class _Absorb:
 
 
 class _Only:
-    """The sub-command parsers, of which only ``command``'s (or all, when it is not one of them) get
-    their arguments: argparse builds about 300 of them otherwise, a tenth of a one-shot command's start."""
+    """The sub-command parsers, of which only ``command``'s (or all, when it is None) get their
+    arguments: argparse builds about 300 of them otherwise. ``build_parser`` builds the whole
+    parser again when ``command`` turned out to be no sub-command (a typo: argparse's own error)."""
 
     def __init__(self, sub: Any, command: str | None) -> None:
         self._sub = sub
         self._command = command
+        self.found = command is None
 
     def builds(self, name: str) -> bool:
         """Whether command ``name`` gets its arguments."""
-        return self._command is None or self._command not in _COMMANDS or name == self._command
+        return self._command is None or name == self._command
 
     def add_parser(self, name: str, **kwargs: Any) -> Any:
         parser = self._sub.add_parser(name, **kwargs)  # every command is listed and known to the top level
-        return parser if self.builds(name) else _Absorb()
+        if not self.builds(name):
+            return _Absorb()
+        self.found = True
+        return parser
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -1026,6 +1026,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--web", action="store_true",
                    help="the screen and the phone serve their pages (addresses printed): answer the companion on the screen's page")
     p.set_defaults(func=cmd_demo)
+    if not sub.found:
+        return build_parser(None)
     return parser
 
 
