@@ -265,6 +265,13 @@ BENCHMARKS: list[Benchmark] = [
         "diagnostic: per-hop timestamps of an event echo and a set request vs raw zenoh",
         default=False,
     ),
+    Benchmark(
+        "eventcpu",
+        "bench.eventcpu:run",
+        (),
+        "diagnostic: CPU per event on each thread (publisher loop, subscriber worker and loop) vs raw zenoh",
+        default=False,
+    ),
 ]
 
 

@@ -28,14 +28,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cmion_mesh import keys, signing, xmlsafe
 from cmion_mesh.classes import construct, find_file, import_class, split_parameters
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
-from cmion_mesh.ion import Component
-from cmion_mesh.portmap import DOC
-from cmion_mesh.standin import StandInComponent, resolve, unique, why_standin
+
+if TYPE_CHECKING:
+    from cmion_mesh.ion import Component
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +66,12 @@ class Architecture:
         ``validate`` builds them too, so that a constructor refusing its parameters is found before
         ``up``: building one has no effect outside it (servers bind in ``attach``), and the
         components the embodiment builds itself (``built_by_embodiment``) are refused unbuilt."""
+        # Imported here: reading a configuration (``up`` does, to know its name and endpoints before
+        # it joins the mesh) needs none of the component machinery.
+        from cmion_mesh.ion import Component
+        from cmion_mesh.portmap import DOC
+        from cmion_mesh.standin import StandInComponent, resolve, unique, why_standin
+
         diag = Diagnostics.raising() if diagnostics is None else diagnostics
         where = str(self.path)
         built: list[Component] = []

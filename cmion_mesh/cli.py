@@ -26,11 +26,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import msgspec
-
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, ExitCode, MeshError, exit_code
-from cmion_mesh.messages import Container, Property
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import TransportConfig
 
@@ -132,15 +129,26 @@ def parse_value(text: str, as_string: bool) -> Any:
     """CLI values are JSON when they parse as JSON (``3``, ``true``, ``[1,2]``), else plain strings."""
     if as_string:
         return text
+    import msgspec
+
     try:
         return msgspec.json.decode(text)
     except msgspec.DecodeError:
         return text
 
 
+def to_builtins(value: Any) -> Any:
+    """A message as JSON-ready data (``--json`` output)."""
+    import msgspec  # imported when a command prints: `up` opens its session before it loads msgspec
+
+    return msgspec.to_builtins(value)
+
+
 def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
+    from cmion_mesh.messages import Container, Property
+
     if as_json:
-        print(json.dumps({k: msgspec.to_builtins(v) for k, v in entries.items()}))
+        print(json.dumps({k: to_builtins(v) for k, v in entries.items()}))
         return
     width = max(len(k[len(prefix):]) for k in entries) if entries else 0
     for key, entry in entries.items():
@@ -187,7 +195,7 @@ def cmd_store(args: argparse.Namespace) -> int:
         def show(key: str, entry: Any) -> None:
             short = key[len(prefix):]
             if args.json:
-                print(json.dumps({"key": key, "entry": msgspec.to_builtins(entry)}), flush=True)
+                print(json.dumps({"key": key, "entry": to_builtins(entry)}), flush=True)
             elif entry is None:
                 print(f"- {short}", flush=True)
             else:
@@ -241,12 +249,10 @@ def _existing(path: str | None, option: str) -> str | None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    # Only what it takes to know the name and the endpoints is imported before the mesh is joined:
+    # the rest is imported and built while the mesh answers the name claim (``presence.Joining``).
     from cmion_mesh import devices
     from cmion_mesh.diagnostics import Diagnostics
-    from cmion_mesh.embodiment import Embodiment
-    from cmion_mesh.ion import Component
-    from cmion_mesh.statedir import default_state_dir
-    from cmion_mesh.validate import check_embodiment, render
 
     stop = Stopper()
     rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
@@ -287,25 +293,37 @@ def cmd_up(args: argparse.Namespace) -> int:
         filled = devices.with_table_endpoints(TransportConfig(connect=tuple(args.connect or ()), listen=tuple(args.listen or ()),
                                                               config_file=args.config), table)
         args.connect, args.listen = list(filled.connect), list(filled.listen)
-    ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
-                                             check_types=arch is None or library is not None)
-    if arch is not None:
-        components = arch.build_components(found)
-    for item in found:
-        print(render(item), file=sys.stderr, flush=True)
-    if found.errors:
-        return ExitCode.USAGE
-    state = args.state_dir or str(default_state_dir(args.mesh, name))
-    pages = contextlib.ExitStack()
-    web = _web_bodies(args, components)
-    with pages:
-        # Pages are served before the mesh is joined: an address in use is refused before anything else starts.
-        for body in web:
-            pages.enter_context(body)
-        embodiment = Embodiment(name, mesh=args.mesh, transport_config=transport_config(args, name), world_model_init=world_model,
-                                rules=ruleset, competencies=competencies, components=components, state_dir=state,
-                                companion=companion, admit=admitted, join=join_window(args), devices=table)
-        _run_daemon(args, embodiment, table, companion, state, stop, web)
+    with contextlib.ExitStack() as joining_stack:
+        joined = None
+        if name and not found.errors and keys.is_name(name) and keys.is_name(args.mesh):
+            joined = _join(args, name, joining_stack)
+        from cmion_mesh.embodiment import Embodiment
+        from cmion_mesh.ion import Component
+        from cmion_mesh.statedir import default_state_dir
+        from cmion_mesh.validate import check_embodiment, render
+
+        ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
+                                                 check_types=arch is None or library is not None)
+        if arch is not None:
+            components = arch.build_components(found)
+        for item in found:
+            print(render(item), file=sys.stderr, flush=True)
+        if found.errors:
+            return ExitCode.USAGE
+        state = args.state_dir or str(default_state_dir(args.mesh, name))
+        pages = contextlib.ExitStack()
+        web = _web_bodies(args, components)
+        with pages:
+            # Pages are served before the embodiment is announced: an address in use is refused before
+            # anything but the name claim is on the mesh.
+            for body in web:
+                pages.enter_context(body)
+            joining_stack.pop_all()  # from here on the embodiment owns the session and the claim
+            embodiment = Embodiment(name, mesh=args.mesh, transport_config=None if joined else transport_config(args, name),
+                                    world_model_init=world_model, rules=ruleset, competencies=competencies,
+                                    components=components, state_dir=state, companion=companion, admit=admitted,
+                                    joined=joined, devices=table)
+            _run_daemon(args, embodiment, table, companion, state, stop, web)
     left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
     if left:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
@@ -315,6 +333,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     # Said only when it is true: everything is closed and on disk, so leave now rather than let
     # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
     os._exit(ExitCode.OK)
+
+
+def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> Any:
+    """The daemon's session, opened now, and its name claim under way on it (``presence.Joining``);
+    ``stack`` closes both unless the embodiment takes them (``pop_all``)."""
+    from cmion_mesh.presence import Joining
+    from cmion_mesh.zenoh_transport import ZenohTransport
+
+    transport = stack.enter_context(ZenohTransport(transport_config(args, name)))
+    return stack.enter_context(Joining(transport, args.mesh, name, window=join_window(args)))
 
 
 def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
@@ -517,7 +545,7 @@ def cmd_act(args: argparse.Namespace) -> int:
                     deadline = min(deadline, time.monotonic() + CANCEL_WAIT)
             report = run.result(args.timeout)
     if args.json:
-        print(json.dumps(msgspec.to_builtins(report)))
+        print(json.dumps(to_builtins(report)))
     else:
         extra = f": {report.reason}" if report.reason else ""
         print(f"{report.action_id} {report.status}{extra}" + (f" (rule {report.rule})" if report.rule else ""))
@@ -548,7 +576,7 @@ def cmd_events(args: argparse.Namespace) -> int:
                 return
             seen[0] += 1
             if args.json:
-                print(json.dumps(msgspec.to_builtins(event)), flush=True)
+                print(json.dumps(to_builtins(event)), flush=True)
             else:
                 stamp = time.strftime("%H:%M:%S", time.localtime(event.time)) + f".{int(event.time * 1000) % 1000:03d}"
                 data = json.dumps(event.data) if event.data is not None else ""
@@ -1015,6 +1043,35 @@ def _router_parser(parser: argparse.ArgumentParser) -> None:
                            "the router then forwards only between its clients, its peers and other routers)")
 
 
+class _Absorb:
+    """Takes the argument definitions of a sub-command that is not about to run, and keeps none."""
+
+    def __getattr__(self, _name: str) -> Callable[..., _Absorb]:
+        return lambda *_args, **_kwargs: self
+
+
+class _Only:
+    """The sub-command parsers, of which only ``command``'s (or all, when it is None) get their
+    arguments: argparse builds about 300 of them otherwise. ``build_parser`` builds the whole
+    parser again when ``command`` turned out to be no sub-command (a typo: argparse's own error)."""
+
+    def __init__(self, sub: Any, command: str | None) -> None:
+        self._sub = sub
+        self._command = command
+        self.found = command is None
+
+    def builds(self, name: str) -> bool:
+        """Whether command ``name`` gets its arguments."""
+        return self._command is None or name == self._command
+
+    def add_parser(self, name: str, **kwargs: Any) -> Any:
+        parser = self._sub.add_parser(name, **kwargs)  # every command is listed and known to the top level
+        if not self.builds(name):
+            return _Absorb()
+        self.found = True
+        return parser
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; given the ``command`` about to run, the sub-commands of ``certs``
     are left out unless it is ``certs`` (they import cryptography, which the others never need)."""
@@ -1023,7 +1080,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         epilog="exit codes: 0 succeeded, 1 failed or refused, 2 usage or configuration error, 3 cancelled, "
                "4 outcome unknown (no answer, the target vanished), 130 left on a second Ctrl-C")
     parser.add_argument("--version", action="version", version=f"cmion-mesh {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = _Only(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"), command)
 
     p = sub.add_parser("up", help="run an embodiment daemon until SIGINT/SIGTERM")
     p.add_argument("path", nargs="?", help="ArchitectureConfiguration file or folder, or a shipped embodiment name (robot, screen...)")
@@ -1198,7 +1255,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_invite)
 
     p = sub.add_parser("router", help="run a zenoh router, so embodiments beyond one LAN join one mesh (no --mesh: it routes every mesh)")
-    _router_parser(p)
+    if sub.builds("router"):  # its defaults come from the router module (sockets): only for it
+        _router_parser(p)
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("certs", help="a certificate authority and certificates for an authenticated mesh (mutual TLS)")
@@ -1237,6 +1295,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--web", action="store_true",
                    help="the screen and the phone serve their pages (addresses printed): answer the companion on the screen's page")
     p.set_defaults(func=cmd_demo)
+    if not sub.found:
+        return build_parser(None)
     return parser
 
 

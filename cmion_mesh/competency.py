@@ -26,16 +26,21 @@ import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.classes import construct, split_parameters
-from cmion_mesh.client import MeshClient
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.ion import Simulation, require_accepted
-from cmion_mesh.messages import RemoveProperty, RunStatus, SetProperty, StorageWrite, tag
-from cmion_mesh.storage import Store
+
+if TYPE_CHECKING:
+    from cmion_mesh.ion import Simulation
+    from cmion_mesh.messages import RunStatus, StorageWrite
+    from cmion_mesh.storage import Store
+
+# The client, the update loop, the stores and the messages (msgspec) are imported where they are
+# used: reading a library (``read_library``; ``up`` does, for the device table, before it opens
+# its session) needs none of them.
 
 log = logging.getLogger(__name__)
 
@@ -74,12 +79,17 @@ class RunContext:
 
     def store(self, name: str) -> Store:
         """A local store, for reads (thread-safe); write through ``write`` so that writes are mediated."""
+        from cmion_mesh.storage import Store
+
         store = self.competency.sim.component(name)
         assert isinstance(store, Store)
         return store
 
     def read(self, store: str, container: str, name: str, default: Any = None) -> Any:
         """A property's value: from the local store, or over the mesh when this competency is remote."""
+        from cmion_mesh.client import MeshClient
+        from cmion_mesh.storage import Store
+
         sim = self.competency.sim
         local = sim.components_by_name().get(store)
         if isinstance(local, Store):
@@ -99,13 +109,20 @@ class RunContext:
     def write(self, store: str, message: StorageWrite, timeout: float = 10.0) -> None:
         """Send a write request to a local store and wait for its outcome; ``RequestRejected``
         (whose ``code`` says why) unless accepted."""
+        from cmion_mesh.ion import require_accepted
+        from cmion_mesh.messages import tag
+
         require_accepted(self.competency.sim.request(store, tag(type(message)), message).result(timeout), store)
 
     def bb_set(self, path: str, value: Any, *, persistent: bool = False) -> None:
+        from cmion_mesh.messages import SetProperty
+
         container, _, name = path.rpartition("/")
         self.write(keys.BLACKBOARD, SetProperty(container, name, value, persistent))
 
     def bb_remove(self, path: str) -> None:
+        from cmion_mesh.messages import RemoveProperty
+
         container, _, name = path.rpartition("/")
         self.write(keys.BLACKBOARD, RemoveProperty(container, name))
 

@@ -225,7 +225,7 @@ def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics 
 def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
     """Where the library's Migration competency says its device table is (not read); None when it
     names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
-    from cmion_mesh.competency import read_library  # competency imports the mesh client: keep this module light
+    from cmion_mesh.competency import read_library  # devices is read before the mesh is joined: kept light
 
     lib = os.fspath(library)
     found: tuple[Path, int | None] | None = None

@@ -32,7 +32,7 @@ from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
-from cmion_mesh.presence import NameClaim, Presence
+from cmion_mesh.presence import Joining, NameClaim, Presence, claim_name
 from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.standin import StandIn
 from cmion_mesh.standin import summary as standin_summary
@@ -64,10 +64,13 @@ class Embodiment:
         companion: str | None = None,
         admit: dict[str, bytes | None] | None = None,
         join: float | None = None,
+        joined: Joining | None = None,
         devices: DeviceTable | None = None,
     ) -> None:
         """``join``: claim the name in the mesh first, looking that many seconds for the rest of the
         mesh when nobody answers at once (0 when this session cannot find anyone by itself);
+        ``joined``: that claim, already under way on its own session (``presence.Joining``, what the
+        daemon passes: it asks the mesh while the daemon loads), whose session this embodiment then owns;
         ``Refused`` if the name is taken or ``state_dir`` is held by another daemon. ``devices``: the
         device table (``devices``) whose embodiments this one takes invitations from and sends its
         own to; its name, endpoints and birth are the caller's to apply (``from_architecture`` does)."""
@@ -79,7 +82,13 @@ class Embodiment:
         #: Where the companion this embodiment would have given birth to lives instead (not born here).
         self.companion_elsewhere: str | None = None
         self.devices = devices
-        self._owns_transport = transport is None
+        if joined is not None:
+            if transport is not None or join is not None:
+                raise ValueError("joined brings its own session and claim: give neither transport nor join with it")
+            if joined.name != self.name:
+                raise ValueError(f"joined claims {joined.name!r}, not {self.name!r}")
+            transport = joined.transport
+        self._owns_transport = transport is None or joined is not None
         self._token: Closeable | None = None
         self._claim: NameClaim | None = None
         self._state_lock: StateLock | None = None
@@ -96,13 +105,12 @@ class Embodiment:
             if state_dir is not None:
                 self._state_lock = StateLock(state_dir)
             self.presence = Presence(self.transport, self.mesh)
-            if join is not None:
-                # Only the zenoh adapter knows its links (``peers``); a transport without it waits the window.
-                links = getattr(self.transport, "peers", None)
-                self._claim = NameClaim(self.transport, self.mesh, self.name, window=join, describe=self._where,
-                                        connected=None if links is None else lambda: bool(links()), views=self._views)
-                if companion is not None:
-                    companion = self._unborn_elsewhere(companion)
+            if joined is not None:
+                self._claim = joined.result()
+            elif join is not None:
+                self._claim = claim_name(self.transport, self.mesh, self.name, join)
+            if self._claim is not None and companion is not None:
+                companion = self._unborn_elsewhere(companion)
             self.blackboard = Blackboard()
             self.world_model = WorldModel()
             if world_model_init is not None:
@@ -143,6 +151,8 @@ class Embodiment:
                 self.invitations = Invitations(self.migration, devices, presence=self.presence)
                 self.sim.add(self.invitations)
         except BaseException:
+            if joined is not None:
+                joined.close()  # a claim still being decided ends before its session closes
             self.close()
             raise
 
@@ -180,22 +190,6 @@ class Embodiment:
     @property
     def minds(self) -> list[Mind]:
         return [c for c in self.sim.components if isinstance(c, Mind)]
-
-    def _where(self, name: str) -> str:
-        """Where the live embodiment ``name`` runs, for a refusal (host, pid, zenoh id, up since)."""
-        with MeshClient(self.transport, self.mesh) as client:
-            try:
-                client.wait_for_embodiment(name, timeout=3.0)  # its token may still be on its way
-                found = client.describe(name, timeout=3.0)
-            except MeshError:
-                return ""
-        since = time.strftime("%H:%M:%S", time.localtime(found.get("started_at", 0))) if found.get("started_at") else "?"
-        return f"on host {found.get('host', '?')}, pid {found.get('pid', '?')}, zenoh id {found.get('zenoh_id', '?')}, up since {since}"
-
-    def _views(self, asked: set[str]) -> set[str]:
-        """The embodiments that the daemons ``asked`` see alive."""
-        with MeshClient(self.transport, self.mesh) as client:
-            return client.reported_alive(asked, time.monotonic() + 2.0)
 
     def _unborn_elsewhere(self, companion: str) -> str | None:
         """``companion``, or None when a live embodiment of the mesh already hosts it (never born twice)."""

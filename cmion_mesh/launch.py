@@ -450,6 +450,7 @@ class Launcher:
         self.events: queue.SimpleQueue[tuple[str, str, int, int]] = queue.SimpleQueue()
         self.failed: list[str] = []
         self.stop_all = False
+        self._told_reach = False
 
     # reader threads: lines out, "ready" and "exit" to the main thread
     def _read(self, child: _Child, generation: int, stream: IO[bytes], target: IO[str], ready: str | None,
@@ -573,12 +574,27 @@ class Launcher:
             if kind == "ready" and child.state == "starting":
                 child.state = "ready"
                 self.out.say(f"{name} is ready")
+                self._tell_reach()
             elif kind == "exit" and child.running:
                 if code == 0:
                     child.state = "ended"
                     self.out.say(f"{name} ended (exit code 0)")
                 else:
                     self._failed(child, f"exited with {_code(code)}")
+
+    def _tell_reach(self) -> None:
+        """Once every process is ready, the options that reach this mesh from another command: on a
+        loopback network the daemons take no part in multicast scouting, so a command must be told
+        where one listens."""
+        if self._told_reach or any(c.state != "ready" for c in self.children.values()):
+            return
+        self._told_reach = True
+        listens = [argv[i + 1] for c in self.children.values() if c.command.spec.kind in ("embodiment", "router")
+                   for argv in (c.command.argv,) for i in range(len(argv) - 1) if argv[i] == "--listen"]
+        reach = ["--mesh", self.launch.mesh, *(("--certs", self.launch.certs) if self.launch.certs else ())]
+        if self.launch.network == "loopback" or self.launch.no_multicast:
+            reach += ["--no-multicast", *(x for e in listens[:1] for x in ("--connect", e))]
+        self.out.say(f"all ready; reach this mesh with: cmion-mesh peers {' '.join(reach)}")
 
     def _kill(self, child: _Child) -> None:
         if child.proc is not None and child.proc.poll() is None:

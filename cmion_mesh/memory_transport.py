@@ -238,6 +238,9 @@ class MemoryTransport:
             done.wait(timeout)
         return list(replies)
 
+    def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
+        return {key: payload for key, payload, ok, _ in self.get(selector, timeout=timeout) if ok}
+
     def declare_token(self, key: str) -> Closeable:
         self._check()
         with self.net.lock:

@@ -15,6 +15,8 @@ of ``Message`` with a tag of their own) the same way.
 
 from __future__ import annotations
 
+import types
+import typing
 from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal, TypeVar
@@ -437,16 +439,23 @@ M = TypeVar("M")
 encode: Callable[[Message], bytes] = _encoder.encode
 
 
-def decoder(kind: type[M]) -> Callable[[bytes, str], M]:
-    """``decode`` for one message kind, as a function of (data, where): what a hot path calls per
-    message (events, outcomes) without ``decode``'s lookups. Same checks, same errors."""
-    if not (isinstance(kind, type) and issubclass(kind, Message)):
-        raise TypeError(f"decoder() takes one message kind, not {kind!r}")
-    strict: msgspec.msgpack.Decoder[Any] = msgspec.msgpack.Decoder(kind | _Untagged)
-    fields = tuple(f for f in ("value", "data", "parameters") if f in kind.__struct_fields__)
+@typing.overload
+def decoder(kind: type[M]) -> Callable[[bytes, str], M]: ...
+@typing.overload
+def decoder(kind: types.UnionType) -> Callable[[bytes, str], Any]: ...
+def decoder(kind: Any) -> Callable[[bytes, str], Any]:
+    """``decode`` for one message kind, or a union of kinds (``Property | Container``), as a function
+    of (data, where): what a hot path calls per message (events, outcomes, the entries of a read)
+    without ``decode``'s lookups. Same checks, same errors."""
+    kinds = typing.get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+    if not kinds or not all(isinstance(k, type) and issubclass(k, Message) for k in kinds):
+        raise TypeError(f"decoder() takes message kinds, not {kind!r}")
+    # A union of tagged Structs needs its tag to decode; one kind alone needs _Untagged to need it.
+    strict: msgspec.msgpack.Decoder[Any] = msgspec.msgpack.Decoder(kind if len(kinds) > 1 else kind | _Untagged)
+    plain = {k: tuple(f for f in ("value", "data", "parameters") if f in k.__struct_fields__) for k in kinds}
     flat = _FLAT
 
-    def run(data: bytes, where: str = "") -> M:
+    def run(data: bytes, where: str = "") -> Any:
         if len(data) > MAX_PAYLOAD:
             raise ProtocolError(f"{where or 'payload'}: {len(data)} bytes exceeds the {MAX_PAYLOAD}-byte cap")
         try:
@@ -455,7 +464,8 @@ def decoder(kind: type[M]) -> Callable[[bytes, str], M]:
             raise ProtocolError(f"{where or 'payload'}: malformed message: {exc}") from None
         except RecursionError:
             raise ProtocolError(f"{where or 'payload'}: nested too deeply") from None
-        if type(message) is not kind:
+        fields = plain.get(type(message))
+        if fields is None:
             raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
         for field in fields:
             value = getattr(message, field)
@@ -464,8 +474,7 @@ def decoder(kind: type[M]) -> Callable[[bytes, str], M]:
                     check_value(value)
                 except ValueError as exc:
                     raise ProtocolError(f"{where or 'payload'}: {exc}") from None
-        result: M = message
-        return result
+        return message
 
     return run
 

@@ -9,8 +9,8 @@ in ``custody``; the durable records in ``records``. This module moves messages a
 * one thread per handshake in flight sends the prepare and the commit (``_send``,
   ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
   these threads touch only the records (locked) and hand everything else to the loop (``_post``);
-  while sending sections, ``_send`` has one short-lived thread write this side's copy of them and
-  two send chunks, all joined before it goes on;
+  while sending sections, ``_send`` has one short-lived thread write this side's copy of them, then
+  the ``prepared`` record that names them, and two send chunks, all joined before it goes on;
 * the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
   ``_on_custody``), under ``_watch_lock``.
 
@@ -48,7 +48,7 @@ import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -609,19 +609,25 @@ class MigrationManager(Component):
         refs = list({ref.sha256: ref for ref in packed.refs}.values())
         out.transfer = {"sent": 0, "total": packed.size, "sections": len(refs), "sections_sent": 0}
         stored: list[BaseException] = []
+        written: list[Record] = []
 
-        def store() -> None:  # this side's copy, written while the target receives its own
+        def store() -> None:
+            # This side's copy, written while the target receives its own; then, once the sections
+            # are on disk, the prepared record that names them, still while the chunks travel: a crash
+            # from here on is the crash at source:prepared (never handed: the source resumes).
             try:
                 self.records.sections.write(packed.data)
+                written.append(self.records.put(prepared, document=packed.manifest))
             except OSError as exc:
                 stored.append(exc)
+                return
+            crash_point("source:prepared")
+            self._post(self._step, written[0])
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        together: Mapping[str, Bytes] = packed.data  # a small identity: this side's copy goes with its record
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
-                together = {}
                 writer.start()  # from now on, beside have and the chunks
                 inline, bulk = self._ask_have(out, message, refs)
                 self._send_bulk(out, message, packed, bulk)
@@ -629,6 +635,8 @@ class MigrationManager(Component):
             if writer.is_alive():
                 writer.join()
             why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
+            if written:  # active again; the prepare was never sent, so the target holds nothing of this attempt
+                self.records.put(handshake.resume(written[0]))
             self._post(self._abandon, out, f"{why}; the companion stays here")
             return
         if writer.is_alive():
@@ -636,13 +644,16 @@ class MigrationManager(Component):
         if stored:
             self._post(self._abandon, out, f"cannot store the identity here: {stored[0]}")
             return
-        try:
-            prepared = self.records.put(prepared, document=packed.manifest, sections=together)
-        except OSError as exc:
-            self._post(self._abandon, out, f"cannot store the identity here: {exc}")
-            return
-        crash_point("source:prepared")
-        self._post(self._step, prepared)
+        if written:
+            prepared = written[0]
+        else:  # a small identity: this side's copy goes with its record
+            try:
+                prepared = self.records.put(prepared, document=packed.manifest, sections=packed.data)
+            except OSError as exc:
+                self._post(self._abandon, out, f"cannot store the identity here: {exc}")
+                return
+            crash_point("source:prepared")
+            self._post(self._step, prepared)
         reply, unknown = self._prepare(out, message, packed, inline)
         after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
             else handshake.resume(prepared)

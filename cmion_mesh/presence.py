@@ -22,6 +22,12 @@ least one sees the other's claim (each declares its claim before it asks, and th
 in the order it hears them). The younger withdraws as soon as it sees an older claim; the older,
 when it sees a younger one, waits until that one withdraws (it saw the older) or shows alive (it
 did not: then the older refuses). So neither starts unseen by the other.
+
+``Joining`` makes that claim on a thread of its own, on a session opened as soon as the name and
+the endpoints are known: a daemon loads the rest (imports, rules, library, components) while it
+waits for the mesh's answer (a round trip, or ``SETTLE`` when nobody is alive), and declares
+``@alive/<name>`` once both are done. Nothing of the embodiment is on the mesh before the claim is
+decided: only the claim token.
 """
 
 from __future__ import annotations
@@ -54,6 +60,8 @@ POLL = 0.02
 DUPLICATE_GRACE = 5.0
 
 Listener = Callable[[str, bool], None]
+#: How long closing an undecided ``Joining`` waits for its thread (the claim's own waits are bounded).
+JOINING_CLOSE_WAIT = 5.0
 
 
 class Presence(Handle):
@@ -301,3 +309,70 @@ class NameClaim(Handle):
         if self._watch is not None:
             self._watch.close()
         self._token.close()
+
+
+def where(transport: Transport, mesh: str, name: str) -> str:
+    """Where the live embodiment ``name`` runs, for a refusal (host, pid, zenoh id, up since)."""
+    from cmion_mesh.client import MeshClient  # the client is not needed unless someone holds the name
+    from cmion_mesh.errors import MeshError
+
+    with MeshClient(transport, mesh) as client:
+        try:
+            client.wait_for_embodiment(name, timeout=3.0)  # its token may still be on its way
+            found = client.describe(name, timeout=3.0)
+        except MeshError:
+            return ""
+    since = time.strftime("%H:%M:%S", time.localtime(found.get("started_at", 0))) if found.get("started_at") else "?"
+    return f"on host {found.get('host', '?')}, pid {found.get('pid', '?')}, zenoh id {found.get('zenoh_id', '?')}, up since {since}"
+
+
+def views(transport: Transport, mesh: str, asked: set[str]) -> set[str]:
+    """The embodiments that the daemons ``asked`` see alive."""
+    from cmion_mesh.client import MeshClient
+
+    with MeshClient(transport, mesh) as client:
+        return client.reported_alive(asked, time.monotonic() + 2.0)
+
+
+def claim_name(transport: Transport, mesh: str, name: str, window: float) -> NameClaim:
+    """A daemon's ``NameClaim`` on ``transport``: asking the daemons it sees, and naming the holder when refused."""
+    # Only the zenoh adapter knows its links (``peers``); a transport without it waits the window.
+    links = getattr(transport, "peers", None)
+    return NameClaim(transport, mesh, name, window=window, describe=lambda n: where(transport, mesh, n),
+                     connected=None if links is None else lambda: bool(links()),
+                     views=lambda asked: views(transport, mesh, asked))
+
+
+class Joining(Handle):
+    """``claim_name`` on a thread of its own, started at once: ``result()`` waits for the decision
+    (the ``NameClaim``, or the ``Refused`` raised). Closing it before ``result()`` withdraws the claim."""
+
+    def __init__(self, transport: Transport, mesh: str, name: str, *, window: float) -> None:
+        self.transport = transport
+        self.name = keys.check_name(name, "embodiment")
+        self._claim: NameClaim | None = None
+        self._error: BaseException | None = None
+        self._taken = False
+        self._thread = threading.Thread(target=self._run, args=(mesh, window), name=f"claim-{name}", daemon=True)
+        self._thread.start()
+
+    def _run(self, mesh: str, window: float) -> None:
+        try:
+            self._claim = claim_name(self.transport, mesh, self.name, window)
+        except BaseException as exc:  # handed to result(): raised in the thread that waits for it
+            self._error = exc
+
+    def result(self) -> NameClaim:
+        """The claim once decided (the caller then owns it); raises what the claim raised."""
+        self._thread.join()  # bounded: every wait of NameClaim has a deadline
+        if self._error is not None:
+            raise self._error
+        assert self._claim is not None
+        self._taken = True
+        return self._claim
+
+    def close(self) -> None:
+        self._thread.join(JOINING_CLOSE_WAIT)
+        claim = self._claim
+        if claim is not None and not self._taken:
+            claim.close()

@@ -85,9 +85,19 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
     return zc
 
 
+#: How long ``zenoh.open`` may wait for links to the peers it was told of (by gossip or multicast).
+#: zenoh's default is 500 ms, and it is paid in full whenever the mesh still gossips the locator of a
+#: session that has ended (a refused twin, a finished one-shot command): a start then took 0.5 s
+#: instead of 5 ms. Links to live peers come up in a few ms; joining (``presence``) and the clients
+#: wait for the mesh's tokens themselves, so nothing relies on ``open`` having waited.
+SCOUT_WAIT_MS = 50
+
+
 def settings(cfg: TransportConfig) -> list[tuple[str, str]]:
     """The zenoh settings (key, JSON5 value) ``build_config`` puts on top of the file or defaults."""
     values: list[tuple[str, Any]] = [("mode", cfg.mode)]
+    if not cfg.config_file:  # a user's zenoh file keeps its own scouting delay
+        values.append(("scouting/delay", SCOUT_WAIT_MS))
     if cfg.connect:
         values.append(("connect/endpoints", list(cfg.connect)))
     if cfg.listen:
@@ -181,12 +191,13 @@ def _drain(name: str, recv: Callable[[], Any], handle: Callable[[Any], None]) ->
 
 _DELETE = zenoh.SampleKind.DELETE
 #: Samples are made with the tuple's own constructor: a named tuple's ``__new__`` is a Python
-#: function, a frame per sample received (a third of what the rest of the conversion costs).
+#: function, a frame per sample received (a third of what the rest of the conversion costs). It
+#: fills no defaults: every field is given, the attachment too.
 _tuple_new = tuple.__new__
 
 
 def _sample(sample: zenoh.Sample) -> Sample:
-    made: Sample = _tuple_new(Sample, (str(sample.key_expr), sample.payload.to_bytes(), sample.kind == _DELETE))
+    made: Sample = _tuple_new(Sample, (str(sample.key_expr), sample.payload.to_bytes(), sample.kind == _DELETE, None))
     return made
 
 
@@ -201,7 +212,7 @@ def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
     so the key is not converted back to a string per sample."""
 
     def convert(sample: zenoh.Sample) -> Sample:
-        made: Sample = _tuple_new(Sample, (key, sample.payload.to_bytes(), sample.kind == _DELETE))
+        made: Sample = _tuple_new(Sample, (key, sample.payload.to_bytes(), sample.kind == _DELETE, None))
         return made
 
     return convert
@@ -407,6 +418,19 @@ class ZenohTransport:
                 else:
                     err = reply.err
                     out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
+        return out
+
+    def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
+        if self._closed:
+            raise ClosedError(f"query {selector}: the transport is closed")
+        out: dict[str, bytes] = {}
+        try:
+            for reply in self._session.get(selector, timeout=timeout, target=_ALL, consolidation=_NONE):
+                ok = reply.ok
+                if ok is not None:
+                    out[str(ok.key_expr)] = ok.payload.to_bytes()
+        except zenoh.ZError as exc:
+            raise _mapped(f"query {selector}", exc, self._closed) from None
         return out
 
     def declare_token(self, key: str) -> Closeable:

@@ -3,6 +3,7 @@ import cycle between certs and security, one set of exit codes."""
 
 from __future__ import annotations
 
+import argparse
 import ast
 import subprocess
 import sys
@@ -88,3 +89,24 @@ def test_one_set_of_exit_codes() -> None:
     for path in PACKAGE.rglob("*.py"):
         source = path.read_text()
         assert "EXIT_OK" not in source and "EXIT_FAILED" not in source, f"{path.name} defines exit codes of its own"
+
+
+def test_the_parser_of_one_command_parses_as_the_whole_one() -> None:
+    # build_parser(command) gives only that command its arguments (start time): every command is
+    # still known, what it parses does not change, and a name that is no command gets the whole parser
+    from cmion_mesh import cli
+
+    def commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+        subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # argparse has no public walk
+        return dict(subs.choices)
+
+    whole = cli.build_parser()
+    for name, full in commands(whole).items():
+        only = commands(cli.build_parser(name))
+        assert sorted(only) == sorted(commands(whole))
+        assert [a.dest for a in only[name]._actions] == [a.dest for a in full._actions], name
+    assert [a.dest for a in commands(cli.build_parser("pers"))["peers"]._actions] == \
+        [a.dest for a in commands(whole)["peers"]._actions], "a typo gets the whole parser (and argparse's error)"
+    for argv in (["peers", "--mesh", "m", "--json"], ["up", "robot", "--name", "x", "--connect", "tcp/127.0.0.1:1"],
+                 ["bb", "set", "e", "a/b", "3", "--persistent"], ["certs", "init", "d"]):
+        assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(whole.parse_args(argv))

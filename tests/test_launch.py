@@ -98,6 +98,11 @@ def test_spirit_starts_three_daemons_that_find_each_other_and_sigint_stops_them_
                                 timeout=60)
         assert tokens.returncode == 0, tokens.stderr
         assert {json.loads(line)["key"] for line in tokens.stdout.splitlines()} == {f"cmion/{mesh}/@alive/{b}" for b in BODIES}
+        # what the launcher tells the user to run reaches the mesh
+        told = launcher.wait_line("all ready; reach this mesh with: cmion-mesh peers ", 30).split("cmion-mesh peers ", 1)[1]
+        peers = subprocess.run(cli_argv("peers", "--json", *told.split()), capture_output=True, text=True, timeout=60)
+        assert peers.returncode == 0, peers.stderr
+        assert {p["name"] for p in json.loads(peers.stdout)} == BODIES
         launcher.proc.send_signal(signal.SIGINT)
         assert launcher.proc.wait(60) == 0, launcher.lines
     assert any("all stopped (robot exit code 0, screen exit code 0, phone exit code 0)" in line for line in launcher.lines)

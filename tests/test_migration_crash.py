@@ -92,17 +92,22 @@ def settle(client: MeshClient, expected_home: str, notes: list[str]) -> None:
     assert memory(client, expected_home) == notes, "the identity arrived unchanged"
 
 
+#: A note this long makes the identity larger than what travels inside the prepare (migration.INLINE):
+#: its sections go apart, in chunks, and the source writes its prepared record while they travel.
+LARGE = 300_000
+
 CASES = [
-    ("source:prepared", "robot"),   # never handed: the source aborts and resumes
-    ("source:handed", "screen"),    # past the commit point: the restarted source commits
-    ("source:released", "screen"),
-    ("target:incoming", "robot"),   # the source never heard 'prepared': it aborts; the target asks and drops
-    ("target:active", "screen"),    # the target activated before answering: the source's commit retry is acknowledged
+    ("source:prepared", "robot", 0),   # never handed: the source aborts and resumes
+    ("source:prepared", "robot", LARGE),  # the same, the crash while the sections are on their way
+    ("source:handed", "screen", 0),    # past the commit point: the restarted source commits
+    ("source:released", "screen", 0),
+    ("target:incoming", "robot", 0),   # the source never heard 'prepared': it aborts; the target asks and drops
+    ("target:active", "screen", 0),    # the target activated before answering: the source's commit retry is acknowledged
 ]
 
 
-@pytest.mark.parametrize(("crash_at", "home"), CASES)
-def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at: str, home: str) -> None:
+@pytest.mark.parametrize(("crash_at", "home", "large"), CASES)
+def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at: str, home: str, large: int) -> None:
     robot, screen = nodes
     side = robot if crash_at.startswith("source") else screen
     robot.start(crash_at if side is robot else "")
@@ -110,7 +115,7 @@ def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at
     with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
         client = MeshClient(t, mesh)
         wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
-        notes = ["met Ada", f"crash at {crash_at}"]
+        notes = ["met Ada", f"crash at {crash_at}"] + (["x" * large] if large else [])
         for note in notes:
             assert client.request("robot", "mind", "message", MindMessage({"note": note})).status == "accepted"
         watcher = Watcher(client)

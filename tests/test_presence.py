@@ -16,7 +16,7 @@ import pytest
 from cmion_mesh import keys
 from cmion_mesh.errors import Refused
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.presence import NameClaim
+from cmion_mesh.presence import Joining, NameClaim
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import Closeable
 
@@ -40,6 +40,24 @@ def finished(future: Future[NameClaim], check: Callable[[], bool] = lambda: True
 def test_alone_the_claim_is_made_at_once(network: MemoryNetwork, mesh: str) -> None:
     with MemoryTransport(network, "a") as a, NameClaim(a, mesh, "robot", window=0.0) as claim:
         assert claims(a, mesh, "robot") == [claim.rank]
+
+
+def test_a_claim_made_on_its_own_thread_is_decided_the_same(network: MemoryNetwork, mesh: str) -> None:
+    # what `up` does (Joining): the claim is under way while the daemon loads; result() gives the
+    # decision, a refusal included; closing an untaken one withdraws its claim
+    with MemoryTransport(network, "a") as a, MemoryTransport(network, "b") as b, MemoryTransport(network, "c") as c:
+        with Joining(a, mesh, "robot", window=0.0) as first:
+            claim = first.result()
+            assert claims(b, mesh, "robot") == [claim.rank]
+            alive = a.declare_token(keys.alive_key(mesh, "robot"))
+            with Joining(b, mesh, "robot", window=0.2) as second, pytest.raises(Refused, match="already alive"):
+                second.result()
+            assert claims(b, mesh, "robot") == [claim.rank], "the refused one's claim is gone"
+            alive.close()
+            claim.close()
+        with Joining(c, mesh, "robot", window=0.0):
+            wait_for(lambda: len(claims(c, mesh, "robot")) == 1, 10.0, "the claim made")
+        assert claims(c, mesh, "robot") == [], "closing an untaken claim withdraws it"
 
 
 def test_an_older_claim_makes_the_newcomer_yield_at_once(network: MemoryNetwork, mesh: str) -> None:

@@ -14,7 +14,7 @@ import pytest
 from cmion_mesh.errors import ClosedError, TransportError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import MAX_BATCH, Sample, Transport, TransportConfig
+from cmion_mesh.transport import MAX_BATCH, IncomingQuery, Sample, Transport, TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
 
 pytestmark = pytest.mark.timeout(30)
@@ -28,6 +28,7 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
     "subscribe_batches": lambda t, k: t.subscribe_batches(k, lambda batch: None),
     "declare_queryable": lambda t, k: t.declare_queryable(k, lambda query: query.finish()),
     "get": lambda t, k: t.get(k, timeout=0.2),
+    "get_values": lambda t, k: t.get_values(k, timeout=0.2),
     "declare_token": lambda t, k: t.declare_token(k),
     "alive": lambda t, k: t.alive(k, timeout=0.2),
     "watch_liveliness": lambda t, k: t.watch_liveliness(k, lambda key, alive: None),
@@ -35,7 +36,8 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
 }
 #: The operations zenoh checks the key expression of (it lets a publication or delete on a
 #: wildcard through).
-CHECKED = ["subscribe", "subscribe_batches", "declare_queryable", "get", "declare_token", "alive", "watch_liveliness", "publish (drop)"]
+CHECKED = ["subscribe", "subscribe_batches", "declare_queryable", "get", "get_values", "declare_token", "alive", "watch_liveliness",
+           "publish (drop)"]
 
 
 @pytest.fixture
@@ -113,3 +115,29 @@ def test_a_failing_handler_loses_no_other_sample(any_transport: Transport) -> No
             any_transport.publish("cmion/t/fail", str(i).encode())
         wait_for(lambda: len(got) == 9, 10.0, "the nine others")
     assert got == [str(i).encode() for i in range(10) if i != 3]
+
+
+@pytest.mark.parametrize("selector", ["cmion/t/whole", "cmion/t/*"])
+def test_a_sample_has_every_field(any_transport: Transport, selector: str) -> None:
+    """Samples are made without the named tuple's constructor on the hot path: each must still
+    carry every field (a missing default broke unpacking ``key, payload, deleted, attachment``)."""
+    got: list[Sample] = []
+    with any_transport.subscribe(selector, got.append):
+        any_transport.publish("cmion/t/whole", b"x")
+        wait_for(lambda: bool(got), 10.0, "the sample")
+    key, payload, deleted, attachment = got[0]
+    assert (key, payload, deleted, attachment) == ("cmion/t/whole", b"x", False, None)
+    assert len(got[0]) == len(Sample._fields)
+
+
+def test_get_values_gives_the_ok_replies_by_key(any_transport: Transport) -> None:
+    def answer(query: IncomingQuery) -> None:
+        query.reply("cmion/t/values/a", b"first")
+        query.reply("cmion/t/values/b", b"b")
+        query.reply("cmion/t/values/a", b"later")  # of two for one key, the later one
+        query.reply_err(b"refused")
+        query.finish()
+
+    with any_transport.declare_queryable("cmion/t/values/**", answer):
+        values = any_transport.get_values("cmion/t/values/**", timeout=5.0)
+    assert values == {"cmion/t/values/a": b"later", "cmion/t/values/b": b"b"}
