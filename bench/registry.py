@@ -220,6 +220,12 @@ BENCHMARKS: list[Benchmark] = [
         "a legitimate action's latency during a flood of 20,000 action requests, vs a raw zenoh get in the same moment",
     ),
     Benchmark(
+        "record",
+        "bench.record:run",
+        ("record",),
+        "event throughput with and without `cmion-mesh record` attached, the recorder's own pace, nothing lost",
+    ),
+    Benchmark(
         "webbody",
         "bench.webbody:run",
         ("web",),

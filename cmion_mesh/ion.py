@@ -44,8 +44,8 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
-from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, decoder, encode, tag
-from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Sample, Transport
+from cmion_mesh.messages import Code, Event, Message, Outcome, RequestAnswered, check_value, decode, decoder, encode, tag
+from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Matching, Sample, Transport
 
 log = logging.getLogger(__name__)
 
@@ -251,6 +251,10 @@ class Simulation:
         self._closed = False
         self._stopped = threading.Event()
         self.updates = 0
+        # Whether someone (a recorder) listens to this embodiment's answers: followed from the first
+        # queryable on, so that a request costs one attribute read when nobody does.
+        self._outcome_tap: Matching | None = None
+        self._outcome_keys: dict[tuple[str, str], str] = {}
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -301,6 +305,7 @@ class Simulation:
             self._components[component.name] = component
         component._sim = self
         if component.requests:
+            self._follow_outcome_listeners()
             tail = "**" if component.sender_requests else "*"
             selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/{tail}"
             self._queryables[component.name] = self.transport.declare_queryable(
@@ -308,6 +313,15 @@ class Simulation:
             )
         self.call(lambda: component.attach(self))
         return component
+
+    def _follow_outcome_listeners(self) -> None:
+        with self._lock:
+            if self._outcome_tap is not None:
+                return
+            try:
+                self._outcome_tap = self.transport.matching(keys.outcome_pattern(self.mesh, self.embodiment))
+            except MeshError as exc:  # answers are then not told; requests are served all the same
+                log.warning("cannot follow who listens to %s's answers: %s", self.embodiment, exc)
 
     def remove(self, name: str) -> None:
         with self._lock:
@@ -387,11 +401,15 @@ class Simulation:
         # component state are answered here so a bad request never costs an update.
         name, _, sender = query.key[self._rq_prefix_len + len(component.name) + 1:].partition("/")
 
+        tap = self._outcome_tap
+
         def answer(outcome: Outcome) -> None:
             try:
                 query.reply(query.key, encode(outcome))
             finally:
                 query.finish()
+                if tap is not None and tap.matching:
+                    self._tell(component.name, name, sender, outcome)
 
         if self._inbox.qsize() >= MAX_QUEUED:
             answer(Outcome("rejected", f"busy: embodiment {self.embodiment!r} has {MAX_QUEUED} requests and events waiting; "
@@ -417,6 +435,22 @@ class Simulation:
             answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down", code=Code.SHUTTING_DOWN))
             return
         self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, sender, answer)))
+
+    def _tell(self, component: str, request: str, sender: str, outcome: Outcome) -> None:
+        """Publish how a request was answered, for whoever listens (only called while someone does).
+        Dropped rather than waited for under congestion: a slow listener never slows a request."""
+        key = self._outcome_keys.get((component, request))
+        try:
+            if key is None:
+                key = keys.outcome_key(self.mesh, self.embodiment, component, request)
+                if len(self._outcome_keys) >= MAX_CACHED_KEYS:
+                    self._outcome_keys.clear()
+                self._outcome_keys[(component, request)] = key
+            told = RequestAnswered(self.embodiment, component, request, outcome.status, outcome.code, outcome.reason,
+                                   sender, time.time())
+            self.transport.publish(key, encode(told), block=False)
+        except (MeshError, ValueError) as exc:  # a request name no key can carry, a closing session
+            log.debug("could not tell the answer to %s/%s: %s", component, request, exc)
 
     def _on_remote_events(self, sub: _Subscription, batch: list[Sample]) -> None:
         # Runs on the subscription's transport worker: decodes what arrived and hands it to the loop
@@ -682,6 +716,8 @@ class Simulation:
         for queryable in list(self._queryables.values()):
             queryable.close()
         self._queryables.clear()
+        if self._outcome_tap is not None:
+            self._outcome_tap.close()
         while True:
             try:
                 item = self._inbox.get_nowait()

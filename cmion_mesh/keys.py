@@ -7,6 +7,7 @@
     cmion/<mesh>/<embodiment>/ev/<component>/<event>          event publications
     cmion/<mesh>/<embodiment>/rq/<component>/<request>        request queryables
     cmion/<mesh>/<embodiment>/rq/<component>/<request>/<sender>   per-sender requests (migration handshake)
+    cmion/<mesh>/<embodiment>/@outcome/<component>/<request>  requests answered (only while someone listens)
     cmion/<mesh>/@alive/<embodiment>                          liveliness tokens
     cmion/<mesh>/@claim/<embodiment>/<rank>                   a daemon's claim on its name (liveliness)
     cmion/<mesh>/@competency/<embodiment>/<type>/<name>       remote competencies (liveliness)
@@ -36,6 +37,9 @@ ALIVE = "@alive"
 COMPETENCY = "@competency"
 CUSTODY = "@custody"
 CLAIM = "@claim"
+#: Answers to requests, published while some session subscribes to them (a recorder). ``@``: a
+#: verbatim chunk, which ``*`` and ``**`` never match: only a subscriber naming it gets them.
+OUTCOMES = "@outcome"
 
 _FORBIDDEN = set("/*$#?")
 MAX_NAME = 200
@@ -108,6 +112,15 @@ def request_key(mesh: str, embodiment: str, component: str, request: str, sender
     that access control can restrict to the sender's own certificate."""
     key = f"{embodiment_prefix(mesh, embodiment)}/{REQUESTS}/{check_name(component, 'component')}/{check_name(request, 'request')}"
     return key if sender is None else f"{key}/{check_name(sender, 'sender')}"
+
+
+def outcome_key(mesh: str, embodiment: str, component: str, request: str) -> str:
+    """Key on which ``embodiment`` tells how it answered ``component``'s ``request`` (``RequestAnswered``)."""
+    return f"{embodiment_prefix(mesh, embodiment)}/{OUTCOMES}/{check_name(component, 'component')}/{check_name(request, 'request')}"
+
+
+def outcome_pattern(mesh: str, embodiment: str = "*") -> str:
+    return f"{mesh_prefix(mesh)}/{pattern_chunk(embodiment, 'embodiment')}/{OUTCOMES}/**"
 
 
 def alive_key(mesh: str, embodiment: str) -> str:
@@ -186,9 +199,10 @@ def parse(key: str) -> ParsedKey:
     return ParsedKey(mesh, embodiment, kind, rest)
 
 
-def matches(pattern: str, key: str) -> bool:
-    """Whether a concrete ``key`` matches ``pattern`` (``*`` = one chunk, ``**`` = zero or more)."""
-    return _match(pattern.split("/"), key.split("/"))
+def matches(pattern: str, key: str, *, verbatim: bool = False) -> bool:
+    """Whether a concrete ``key`` matches ``pattern`` (``*`` = one chunk, ``**`` = zero or more).
+    ``verbatim``: as zenoh does, a chunk starting with ``@`` is matched only by itself, never by a wildcard."""
+    return _match(pattern.split("/"), key.split("/"), verbatim)
 
 
 def matches_chunks(pattern: Sequence[str], chunks: Sequence[str]) -> bool:
@@ -196,7 +210,7 @@ def matches_chunks(pattern: Sequence[str], chunks: Sequence[str]) -> bool:
     return _match(list(pattern), list(chunks))
 
 
-def _match(pat: list[str], chunks: list[str]) -> bool:
+def _match(pat: list[str], chunks: list[str], verbatim: bool = False) -> bool:
     # The set of pattern positions reachable after each chunk: O(len(pat) * len(chunks)) whatever the
     # number of ``**`` (a selector comes from the network: backtracking would be exponential).
     def closure(states: set[int]) -> set[int]:
@@ -211,11 +225,12 @@ def _match(pat: list[str], chunks: list[str]) -> bool:
     states = closure({0})
     for chunk in chunks:
         following: set[int] = set()
+        wild = not (verbatim and chunk.startswith("@"))
         for i in states:
             if i < len(pat):
-                if pat[i] == "**":
+                if pat[i] == "**" and wild:
                     following.add(i)
-                elif pat[i] == "*" or pat[i] == chunk:
+                elif (pat[i] == "*" and wild) or pat[i] == chunk:
                     following.add(i + 1)
         if not following:
             return False

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 from cmion_mesh.errors import ClosedError
-from cmion_mesh.keys import matches
+from cmion_mesh.keys import matches as _matches
 from cmion_mesh.transport import (
     MAX_BATCH,
     BatchHandler,
@@ -29,6 +29,11 @@ from cmion_mesh.transport import (
 
 _STOP = object()
 log = logging.getLogger(__name__)
+
+
+def matches(pattern: str, key: str) -> bool:
+    """As zenoh matches: ``@`` chunks (``@alive``, ``@outcome``...) only by themselves."""
+    return _matches(pattern, key, verbatim=True)
 
 
 def _intersects(a: str, b: str) -> bool:
@@ -113,6 +118,25 @@ class _Handle(Handle):
         if not self._closed:
             self._closed = True
             self._close()
+
+
+class _MemMatching:
+    """``Transport.matching`` in one memory network: the subscriptions are looked at when asked."""
+
+    def __init__(self, transport: MemoryTransport, selector: str) -> None:
+        self._transport = transport
+        self._selector = selector
+        self._closed = False
+
+    @property
+    def matching(self) -> bool:
+        if self._closed or self._transport._closed:
+            return False
+        with self._transport.net.lock:
+            return any(_intersects(self._selector, sub[0]) for sub in self._transport.net.subs.values())
+
+    def close(self) -> None:
+        self._closed = True
 
 
 class MemoryTransport:
@@ -255,6 +279,17 @@ class MemoryTransport:
             worker.stop()
 
         return self._remember(unwatch)
+
+    def matching(self, selector: str) -> _MemMatching:
+        self._check()
+        return _MemMatching(self, selector)
+
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        # Subscriptions of one memory network are known at once: nothing to wait for.
+        self._check()
+        with self.net.lock:
+            return any(matches(sel, key) for sel, _, remote_only, owner, *_ in self.net.subs.values()
+                       if not (remote_only and owner is self))
 
     def peers(self) -> list[str]:
         """The other open transports of the network: each hears every other."""

@@ -169,6 +169,23 @@ class Outcome(Message, frozen=True, tag="outcome"):
     code: str = ""  # a ``Code`` when not accepted (see ``Code``)
 
 
+class RequestAnswered(Message, frozen=True, tag="request_answered"):
+    """How an embodiment answered one request that reached it over the mesh, published on
+    ``.../@outcome/<component>/<request>`` only while some session subscribes there (a recorder):
+    requests are queries, which nobody else sees. ``sender`` is the per-sender key's last chunk
+    (``""`` for the plain form); ``value`` is not carried (it may be large): ``status``, ``code``
+    and ``reason`` are."""
+
+    embodiment: str
+    component: str
+    request: str
+    status: Status
+    code: str = ""
+    reason: str = ""
+    sender: str = ""
+    time: float = 0.0
+
+
 # --- requests that only ask -------------------------------------------------------------------------
 
 
@@ -398,7 +415,7 @@ AnyMessage = (
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
-    | MigrateHave | MigrateSections
+    | MigrateHave | MigrateSections | RequestAnswered
 )
 
 

@@ -13,7 +13,7 @@ process joins as one identity (its certificate's common name) and its zenoh sess
 
 What a trusted **embodiment** ``X`` may do (checked by every member on its links to ``X``)::
 
-    publish, delete, answer, declare queryables    cmion/<mesh>/X/**
+    publish, delete, answer, declare queryables    cmion/<mesh>/X/**, cmion/<mesh>/X/@outcome/**
     query and subscribe                             cmion/<mesh>/X/**
     liveliness tokens                               cmion/<mesh>/@alive/X, cmion/<mesh>/@competency/X/**,
                                                     cmion/<mesh>/@custody/X/**, cmion/<mesh>/@claim/X/*
@@ -25,7 +25,8 @@ What a trusted **embodiment** ``X`` may do (checked by every member on its links
                                                     cmion/<mesh>/@custody/**, cmion/<mesh>/@claim/**
 
 and what a member sends to ``X`` (egress) is limited to what ``X`` may read. An **operator**
-(administrator's tools) may do anything under ``cmion/<mesh>/``.
+(administrator's tools) may do anything under ``cmion/<mesh>/``, and only an operator may
+subscribe to the answers embodiments give (``cmion/<mesh>/*/@outcome/**``: ``cmion-mesh record``).
 
 Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<op>/<sender>``
 (``migration_key``). The access control lets ``S`` query only keys whose last chunk is ``S``, so
@@ -113,7 +114,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     m = keys.mesh_prefix(mesh)
     alive, competency = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}"
     custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
-    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**"]
+    everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**", keys.outcome_pattern(mesh)]
     if mode == "client":
         names = sorted(trust.names)
         for name in names:
@@ -134,7 +135,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
         _rule("send-public-replies", ["egress"], ["reply"], query_public),
         _rule("send-public-queries", ["egress"], ["query"], query_public),
         _rule("send-tokens", ["egress"], ["liveliness_token"], [f"{alive}/*", f"{competency}/**", f"{custody}/**", f"{claim}/**"]),
-        _rule("send-declarations", ["egress"], ["declare_subscriber", "declare_queryable"], [f"{m}/**"]),
+        _rule("send-declarations", ["egress"], ["declare_subscriber", "declare_queryable"], [f"{m}/**", keys.outcome_pattern(mesh)]),
     ]
     shared = [r["id"] for r in rules]
     subjects: list[dict[str, Any]] = []
@@ -148,15 +149,18 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
             operators.append(subject)
             continue
         own = f"{m}/{name}/**"
+        answers = keys.outcome_pattern(mesh, name)  # ``**`` never matches the verbatim ``@outcome``
         handshakes = f"{m}/*/{keys.REQUESTS}/migration/*/{name}"
         invitations = f"{m}/*/{keys.REQUESTS}/invitation/invite/{name}"
         mine = [
             _rule(f"{name}:own", ["ingress"],
                   ["put", "delete", "declare_queryable", "reply", "declare_subscriber", "query"], [own]),
+            _rule(f"{name}:answers", ["ingress"], ["put"], [answers]),
             _rule(f"{name}:tokens", ["ingress"], ["liveliness_token"],
                   [f"{alive}/{name}", f"{competency}/{name}/**", f"{custody}/{name}/**", f"{claim}/{name}/*"]),
             _rule(f"{name}:handshakes", ["ingress"], ["query"], [handshakes]),
             _rule(f"{name}:send-own", ["egress"], ["put", "delete", "query", "reply"], [own]),
+            _rule(f"{name}:send-answers", ["egress"], ["put"], [answers]),
             _rule(f"{name}:send-handshake-replies", ["egress"], ["reply"], [handshakes]),
             _rule(f"{name}:invitations", ["ingress"], ["query"], [invitations]),
             _rule(f"{name}:send-invitation-replies", ["egress"], ["reply"], [invitations]),

@@ -100,6 +100,15 @@ class QueryCancel:
 MAX_BATCH = 256
 
 
+class Matching(Protocol):
+    """Whether some subscriber's pattern intersects a key expression, kept current by the
+    transport (``Transport.matching``): reading ``matching`` costs an attribute read."""
+
+    @property
+    def matching(self) -> bool: ...
+    def close(self) -> None: ...
+
+
 class Closeable(Protocol):
     def close(self) -> None: ...
     def __enter__(self) -> Closeable: ...
@@ -187,6 +196,14 @@ class Transport(Protocol):
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
         """``handler(key, alive)`` for every token that appears (including present ones) or vanishes."""
+
+    def matching(self, selector: str) -> Matching:
+        """Follow whether any subscriber (of any session, this one included) intersects ``selector``:
+        a publication worth making only when someone listens checks ``matching`` first."""
+
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        """Whether a subscriber whose pattern matches ``key`` is known to this session, waiting up to
+        ``timeout`` for one: a publisher that must not publish into the void (``replay``) asks first."""
 
     def peers(self) -> list[str]:
         """Ids of the sessions this one is connected to (``router:<id>`` for routers), for diagnostics."""

@@ -253,6 +253,22 @@ def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], Non
     return thread
 
 
+class _Matching:
+    """``Transport.matching``: ``matching`` as zenoh's matching listener last said."""
+
+    def __init__(self) -> None:
+        self.matching = False
+        self.entity: _Entity | None = None
+
+    def update(self, status: Any) -> None:
+        self.matching = bool(status.matching)
+
+    def close(self) -> None:
+        if self.entity is not None:
+            self.entity.close()
+        self.matching = False
+
+
 class ZenohTransport:
     """A zenoh session behind the ``Transport`` interface. A context manager; ``close`` is idempotent."""
 
@@ -438,6 +454,46 @@ class ZenohTransport:
             handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
         return self._track(_Entity(sub.undeclare, _drain(f"live:{selector}", channel.recv, handle)))
+
+    def matching(self, selector: str) -> _Matching:
+        with self._errors(f"matching subscribers of {selector}"):
+            publisher = self._session.declare_publisher(selector)
+        try:
+            found = _Matching()
+            # The listener's callback runs on a zenoh thread: it only sets a flag (never blocks).
+            listener = publisher.declare_matching_listener(found.update)
+        except zenoh.ZError as exc:
+            with contextlib.suppress(zenoh.ZError):
+                publisher.undeclare()  # type: ignore[no-untyped-call]
+            raise _mapped(f"matching subscribers of {selector}", exc, self._closed) from None
+        found.matching = bool(getattr(publisher.matching_status, "matching", False))
+
+        def undeclare() -> None:
+            with contextlib.suppress(zenoh.ZError):
+                listener.undeclare()  # type: ignore[no-untyped-call]
+            publisher.undeclare()  # type: ignore[no-untyped-call]
+
+        found.entity = self._track(_Entity(undeclare, None))
+        return found
+
+    def wait_subscribers(self, key: str, timeout: float) -> bool:
+        with self._errors(f"matching subscribers of {key}"):
+            publisher = self._session.declare_publisher(key)
+        try:
+            found = threading.Event()
+            # The listener's callback runs on a zenoh thread: it only sets an Event (never blocks).
+            listener = publisher.declare_matching_listener(lambda status: found.set() if status.matching else None)
+            try:
+                # zenoh's stubs say bool; it is a MatchingStatus
+                return bool(getattr(publisher.matching_status, "matching", False)) or found.wait(max(0.0, timeout))
+            finally:
+                with contextlib.suppress(zenoh.ZError):
+                    listener.undeclare()  # type: ignore[no-untyped-call]
+        except zenoh.ZError as exc:
+            raise _mapped(f"matching subscribers of {key}", exc, self._closed) from None
+        finally:
+            with contextlib.suppress(zenoh.ZError):
+                publisher.undeclare()  # type: ignore[no-untyped-call]
 
     def peers(self) -> list[str]:
         """Zenoh ids of the peers and routers this session is connected to (for diagnostics)."""

@@ -164,7 +164,14 @@ def test_mtls_mesh_between_daemons(pki: Pki, tmp_path: Path, mesh: str, robot: t
         with ZenohTransport(secure_config(pki, "admin", mesh, robot_endpoint)) as t:
             admin = MeshClient(t, mesh)
             wait_for(lambda: admin.read_store("robot", "bb", timeout=2), 20, "admin reaches the robot")
-            admin.set_property("robot", "bb", "", "battery", 0.5)
+            # An operator (a recorder) hears how the robot answers requests; the robot tells it.
+            told: list[str] = []
+            with t.subscribe(keys.outcome_pattern(mesh), lambda sample: told.append(sample.key)):
+                def answer_told() -> bool:
+                    admin.set_property("robot", "bb", "", "battery", 0.5)
+                    return bool(wait_for_quietly(lambda: told, 1.0))
+                wait_for(answer_told, 20, "the robot's answer told to the operator")
+            assert told[0] == f"cmion/{mesh}/robot/@outcome/bb/set_property"
             assert admin.get_property("robot", "bb", "", "battery").value == 0.5
 
         # An embodiment's own tool (a peer with the phone's certificate) reads others' public keys
@@ -326,6 +333,14 @@ def test_each_embodiment_speaks_only_for_itself(pki: Pki, mesh: str) -> None:
 # --- the ACL generator -----------------------------------------------------------------------------------
 
 
+def wait_for_quietly(condition: Any, timeout: float) -> Any:
+    """``wait_for``, returning a falsy value instead of raising when ``timeout`` passes."""
+    try:
+        return wait_for(condition, timeout, "quietly")
+    except TimeoutError:
+        return None
+
+
 def allowed(acl: dict[str, Any], name: str, flow: str, message: str, key: str) -> bool:
     """What the generated access control decides for a concrete ``key`` (zenoh: an allow rule of the
     subject whose key expression includes the key; default deny; ``*``/``**`` never match ``@`` chunks)."""
@@ -394,6 +409,12 @@ def test_acl_generator(pki: Pki) -> None:
     assert may("screen", "put", "cmion/m/robot/ev/bb/PropertyChanged", flow="egress")
     assert not may("screen", "query", "cmion/m/robot/rq/bb/set_property", flow="egress")
     assert may("robot", "query", "cmion/m/robot/rq/bb/set_property", flow="egress")
+    # how requests were answered: each embodiment tells its own; only operators (recorders) listen
+    assert may("phone", "put", "cmion/m/phone/@outcome/bb/set_property")
+    assert not may("phone", "put", "cmion/m/robot/@outcome/bb/set_property")
+    assert not may("phone", "declare_subscriber", "cmion/m/robot/@outcome/bb/set_property")
+    assert may("admin", "declare_subscriber", "cmion/m/robot/@outcome/bb/set_property")
+    assert may("admin", "put", "cmion/m/robot/@outcome/bb/set_property", flow="egress")
     # operators: anything in the mesh; untrusted names and other meshes: nothing
     assert may("admin", "query", "cmion/m/robot/rq/manager/act") and may("admin", "liveliness_token", "cmion/m/@alive/x")
     assert not may("admin", "query", "cmion/other/robot/bb/x")

@@ -1,0 +1,729 @@
+"""``cmion-mesh record``: everything a mesh says, written to an MCAP file (and read back).
+
+MCAP (https://mcap.dev) is the open log format of robotics: Foxglove, the ``mcap`` command line
+and any MCAP reader open these files. What is recorded, one MCAP channel per key pattern:
+
+* events: one channel per event key ``cmion/<mesh>/<embodiment>/ev/<component>/<event>``
+  (schema ``cmion_mesh.Event``). The migration handshake is here: each side's
+  ``MigrationStep`` after every durable record, with ``MigrationStarting``/``Occurred``/
+  ``Succeeded``/``Failed``/``Dropped``; so are mind actions (the manager's ``Action*`` events).
+* storage changes: one channel per store, ``cmion/<mesh>/<embodiment>/bb/**`` and ``.../wm/**``
+  (schema ``cmion_mesh.StorageSample``: the key, the property or container put, or a delete).
+* liveliness: one channel per kind of token, ``cmion/<mesh>/@alive/*`` (embodiments),
+  ``@claim``, ``@competency``, ``@custody`` (schema ``cmion_mesh.Liveliness``: comings and goings;
+  the tokens alive when recording starts come first).
+* requests and their outcomes: one channel per request key,
+  ``cmion/<mesh>/<embodiment>/@outcome/<component>/<request>`` (schema ``cmion_mesh.RequestAnswered``:
+  status, code, reason, sender). Requests are zenoh queries, which a passive subscriber never
+  sees; each embodiment publishes how it answered one only while some session subscribes there
+  (``ion.Simulation``: one attribute read per request otherwise).
+* anything else under the recorded keys, and every payload that does not decode as what its key
+  should carry, goes to ``raw:<key pattern>`` (schema ``cmion_mesh.RawSample``: the key and the
+  bytes in base64), never lost.
+
+Messages are JSON (``message_encoding`` ``json``) with a JSON Schema generated from the wire
+Structs, so any reader shows their fields; JSON keeps every plain value a message can carry
+except non-finite floats (msgspec writes NaN and infinities as ``null``). ``log_time`` is when the
+recorder received the message, ``publish_time`` the event's own ``time`` (the publisher's clock).
+
+Bounded memory: the subscriptions' workers hand samples to a bounded inbox; the writer thread
+drains it into MCAP chunks of ``CHUNK_SIZE``, and writes the chunk in progress out at least every
+``FLUSH_INTERVAL``, so a killed recorder loses at most that much. If the writer falls behind and
+the inbox is full, samples are dropped and counted, never silently: on stderr, and in the file
+(metadata ``cmion-mesh.drops``, and ``cmion-mesh.end``).
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import dataclasses
+import json
+import os
+import socket
+import struct
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import msgspec
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, DataEnd, Footer, Header, Metadata, Schema, Statistics
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from cmion_mesh import __version__, keys
+from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
+from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, decoder
+from cmion_mesh.transport import Closeable, Sample, Transport
+
+#: Uncompressed bytes of a chunk before it is compressed and written.
+CHUNK_SIZE = 256 * 1024
+#: Longest a received message stays in the chunk in progress before it reaches the file.
+FLUSH_INTERVAL = 0.5
+#: Samples and bytes waiting for the writer beyond which new ones are dropped (and counted).
+MAX_QUEUED_SAMPLES = 100_000
+MAX_QUEUED_BYTES = 64 * 1024 * 1024
+#: Channels in one file; events on keys beyond it share the overflow channel ``cmion/<mesh>/*/ev/**``.
+MAX_CHANNELS = 4096
+#: Requests not accepted that ``info`` lists (it counts them all).
+MAX_REFUSALS_LISTED = 20
+#: Most often a drop is reported on stderr.
+DROP_REPORT_INTERVAL = 1.0
+
+EVENT_SCHEMA = "cmion_mesh.Event"
+STORAGE_SCHEMA = "cmion_mesh.StorageSample"
+LIVELINESS_SCHEMA = "cmion_mesh.Liveliness"
+RAW_SCHEMA = "cmion_mesh.RawSample"
+ANSWER_SCHEMA = "cmion_mesh.RequestAnswered"
+#: Liveliness token kinds recorded, each one channel.
+TOKEN_KINDS = (keys.ALIVE, keys.CLAIM, keys.COMPETENCY, keys.CUSTODY)
+PROFILE = "cmion-mesh"
+
+
+class StorageSample(msgspec.Struct, frozen=True):
+    """A storage change as a plain subscriber sees it: ``entry`` put on ``key``, or a delete."""
+
+    key: str
+    deleted: bool = False
+    entry: Property | Container | None = None
+
+
+class Liveliness(msgspec.Struct, frozen=True):
+    """A liveliness token appearing (``alive``) or vanishing; ``name`` is the embodiment it is about."""
+
+    key: str
+    kind: str
+    name: str
+    alive: bool
+
+
+class RawSample(msgspec.Struct, frozen=True):
+    """A sample kept as bytes: not a cmion message, or not the one its key should carry (``error``)."""
+
+    key: str
+    deleted: bool = False
+    payload_base64: str = ""
+    error: str = ""
+
+
+def _schema(kind: Any, title: str) -> bytes:
+    schema = msgspec.json.schema(kind)
+    schema.setdefault("title", title)
+    return json.dumps(schema, sort_keys=True).encode()
+
+
+#: name -> JSON Schema bytes of every schema a recording uses.
+SCHEMAS: dict[str, bytes] = {
+    EVENT_SCHEMA: _schema(Event, EVENT_SCHEMA),
+    STORAGE_SCHEMA: _schema(StorageSample, STORAGE_SCHEMA),
+    LIVELINESS_SCHEMA: _schema(Liveliness, LIVELINESS_SCHEMA),
+    RAW_SCHEMA: _schema(RawSample, RAW_SCHEMA),
+    ANSWER_SCHEMA: _schema(RequestAnswered, ANSWER_SCHEMA),
+}
+
+_json = msgspec.json.Encoder()
+_decode_event = decoder(Event)
+_decode_answer = decoder(RequestAnswered)
+_Entry = Property | Container
+
+
+def mesh_filter(mesh: str, pattern: str) -> str:
+    """A filter as given on the command line: a key expression relative to ``cmion/<mesh>/``
+    (``robot/ev/**``), or absolute when it starts with ``cmion/``."""
+    if not pattern or pattern.startswith("/") or pattern.endswith("/"):
+        raise ConfigError(f"filter {pattern!r} is not a key expression (e.g. robot/ev/** or */wm/**)")
+    return pattern if pattern.startswith(f"{keys.ROOT}/") else f"{keys.mesh_prefix(mesh)}/{pattern}"
+
+
+# --- where a sample goes --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Routed:
+    """One sample as it goes into the file: its channel's topic and schema, and the JSON bytes."""
+
+    topic: str
+    schema: str
+    data: bytes
+    publish_ns: int = 0
+
+
+def route(sample: Sample) -> Routed:
+    """The channel and message of a published sample (never raises: what does not decode goes raw)."""
+    key, payload, deleted = sample.key, sample.payload, sample.deleted
+    chunks = key.split("/")
+    kind = chunks[3] if len(chunks) >= 4 and chunks[0] == keys.ROOT else ""
+    try:
+        if kind == keys.EVENTS and len(chunks) == 6 and not deleted:
+            event = _decode_event(payload, key)
+            return Routed(key, EVENT_SCHEMA, _json.encode(event), int(event.time * 1e9) if event.time > 0 else 0)
+        if kind == keys.OUTCOMES and len(chunks) == 6 and not deleted:
+            answer = _decode_answer(payload, key)
+            return Routed(key, ANSWER_SCHEMA, _json.encode(answer), int(answer.time * 1e9) if answer.time > 0 else 0)
+        if kind in (keys.BLACKBOARD, keys.WORLD_MODEL):
+            topic = "/".join((*chunks[:4], "**"))
+            entry = None if deleted else decode(payload, _Entry, where=key)
+            return Routed(topic, STORAGE_SCHEMA, _json.encode(StorageSample(key, deleted, entry)))
+        error = ""
+    except MeshError as exc:
+        error = str(exc)
+    topic = "raw:" + ("/".join((*chunks[:4], "**")) if kind else key)
+    return Routed(topic, RAW_SCHEMA, _json.encode(RawSample(key, deleted, base64.b64encode(payload).decode(), error)))
+
+
+def route_token(key: str, alive: bool) -> Routed:
+    chunks = key.split("/")
+    kind = chunks[2] if len(chunks) >= 4 else "?"
+    topic = "/".join((*chunks[:3], "*" if kind == keys.ALIVE else "**"))
+    return Routed(topic, LIVELINESS_SCHEMA, _json.encode(Liveliness(key, kind, chunks[3] if len(chunks) >= 4 else "", alive)))
+
+
+# --- the inbox between the subscriptions and the writer -------------------------------------------
+
+
+class _Inbox:
+    """Items waiting for the writer, bounded in samples and bytes; what does not fit is counted."""
+
+    def __init__(self, max_samples: int, max_bytes: int) -> None:
+        self._items: deque[tuple[int, int, Any]] = deque()
+        self._cond = threading.Condition()
+        self._samples = 0
+        self._bytes = 0
+        self._max_samples = max_samples
+        self._max_bytes = max_bytes
+        self.dropped = 0
+        self.closed = False
+
+    def put(self, item: Any, samples: int, size: int) -> bool:
+        with self._cond:
+            if self.closed:
+                return False
+            if samples and (self._samples + samples > self._max_samples or self._bytes + size > self._max_bytes):
+                self.dropped += samples
+                return False
+            self._samples += samples
+            self._bytes += size
+            self._items.append((samples, size, item))
+            self._cond.notify()
+            return True
+
+    def take(self, timeout: float) -> list[Any]:
+        """Everything waiting (at once), or what arrives within ``timeout``; [] when nothing did."""
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(max(0.0, timeout))
+            items = list(self._items)
+            self._items.clear()
+            self._samples = 0
+            self._bytes = 0
+        return [item for _, _, item in items]
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
+# --- the file writer --------------------------------------------------------------------------------
+
+
+def part_path(output: Path, index: int, split: bool) -> Path:
+    """The file of part ``index``: ``output`` itself unless the recording is split (``name-0001.mcap``)."""
+    return output.with_name(f"{output.stem}-{index:04d}{output.suffix or '.mcap'}") if split else output
+
+
+class _Part:
+    """One MCAP file being written: its writer, schemas and channels."""
+
+    def __init__(self, path: Path, meta: dict[str, dict[str, str]], *, exclusive: bool = False) -> None:
+        self.path = path
+        self.started = time.monotonic()
+        try:
+            self._stream: IO[bytes] = open(path, "xb" if exclusive else "wb")  # noqa: SIM115  (closed by close())
+        except FileExistsError:
+            raise ConfigError("exists already: not overwritten (another name, or --force)", path=str(path)) from None
+        except OSError as exc:
+            raise ConfigError(f"cannot write the recording: {exc.strerror}", path=str(path)) from None
+        self.writer = Writer(self._stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        self.writer.start(profile=PROFILE, library=f"cmion-mesh {__version__}")
+        self._schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.messages = 0
+        self.pending = 0
+        self.closed = False
+        for name, data in meta.items():
+            self.writer.add_metadata(name, data)
+        self._stream.flush()  # the header on disk at once: a recorder killed now leaves a file that opens
+
+    def channel(self, topic: str, schema: str) -> int:
+        channel = self.channels.get(topic)
+        if channel is None:
+            schema_id = self._schemas.get(schema)
+            if schema_id is None:
+                schema_id = self._schemas[schema] = self.writer.register_schema(schema, "jsonschema", SCHEMAS[schema])
+            channel = self.channels[topic] = self.writer.register_channel(topic, "json", schema_id)
+        return channel
+
+    def add(self, routed: Routed, log_ns: int, mesh: str) -> None:
+        topic = routed.topic
+        if topic not in self.channels and len(self.channels) >= MAX_CHANNELS:
+            topic = f"{keys.ROOT}/{mesh}/*/{keys.EVENTS}/**" if routed.schema == EVENT_SCHEMA else f"raw:{keys.ROOT}/{mesh}/**"
+            if routed.schema not in (EVENT_SCHEMA, RAW_SCHEMA):
+                topic = f"{routed.schema}:{keys.ROOT}/{mesh}/**"
+        self.messages += 1
+        self.pending += 1
+        self.writer.add_message(self.channel(topic, routed.schema), log_ns, routed.data, routed.publish_ns or log_ns, self.messages)
+
+    def flush(self) -> None:
+        if self.pending:
+            self.writer.flush()  # type: ignore[no-untyped-call]
+            self.pending = 0
+        else:
+            self._stream.flush()  # metadata (drops, descriptions) written since, if any
+
+    def size(self) -> int:
+        return self._stream.tell()
+
+    def close(self, end: dict[str, str]) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.writer.add_metadata("cmion-mesh.end", end)
+            self.writer.finish()  # type: ignore[no-untyped-call]
+        finally:
+            self._stream.close()
+
+
+@dataclass
+class RecorderStats:
+    """What a recorder wrote: messages, per channel, samples dropped, the files."""
+
+    messages: int = 0
+    dropped: int = 0
+    files: list[str] = field(default_factory=list)
+    embodiments: set[str] = field(default_factory=set)
+
+
+class Recorder:
+    """Records ``mesh`` through ``transport`` into ``output`` from construction until ``close()``
+    (idempotent; a context manager). ``filters``: key expressions (see ``mesh_filter``) of the
+    publications recorded, default the whole mesh and its requests' answers (``@outcome``);
+    liveliness is always recorded.
+    ``split_bytes``/``split_seconds``: start a new file (``name-0001.mcap``...) past that size or age."""
+
+    def __init__(
+        self, transport: Transport, mesh: str, output: str | Path, *, filters: Sequence[str] = (),
+        split_bytes: int = 0, split_seconds: float = 0.0, flush_interval: float = FLUSH_INTERVAL,
+        max_queued: int = MAX_QUEUED_SAMPLES, report: Callable[[str], None] | None = None, overwrite: bool = True,
+    ) -> None:
+        self.mesh = keys.check_name(mesh, "mesh")
+        self.output = Path(output)
+        # ``**`` never matches ``@outcome`` (a verbatim chunk): the whole mesh is both patterns.
+        self.filters = [mesh_filter(mesh, f) for f in filters] or [f"{keys.mesh_prefix(mesh)}/**", keys.outcome_pattern(mesh)]
+        self.split_bytes = split_bytes
+        self.split_seconds = split_seconds
+        self.flush_interval = flush_interval
+        self.stats = RecorderStats()
+        self._report = report or (lambda text: print(text, file=sys.stderr, flush=True))
+        self._inbox = _Inbox(max_queued, MAX_QUEUED_BYTES)
+        self._split = bool(split_bytes or split_seconds)
+        self._alive: set[str] = set()
+        self._meta: dict[str, dict[str, str]] = {"cmion-mesh": {
+            "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}",
+            "host": socket.gethostname(), "pid": str(os.getpid()), "started": _iso(time.time()),
+        }}
+        self._lock = threading.Lock()
+        self._closed = False
+        self._error: BaseException | None = None
+        self._exclusive = not overwrite
+        self._part = _Part(part_path(self.output, 0, self._split), self._meta_for(0), exclusive=self._exclusive)
+        self.stats.files.append(str(self._part.path))
+        self._writer = threading.Thread(target=self._run, name="record-writer", daemon=True)
+        self._writer.start()
+        self._subscriptions: list[Closeable] = []
+        try:
+            for pattern in self.filters:
+                self._subscriptions.append(transport.subscribe_batches(pattern, self._on_samples))
+            for kind in TOKEN_KINDS:
+                pattern = f"{keys.mesh_prefix(mesh)}/{kind}/{'*' if kind == keys.ALIVE else '**'}"
+                self._subscriptions.append(transport.watch_liveliness(pattern, self._on_token))
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped so far because the writer fell behind."""
+        return self._inbox.dropped
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    # --- on the transport's workers: stamp and hand over, nothing more --------------------------
+
+    def _on_samples(self, batch: list[Sample]) -> None:
+        self._inbox.put((time.time_ns(), batch), len(batch), sum(len(s.payload) + len(s.key) for s in batch))
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        self._inbox.put((time.time_ns(), (key, alive)), 1, len(key))
+
+    def describe(self, descriptions: Iterable[dict[str, Any]]) -> None:
+        """Write what the embodiments said of themselves (``MeshClient.describe_all``) as metadata
+        ``embodiment`` records, one each, in this file and every later part."""
+        for description in descriptions:
+            name = str(description.get("name", "?"))
+            record = {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in description.items()}
+            self._inbox.put((0, ("meta", f"embodiment:{name}", record)), 0, 0)
+
+    # --- the writer thread ------------------------------------------------------------------------
+
+    def _meta_for(self, index: int) -> dict[str, dict[str, str]]:
+        meta = {name: dict(value) for name, value in self._meta.items()}
+        meta["cmion-mesh"]["part"] = str(index)
+        meta["cmion-mesh"]["alive_at_start"] = ",".join(sorted(self._alive))
+        return meta
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # a full disk or a bad path: said on close, recording stops
+            self._error = exc
+            self._inbox.close()
+            self._report(f"recorder: writing {self._part.path} failed: {exc}; recording stopped")
+
+    def _loop(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval
+        reported_drops = 0
+        last_report = 0.0
+        while True:
+            items = self._inbox.take(next_flush - time.monotonic())
+            for stamp, item in items:
+                self._write(stamp, item)
+            now = time.monotonic()
+            if now >= next_flush or self._inbox.closed:
+                dropped = self._inbox.dropped
+                if dropped != reported_drops and (now - last_report >= DROP_REPORT_INTERVAL or self._inbox.closed):
+                    self._report(f"recorder: {dropped - reported_drops} samples dropped (the writer fell behind; "
+                                 f"{dropped} in all)")
+                    self._part.writer.add_metadata("cmion-mesh.drops", {"dropped": str(dropped), "at": _iso(time.time())})
+                    reported_drops, last_report = dropped, now
+                self.stats.dropped = dropped
+                self._part.flush()
+                next_flush = now + self.flush_interval
+                if self._split and ((self.split_bytes and self._part.size() >= self.split_bytes)
+                                    or (self.split_seconds and now - self._part.started >= self.split_seconds)):
+                    self._next_part()
+            if self._inbox.closed and not items:
+                return
+
+    def _write(self, stamp: int, item: Any) -> None:
+        if isinstance(item, list):
+            self._write_samples(stamp, item)
+            return
+        if item[0] == "meta":
+            _, name, record = item
+            self._meta[name] = record
+            self._part.writer.add_metadata(name, record)
+            return
+        key, alive = item
+        routed = route_token(key, alive)
+        if key.split("/")[2:3] == [keys.ALIVE]:
+            name = key.rsplit("/", 1)[-1]
+            self.stats.embodiments.add(name)
+            (self._alive.add if alive else self._alive.discard)(name)
+        self._part.add(routed, stamp, self.mesh)
+        self.stats.messages += 1
+
+    def _write_samples(self, stamp: int, batch: list[Sample]) -> None:
+        # The hot path: an event on a key whose channel this file has (its topic is the key itself;
+        # no other channel's topic is a concrete key) goes straight in; the rest through ``route``.
+        part = self._part
+        channels = part.channels
+        add = part.writer.add_message
+        encode_json = _json.encode
+        for sample in batch:
+            key, payload, deleted = sample.key, sample.payload, sample.deleted
+            channel = channels.get(key)
+            if channel is not None and not deleted:
+                try:
+                    event = _decode_event(payload, key)
+                except ProtocolError:
+                    pass  # to ``route``: kept raw, with the error
+                else:
+                    part.messages += 1
+                    part.pending += 1
+                    add(channel, stamp, encode_json(event), int(event.time * 1e9) if event.time > 0 else stamp, part.messages)
+                    continue
+            routed = route(sample)
+            if routed.schema == EVENT_SCHEMA:
+                self.stats.embodiments.add(key.split("/")[2])
+            part.add(routed, stamp, self.mesh)
+        self.stats.messages += len(batch)
+
+    def _end_record(self) -> dict[str, str]:
+        return {"messages": str(self._part.messages), "dropped": str(self._inbox.dropped), "ended": _iso(time.time()),
+                "embodiments": ",".join(sorted(self.stats.embodiments))}
+
+    def _next_part(self) -> None:
+        self._part.close(self._end_record())
+        index = len(self.stats.files)
+        self._part = _Part(part_path(self.output, index, True), self._meta_for(index), exclusive=self._exclusive)
+        self.stats.files.append(str(self._part.path))
+
+    def close(self) -> None:
+        """Stop recording: close the subscriptions, write what is waiting and the file's summary."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        for subscription in self._subscriptions:
+            subscription.close()
+        self._inbox.close()
+        self._writer.join()
+        self.stats.dropped = self._inbox.dropped
+        if self._error is None:
+            self._part.close(self._end_record())
+        else:
+            with contextlib.suppress(OSError, ValueError):
+                self._part._stream.close()
+            raise MeshError(f"recording to {self._part.path} failed: {self._error}") from None
+
+
+def _iso(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t * 1000) % 1000:03d}Z"
+
+
+# --- reading --------------------------------------------------------------------------------------
+
+#: What a truncated or damaged file raises while it is read: a record cut short (EndOfFile, short
+#: reads that ``struct`` cannot unpack), or a chunk cut short (its decompressor's error).
+_READ_ERRORS: tuple[type[BaseException], ...] = (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError)
+try:
+    import zstandard
+
+    _READ_ERRORS += (zstandard.ZstdError,)
+except ImportError:  # pragma: no cover - mcap requires it
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class Recorded:
+    """One message of a recording: its channel's topic and schema, times (ns) and JSON bytes."""
+
+    topic: str
+    schema: str
+    log_time: int
+    publish_time: int
+    data: bytes
+
+    def decoded(self) -> Any:
+        return json.loads(self.data)
+
+
+class RecordingReader:
+    """Reads a recording from its start, record by record, without its summary: a file whose
+    recorder was killed reads up to its last complete chunk (``truncated`` says so once read).
+    A context manager; ``close`` is idempotent."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._stream: IO[bytes] = open(self.path, "rb")  # noqa: SIM115  (closed by close())
+        except OSError as exc:
+            raise ConfigError(f"cannot open recording: {exc.strerror}", path=str(self.path)) from None
+        self.header: Header | None = None
+        self.metadata: list[tuple[str, dict[str, str]]] = []
+        self.truncated = False
+        self.complete = False
+        self.error = ""
+        self.statistics: Statistics | None = None
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+
+    def __enter__(self) -> RecordingReader:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def messages(self) -> Iterator[Recorded]:
+        """Every message, in the order written (that of arrival at the recorder)."""
+        reader = StreamReader(self._stream, skip_magic=False)
+        records = reader.records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except _READ_ERRORS as exc:
+                if self.header is None and not isinstance(exc, EndOfFile):
+                    raise ConfigError(f"not an MCAP recording ({exc or type(exc).__name__})", path=str(self.path)) from None
+                self.truncated = True
+                self.error = str(exc) or type(exc).__name__
+                return
+            if isinstance(record, McapMessage):
+                channel = self._channels.get(record.channel_id)
+                if channel is None:
+                    continue
+                schema = self._schemas.get(channel.schema_id)
+                yield Recorded(channel.topic, schema.name if schema else "", record.log_time, record.publish_time, record.data)
+            elif isinstance(record, Channel):
+                self._channels[record.id] = record
+            elif isinstance(record, Schema):
+                self._schemas[record.id] = record
+            elif isinstance(record, Metadata):
+                self.metadata.append((record.name, dict(record.metadata)))
+            elif isinstance(record, Header):
+                self.header = record
+            elif isinstance(record, Statistics):
+                self.statistics = record
+            elif isinstance(record, DataEnd):
+                self.complete = True
+            elif isinstance(record, Footer):
+                return
+
+
+@dataclass
+class Migration:
+    """One migration attempt as the recording shows it."""
+
+    companion: str
+    attempt: str
+    source: str = ""
+    target: str = ""
+    steps: list[str] = field(default_factory=list)
+    outcome: str = ""
+
+
+def info(path: str | Path) -> dict[str, Any]:
+    """A summary of a recording: time span, counts per channel, migrations, embodiments, drops,
+    and whether it was truncated (its recorder killed: read up to its last complete chunk)."""
+    counts: dict[str, int] = {}
+    first = last = 0
+    embodiments: set[str] = set()
+    migrations: dict[str, Migration] = {}
+    answers: dict[str, int] = {}
+    refusals: list[dict[str, str]] = []
+    with RecordingReader(path) as reader:
+        for message in reader.messages():
+            counts[message.topic] = counts.get(message.topic, 0) + 1
+            first = message.log_time if not first else min(first, message.log_time)
+            last = max(last, message.log_time)
+            if message.schema == LIVELINESS_SCHEMA and message.topic.endswith(f"/{keys.ALIVE}/*"):
+                embodiments.add(message.decoded().get("name", ""))
+            elif message.schema == EVENT_SCHEMA:
+                _follow_migration(message, migrations, embodiments)
+            elif message.schema == ANSWER_SCHEMA:
+                answer = message.decoded()
+                status = str(answer.get("status"))
+                answers[status] = answers.get(status, 0) + 1
+                if status != "accepted" and len(refusals) < MAX_REFUSALS_LISTED:
+                    refusals.append({k: str(answer.get(k, "")) for k in ("embodiment", "component", "request", "sender",
+                                                                         "status", "code", "reason")})
+        meta = reader.metadata
+        truncated, error = reader.truncated or not reader.complete, reader.error
+    start = dict(next((m for n, m in meta if n == "cmion-mesh"), {}))
+    end = dict(next((m for n, m in reversed(meta) if n == "cmion-mesh.end"), {}))
+    drops = [int(m.get("dropped", "0")) for n, m in meta if n in ("cmion-mesh.drops", "cmion-mesh.end")]
+    described = {n.split(":", 1)[1]: m for n, m in meta if n.startswith("embodiment:")}
+    embodiments |= set(described)
+    embodiments.discard("")
+    return {
+        "file": str(path),
+        "mesh": start.get("mesh", ""),
+        "started": start.get("started", ""),
+        "ended": end.get("ended", ""),
+        "duration": (last - first) / 1e9 if last else 0.0,
+        "messages": sum(counts.values()),
+        "channels": dict(sorted(counts.items())),
+        "embodiments": sorted(embodiments),
+        "described": {name: {k: described[name].get(k, "") for k in ("version", "host", "pid", "inhabitant")}
+                      for name in sorted(described)},
+        "migrations": [dataclasses.asdict(m) for m in migrations.values()],
+        "requests": dict(sorted(answers.items())),
+        "refused": refusals,
+        "dropped": max(drops, default=0),
+        "truncated": truncated,
+        "truncation": error or ("no end: the recorder did not close the file" if truncated else ""),
+    }
+
+
+def _follow_migration(message: Recorded, migrations: dict[str, Migration], embodiments: set[str]) -> None:
+    name = message.topic.rsplit("/", 1)[-1]
+    if not name.startswith("Migration"):
+        return
+    try:
+        event = message.decoded()
+    except ValueError:
+        return
+    embodiments.add(str(event.get("embodiment", "")))
+    data = event.get("data") if isinstance(event.get("data"), dict) else {}
+    attempt = str(data.get("attempt", ""))
+    if not attempt:
+        return
+    where = str(event.get("embodiment", ""))
+    migration = migrations.setdefault(attempt, Migration(str(data.get("companion", "")), attempt))
+    if name == "MigrationStarting":
+        migration.source, migration.target = where, str(data.get("target", ""))
+    elif name == "MigrationStep":
+        migration.steps.append(f"{where}:{data.get('step')}")
+        if data.get("step") in ("prepared", "handed") and not migration.source:
+            migration.source, migration.target = where, str(data.get("peer", ""))
+    elif name in ("MigrationSucceeded", "MigrationFailed", "MigrationDropped"):
+        migration.outcome = name.removeprefix("Migration").lower()
+
+
+def format_info(summary: dict[str, Any]) -> str:
+    """``info`` for people."""
+    lines = [f"{summary['file']}: mesh {summary['mesh'] or '?'}, {summary['messages']} messages over {summary['duration']:.2f} s"
+             + (f" (started {summary['started']})" if summary["started"] else "")]
+    if summary["truncated"]:
+        lines.append(f"TRUNCATED: {summary['truncation']} (read up to the last complete chunk)")
+    if summary["dropped"]:
+        lines.append(f"DROPPED: {summary['dropped']} samples the recorder could not keep up with")
+    lines.append(f"embodiments: {', '.join(summary['embodiments']) or 'none'}")
+    for name, d in summary["described"].items():
+        lines.append(f"  {name}: version {d['version'] or '?'}, host {d['host'] or '?'}, pid {d['pid'] or '?'}, "
+                     f"inhabitant {d['inhabitant'] or '-'}")
+    lines.append(f"migrations: {len(summary['migrations'])}")
+    for m in summary["migrations"]:
+        lines.append(f"  {m['companion']} {m['source'] or '?'} -> {m['target'] or '?'} ({m['attempt']}): "
+                     f"{' '.join(m['steps']) or 'no step'}; {m['outcome'] or 'no end recorded'}")
+    if summary["requests"]:
+        counts = ", ".join(f"{n} {status}" for status, n in summary["requests"].items())
+        lines.append(f"requests answered: {sum(summary['requests'].values())} ({counts})")
+        for r in summary["refused"]:
+            lines.append(f"  {r['embodiment']} {r['component']}/{r['request']}{' from ' + r['sender'] if r['sender'] else ''}: "
+                         f"{r['status']} {r['code']}: {r['reason']}")
+    lines.append("channels:")
+    width = max((len(t) for t in summary["channels"]), default=0)
+    for topic, count in summary["channels"].items():
+        lines.append(f"  {topic:<{width}}  {count}")
+    return "\n".join(lines)
+
+
+def parse_size(text: str) -> int:
+    """``100M``, ``1.5G``, ``64k`` or a plain number of bytes."""
+    units = {"k": 1024, "m": 1024**2, "g": 1024**3}
+    raw = text.strip().lower().removesuffix("b").removesuffix("i")
+    try:
+        value = float(raw[:-1]) * units[raw[-1]] if raw and raw[-1] in units else float(raw)
+    except ValueError:
+        raise ConfigError(f"size {text!r} is not a size (e.g. 100M, 1G, 65536)") from None
+    if value <= 0:
+        raise ConfigError(f"size {text!r} must be more than 0")
+    return int(value)

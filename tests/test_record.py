@@ -1,0 +1,290 @@
+"""Recording a mesh to MCAP, reading it back, replaying it: the demo recorded once for the module."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader, make_reader
+
+from cmion_mesh import record
+from cmion_mesh.client import MeshClient
+from cmion_mesh.demo import Timeline, run_scenario, start_bodies, stop_bodies
+from cmion_mesh.errors import ConfigError
+from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.messages import Event, encode
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.record import Recorder, RecordingReader
+from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport import TransportConfig
+from cmion_mesh.zenoh_transport import ZenohTransport
+
+pytestmark = pytest.mark.timeout(240)
+
+#: Events the demo reacts to and prints (``demo._react``), and the handshake's steps.
+STORY = {"MindDecision", "ActionStarted", "ActionFailed", "MigrationStarting", "MigrationOccurred", "MigrationSucceeded",
+         "StepStarted", "Spoke", "MigrationStep"}
+
+
+def ident(event: dict[str, Any]) -> tuple[str, str, str, int]:
+    return event["embodiment"], event["component"], event["name"], event["seq"]
+
+
+@dataclass
+class Session:
+    mesh: str
+    clean: Path
+    killed: Path
+    lines: list[str]
+    seen: list[Event]
+    recorder_output: list[str] = field(default_factory=list)
+    recorder_exit: int = -1
+
+
+def events_in(path: Path) -> list[dict[str, Any]]:
+    with RecordingReader(path) as reader:
+        return [m.decoded() for m in reader.messages() if m.schema == record.EVENT_SCHEMA]
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
+    """The demo's story, recorded by two recorders: one stopped with Ctrl-C, one killed with SIGKILL."""
+    tmp = tmp_path_factory.mktemp("record")
+    mesh = unique_mesh("rec")
+    scenario = start_bodies(mesh, tmp / "state")
+    recorders: list[Daemon] = []
+    try:
+        net = [a for e in scenario.endpoints.values() for a in ("--connect", e)] + ["--no-multicast"]
+        done = Session(mesh, tmp / "clean.mcap", tmp / "killed.mcap", [], [])
+        for path in (done.clean, done.killed):
+            recorders.append(Daemon(cli_argv("record", "--mesh", mesh, "-o", str(path), *net), name=path.stem))
+        for recorder in recorders:
+            line = recorder.wait_line("recording mesh", 30)
+            assert "phone, robot, screen" in line, line
+        with ZenohTransport(TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)) as t:
+            client = MeshClient(t, mesh)
+            with client.events(done.seen.append):
+                run_scenario(client, scenario, Timeline(done.lines.append), timeout=90)
+                steps = {ident(_builtins(e)) for e in done.seen if e.name == "MigrationStep"}
+                assert len(steps) == 12, "three migrations of four steps each"
+            # The killed one is killed once its file holds every step (its chunks reach the disk on their own).
+            wait_for(lambda: steps <= {ident(e) for e in events_in(done.killed)}, 20, "the handshake's steps on disk")
+            recorders[1].kill()
+        done.recorder_exit = recorders[0].stop(signal.SIGINT)
+        done.recorder_output = recorders[0].lines
+        yield done
+    finally:
+        for recorder in recorders:
+            recorder.kill()
+        stop_bodies(scenario)
+
+
+def _builtins(event: Event) -> dict[str, Any]:
+    return {"embodiment": event.embodiment, "component": event.component, "name": event.name, "seq": event.seq}
+
+
+def test_the_recording_opens_with_the_mcap_reader_and_holds_the_story(session: Session) -> None:
+    assert session.recorder_exit == 0, session.recorder_output
+    assert any(line.startswith("recorded ") for line in session.recorder_output), session.recorder_output
+    with open(session.clean, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+        recorded = [(ch.topic, json.loads(m.data)) for _, ch, m in reader.iter_messages(log_time_order=False)]
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert metadata["cmion-mesh"]["mesh"] == session.mesh
+    assert {"embodiment:robot", "embodiment:screen", "embodiment:phone"} <= metadata.keys()
+    assert metadata["cmion-mesh.end"]["dropped"] == "0"
+    events = [e for topic, e in recorded if "/ev/" in topic]
+    assert all(topic == f"cmion/{session.mesh}/{e['embodiment']}/ev/{e['component']}/{e['name']}"
+               for topic, e in recorded if "/ev/" in topic)
+    # Every event of the story the demo followed (and printed from) is in the file.
+    story = [ident(_builtins(e)) for e in session.seen if e.name in STORY]
+    assert set(story) <= {ident(e) for e in events}
+    printed_actions = [line for line in session.lines if ": action " in line]
+    assert len(printed_actions) == sum(e["name"] == "ActionStarted" and e["component"] == "manager" for e in events) > 0
+    steps = [(e["embodiment"], e["data"]["step"]) for e in events if e["name"] == "MigrationStep"]
+    hops = (("robot", "screen"), ("screen", "phone"), ("phone", "robot"))
+    assert sorted(steps) == sorted(step for source, target in hops for step in
+                                   ((source, "prepared"), (target, "incoming"), (source, "handed"), (target, "active")))
+    # How requests were answered: the operator's command, the migration handshake's steps.
+    answers = [e for topic, e in recorded if "/@outcome/" in topic]
+    assert {"embodiment": "robot", "component": "bb", "request": "set_property", "status": "accepted"}.items() \
+        <= next(a for a in answers if a["component"] == "bb" and a["embodiment"] == "robot").items()
+    handshake = {(a["embodiment"], a["request"], a["sender"], a["status"]) for a in answers if a["component"] == "migration"}
+    assert {("screen", "prepare", "robot", "accepted"), ("screen", "commit", "robot", "accepted"),
+            ("robot", "commit", "phone", "accepted")} <= handshake
+    # Storage changes and liveliness are there too.
+    assert any(topic == f"cmion/{session.mesh}/screen/bb/**" for topic, _ in recorded)
+    assert {e["name"] for t, e in recorded if t.endswith("/@alive/*")} >= {"robot", "screen", "phone"}
+
+
+def test_record_info_summarises_the_migrations(session: Session) -> None:
+    result = subprocess.run(cli_argv("record", "info", str(session.clean), "--json"), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["mesh"] == session.mesh and not summary["truncated"] and summary["dropped"] == 0
+    assert {"robot", "screen", "phone"} <= set(summary["embodiments"])
+    journey = [(m["source"], m["target"], m["outcome"], len(m["steps"])) for m in summary["migrations"]]
+    assert journey == [("robot", "screen", "succeeded", 4), ("screen", "phone", "succeeded", 4), ("phone", "robot", "succeeded", 4)]
+    assert summary["duration"] > 0 and summary["messages"] == sum(summary["channels"].values())
+    text = record.format_info(record.info(session.clean))
+    assert "migrations: 3" in text and "TRUNCATED" not in text
+
+
+def test_a_killed_recorder_leaves_a_file_the_reader_opens(session: Session) -> None:
+    got: list[dict[str, Any]] = []
+    with open(session.killed, "rb") as f, pytest.raises(McapError):  # the end: no footer, the file stops after its last chunk
+        for _, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+            if "/ev/" in channel.topic:
+                got.append(json.loads(message.data))
+    steps = {ident(_builtins(e)) for e in session.seen if e.name == "MigrationStep"}
+    assert steps <= {ident(e) for e in got}
+    summary = record.info(session.killed)
+    assert summary["truncated"] and summary["truncation"]
+    assert len(summary["migrations"]) == 3
+    assert "TRUNCATED" in record.format_info(summary)
+
+
+def test_replay_into_a_fresh_mesh_shows_a_listener_the_same_events(session: Session) -> None:
+    recorded = events_in(session.clean)
+    fresh = unique_mesh("replay")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Daemon(cli_argv("events", "--json", "--mesh", fresh, "--listen", endpoint, "--no-multicast", "--count",
+                         str(len(recorded)), "--join-timeout", "0.1"), name="listener") as listener:
+        replay = subprocess.run(cli_argv("replay", str(session.clean), "--mesh", fresh, "--connect", endpoint, "--no-multicast",
+                                         "--rate", "20", "--join-timeout", "20", "--json"),
+                                capture_output=True, text=True, timeout=120)
+        assert replay.returncode == 0, replay.stderr
+        assert json.loads(replay.stdout)["published"] == len(recorded)
+        assert listener.proc.wait(60) == 0
+        heard = [json.loads(line) for line in listener.lines if line.startswith("{")]
+    assert [(ident(e), e["data"]) for e in heard] == [(ident(e), e["data"]) for e in recorded]
+
+
+def test_replay_filters_and_rejects_a_bad_rate(session: Session, tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    with MemoryTransport(network, "listener") as listener_t, MemoryTransport(network, "replay") as t:
+        heard: list[Event] = []
+        listen = MeshClient(listener_t, "fresh")
+        with listen.events(heard.append):
+            from cmion_mesh.replay import replay
+
+            stats = replay(MeshClient(t, "fresh"), session.clean, rate=0, filters=["*/ev/migration/MigrationStep"])
+            wait_for(lambda: len(heard) == stats.published, 10, "the replayed steps")
+        assert stats.published == 12 and {e.name for e in heard} == {"MigrationStep"}
+        with pytest.raises(ConfigError):
+            replay(MeshClient(t, "fresh"), session.clean, rate=-1)
+
+
+def test_answers_are_told_only_while_someone_listens() -> None:
+    from cmion_mesh import keys
+    from cmion_mesh.ion import Component, Simulation, send_request
+    from cmion_mesh.messages import Describe, RequestAnswered, decode
+
+    class Asked(Component):
+        requests = {"describe": Describe}
+
+        def on_request(self, request: Any) -> None:
+            request.accept({"ok": True})
+
+    network = MemoryNetwork()
+    with MemoryTransport(network, "daemon") as daemon_t, MemoryTransport(network, "tool") as tool_t, \
+            Simulation(daemon_t, mesh="m", embodiment="robot") as sim:
+        sim.add(Asked("asked"))
+        told: list[RequestAnswered] = []
+        published: list[str] = []
+        publish = daemon_t.publish
+        daemon_t.publish = lambda key, payload, block=True: (published.append(key), publish(key, payload, block=block))[-1]  # type: ignore[method-assign]
+        key = keys.request_key("m", "robot", "asked", "describe")
+        assert send_request(tool_t, key, Describe()).status == "accepted"
+        assert not [k for k in published if "@outcome" in k], "nobody listens: nothing told"
+        with tool_t.subscribe(keys.outcome_pattern("m"), lambda s: told.append(decode(s.payload, RequestAnswered))):
+            assert send_request(tool_t, key, Describe()).status == "accepted"
+            assert send_request(tool_t, keys.request_key("m", "robot", "asked", "nothing"), Describe()).status == "rejected"
+            wait_for(lambda: len(told) == 2, 10, "two answers told")
+    assert [(t.component, t.request, t.status, t.code) for t in told] == \
+        [("asked", "describe", "accepted", ""), ("asked", "nothing", "rejected", "unknown_request")]
+    assert told[1].reason and told[0].embodiment == "robot"
+
+
+# --- the recorder alone, on the in-memory transport ------------------------------------------------
+
+
+def test_undecodable_payloads_go_to_a_raw_channel_and_drops_are_counted(tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    said: list[str] = []
+    with MemoryTransport(network, "mesh") as t:
+        with Recorder(t, "m", tmp_path / "r.mcap", report=said.append) as recorder:
+            t.publish("cmion/m/robot/ev/manager/ActionStarted", b"\xc1 not msgpack")
+            t.publish("cmion/m/robot/other/thing", b"anything")
+            event = Event("robot", "manager", "Ping", {"n": 1}, 7, 1.5)
+            t.publish("cmion/m/robot/ev/manager/Ping", encode(event))
+            wait_for(lambda: _count(recorder) >= 3, 10, "three samples written")
+        with Recorder(t, "m", tmp_path / "dropped.mcap", max_queued=0, report=said.append) as dropping:
+            for i in range(5):
+                t.publish(f"cmion/m/robot/ev/manager/E{i}", encode(event))
+            wait_for(lambda: dropping.dropped >= 5, 10, "five drops")
+    summary = record.info(tmp_path / "r.mcap")
+    assert summary["channels"] == {"cmion/m/robot/ev/manager/Ping": 1, "raw:cmion/m/robot/ev/**": 1, "raw:cmion/m/robot/other/**": 1}
+    with RecordingReader(tmp_path / "r.mcap") as reader:
+        raw = [m.decoded() for m in reader.messages() if m.schema == record.RAW_SCHEMA]
+    assert {r["key"] for r in raw} == {"cmion/m/robot/ev/manager/ActionStarted", "cmion/m/robot/other/thing"}
+    assert all(r["payload_base64"] for r in raw) and "malformed" in raw[0]["error"]
+    assert record.info(tmp_path / "dropped.mcap")["dropped"] >= 5
+    assert any("dropped" in line for line in said)
+
+
+def _count(recorder: Recorder) -> int:
+    return recorder.stats.messages
+
+
+def test_split_by_size_makes_parts_that_each_open(tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    with MemoryTransport(network, "mesh") as t:
+        with Recorder(t, "m", tmp_path / "s.mcap", split_bytes=2000, flush_interval=0.01) as recorder:
+            for i in range(200):
+                t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": i, "pad": "x" * 100}, i, 1.0)))
+                if i % 50 == 49:
+                    wait_for(lambda i=i: _count(recorder) > i, 10, "written")
+        files = recorder.stats.files
+    assert len(files) > 1 and files[0].endswith("s-0000.mcap")
+    ticks = []
+    for path in files:
+        summary = record.info(path)
+        assert not summary["truncated"]
+        ticks += [e["data"]["i"] for e in events_in(Path(path))]
+    assert ticks == list(range(200))
+
+
+def test_bad_input_is_named(tmp_path: Path) -> None:
+    (tmp_path / "not.mcap").write_bytes(b"hello, this is not mcap at all")
+    with pytest.raises(ConfigError, match=r"not\.mcap"):
+        record.info(tmp_path / "not.mcap")
+    with pytest.raises(ConfigError, match=r"missing\.mcap"):
+        record.info(tmp_path / "missing.mcap")
+    with pytest.raises(ConfigError, match="size"):
+        record.parse_size("lots")
+    assert record.parse_size("100M") == 100 * 1024**2
+    with pytest.raises(ConfigError, match="filter"):
+        record.mesh_filter("m", "/abs")
+
+
+def test_a_recording_is_never_overwritten_unless_asked(tmp_path: Path) -> None:
+    (tmp_path / "kept.mcap").write_bytes(b"evidence")
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        with pytest.raises(ConfigError, match="exists already"):
+            Recorder(t, "m", tmp_path / "kept.mcap", overwrite=False)
+        assert (tmp_path / "kept.mcap").read_bytes() == b"evidence"
+        with Recorder(t, "m", tmp_path / "kept.mcap", overwrite=True):
+            pass
+    assert not record.info(tmp_path / "kept.mcap")["truncated"]
