@@ -53,6 +53,7 @@ from cmion_mesh.messages import (
     decode,
     decoder,
     encode,
+    many_decoder,
     tag,
 )
 from cmion_mesh.presence import Presence
@@ -60,6 +61,7 @@ from cmion_mesh.transport import Closeable, Handle, Sample, Transport
 
 Entry = Property | Container
 _decode_entry: Callable[[bytes, str], Entry] = decoder(Entry)
+_decode_entries: Callable[[list[bytes]], list[Entry]] = many_decoder(Entry)
 ACTION_END_EVENTS = frozenset({"ActionSucceeded", "ActionFailed", "ActionCancelled"})
 #: How long a request whose embodiment is alive is sent again while it reaches nobody (its
 #: queryable not yet known to a session that has just joined).
@@ -70,6 +72,13 @@ MAX_PARALLEL_DESCRIBE = 16
 #: Most embodiments whose action ends a client follows at once (``watch_actions``); beyond it,
 #: the least recently used watch with no action in flight is closed.
 MAX_ACTION_WATCHES = 64
+
+
+def _one_embodiment(first: str, last: str) -> bool:
+    """Whether every key from ``first`` to ``last`` (sorted) is one embodiment's: the two share
+    ``cmion/<mesh>/<embodiment>/``, and so does every key that sorts between them."""
+    head = first.split("/", 3)
+    return len(head) == 4 and last.startswith(f"{head[0]}/{head[1]}/{head[2]}/")
 
 
 def did_you_mean(name: str, known: Iterable[str]) -> str:
@@ -172,13 +181,20 @@ class MeshClient:
         """All properties and containers under a zenoh selector, by key (in key order)."""
         # No tuple per entry on the way: at 100k properties, making and collecting them cost more
         # than decoding (get_values keeps the later of two answers for one key).
+        values = self.transport.get_values(selector, timeout=timeout)
+        ordered = sorted(values)
+        if len(ordered) > 1 and _one_embodiment(ordered[0], ordered[-1]):
+            try:  # one embodiment's answers: decoded in one call (see many_decoder)
+                return dict(zip(ordered, _decode_entries([values[key] for key in ordered]), strict=True))
+            except ProtocolError:
+                pass  # one of them is not an entry: each on its own, to leave out only that one
         found: dict[str, Entry] = {}
-        for key, payload in self.transport.get_values(selector, timeout=timeout).items():
+        for key in ordered:
             try:
-                found[key] = _decode_entry(payload, key)
+                found[key] = _decode_entry(values[key], key)
             except ProtocolError:
                 continue  # not a storage entry (another program answering the same keys)
-        return {key: found[key] for key in sorted(found)}
+        return found
 
     def read_store(self, embodiment: str, store: str, path: str = "", *, timeout: float = 5.0) -> dict[str, Entry]:
         base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(path))

@@ -479,6 +479,49 @@ def decoder(kind: Any) -> Callable[[bytes, str], Any]:
     return run
 
 
+def many_decoder(kind: types.UnionType | type[Message]) -> Callable[[list[bytes]], list[Any]]:
+    """Decode many payloads, each one message of ``kind`` (a kind or a union of kinds), in one
+    msgspec call: a read of 100k properties otherwise spends more in a call per payload than in
+    decoding. Same checks as ``decoder``. Raises ``ProtocolError`` when any payload is not one
+    such message, without saying which: the caller decodes them one by one to find out.
+
+    The payloads are decoded as the items of one MessagePack array, so a payload holding two
+    messages and another holding none would shift the ones between: call it only on payloads
+    from one sender (one embodiment's keys), whose misaligned payloads can only hurt its own."""
+    kinds = typing.get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+    if not kinds or not all(isinstance(k, type) and issubclass(k, Message) for k in kinds):
+        raise TypeError(f"many_decoder() takes message kinds, not {kind!r}")
+    items: Any = kind if len(kinds) > 1 else kind | _Untagged
+    batch: msgspec.msgpack.Decoder[Any] = msgspec.msgpack.Decoder(list[items])
+    plain = {k: tuple(f for f in ("value", "data", "parameters") if f in k.__struct_fields__) for k in kinds}
+    flat = _FLAT
+
+    def run(payloads: list[bytes]) -> list[Any]:
+        count = len(payloads)
+        if count >= 2**32 or (count and (min(map(len, payloads)) == 0 or max(map(len, payloads)) > MAX_PAYLOAD)):
+            raise ProtocolError("a payload is empty or over the cap")
+        try:
+            messages: list[Any] = batch.decode(b"".join((b"\xdd", count.to_bytes(4, "big"), *payloads)))
+        except (msgspec.DecodeError, msgspec.ValidationError, UnicodeDecodeError, RecursionError):
+            raise ProtocolError("a payload is not one message") from None
+        if len(messages) != count:
+            raise ProtocolError("a payload is not one message")
+        for message in messages:
+            fields = plain.get(type(message))
+            if fields is None:
+                raise ProtocolError("a payload's type is empty")
+            for field in fields:
+                value = getattr(message, field)
+                if type(value) not in flat:
+                    try:
+                        check_value(value)
+                    except ValueError as exc:
+                        raise ProtocolError(str(exc)) from None
+        return messages
+
+    return run
+
+
 def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
     """Decode ``data`` as ``kind`` (a Struct type or union), raising ``ProtocolError`` naming ``where``."""
     if len(data) > MAX_PAYLOAD:

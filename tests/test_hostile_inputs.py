@@ -50,6 +50,7 @@ from cmion_mesh.messages import (
     MigratePrepare,
     MigrateStatus,
     Outcome,
+    Property,
     SetProperty,
     StartRun,
     decode,
@@ -485,6 +486,43 @@ def test_client_refuses_hostile_replies(reply: bytes, network: MemoryNetwork, me
         key = keys.request_key(mesh, "fake", "bb", "set_property")
         with pytest.raises(OutcomeUnknown, match=f"^{key}: "):
             client.write("fake", "bb", SetProperty("", "p", 1), timeout=1.0)
+
+
+@pytest.mark.parametrize(
+    "hostile",
+    [
+        pytest.param({"b": b"\xc1"}, id="garbage"),
+        pytest.param({"b": b""}, id="empty"),
+        pytest.param({"b": mp(type="property", value=nested(MAX_DEPTH + 1))}, id="value nested too deep"),
+        pytest.param({"b": mp(type="property", value=b"\x00")}, id="binary value"),
+        pytest.param({"b": mp(type="outcome", status="accepted")}, id="another message"),
+        # Two messages in one payload and none in the next: decoded as one array, every entry
+        # between them would shift by one and carry its neighbour's value.
+        pytest.param({"b": encode(Property(2)) + encode(Property(3)), "d": b""}, id="misaligned"),
+        pytest.param({"b": encode(Property(2)) + b"\xa5", "d": b"abcde"}, id="a string across two"),
+    ],
+)
+def test_a_wildcard_read_keeps_each_good_entry_with_its_own_value(hostile: dict[str, bytes], network: MemoryNetwork,
+                                                                   mesh: str) -> None:
+    """A store answering many keys is decoded in one call; one hostile payload among them costs
+    only its own entry (and one that swallows its neighbour's bytes, only the two)."""
+    good = {name: encode(Property(i)) for i, name in enumerate("acdef")}
+    payloads = {**good, **hostile}
+
+    def answer(query: Any) -> None:
+        try:
+            for name, payload in sorted(payloads.items()):
+                query.reply(keys.storage_key(mesh, "fake", "bb", (), name), payload)
+        finally:
+            query.finish()
+
+    with MemoryTransport(network, "fake") as fake, MemoryTransport(network, "client") as mine:
+        fake.declare_queryable(f"cmion/{mesh}/fake/**", answer)
+        got = MeshClient(mine, mesh).read(f"cmion/{mesh}/fake/bb/**")
+    want = {keys.storage_key(mesh, "fake", "bb", (), name): decode(payload, Property)
+            for name, payload in good.items() if name not in hostile}
+    assert got == want
+    assert list(got) == sorted(want), "in key order"
 
 
 # --- identity documents in migrate_prepare ------------------------------------------------------------
