@@ -439,6 +439,14 @@ M = TypeVar("M")
 encode: Callable[[Message], bytes] = _encoder.encode
 
 
+def _check_plain(value: Any, where: str) -> None:
+    """``check_value`` for a decoded field that is not a scalar, as ``ProtocolError`` naming ``where``."""
+    try:
+        check_value(value)
+    except ValueError as exc:
+        raise ProtocolError(f"{where or 'payload'}: {exc}") from None
+
+
 @typing.overload
 def decoder(kind: type[M]) -> Callable[[bytes, str], M]: ...
 @typing.overload
@@ -470,10 +478,7 @@ def decoder(kind: Any) -> Callable[[bytes, str], Any]:
         for field in fields:
             value = getattr(message, field)
             if type(value) not in flat:
-                try:
-                    check_value(value)
-                except ValueError as exc:
-                    raise ProtocolError(f"{where or 'payload'}: {exc}") from None
+                _check_plain(value, where)
         return message
 
     return run
@@ -513,10 +518,7 @@ def many_decoder(kind: types.UnionType | type[Message]) -> Callable[[list[bytes]
             for field in fields:
                 value = getattr(message, field)
                 if type(value) not in flat:
-                    try:
-                        check_value(value)
-                    except ValueError as exc:
-                        raise ProtocolError(str(exc)) from None
+                    _check_plain(value, "a payload")
         return messages
 
     return run
