@@ -414,8 +414,16 @@ class Graph:
         with self._changed:
             return list(self._entities.values())
 
-    def servers(self, service: str, type_name: str | None = None) -> list[Entity]:
-        return [e for e in self.entities() if e.kind == "SS" and e.name == service and (type_name is None or e.type == type_name)]
+    def servers(self, service: str, type_name: str | None = None, type_hash: str | None = None) -> list[Entity]:
+        """The servers of ``service``; with ``type_name`` and ``type_hash``, only those of that type
+        and definition (rmw_zenoh's keys carry the hash: a server of another one never answers)."""
+        return [e for e in self.entities() if e.kind == "SS" and e.name == service and (type_name is None or e.type == type_name)
+                and (type_hash is None or e.type_hash == type_hash)]
+
+    def subscribers(self, topic: str, type_name: str | None = None, type_hash: str | None = None) -> list[Entity]:
+        """The subscriptions of ``topic`` (of that type and definition, when given)."""
+        return [e for e in self.entities() if e.kind == "MS" and e.name == topic and (type_name is None or e.type == type_name)
+                and (type_hash is None or e.type_hash == type_hash)]
 
     def publishers(self, topic: str) -> list[Entity]:
         return [e for e in self.entities() if e.kind == "MP" and e.name == topic]
@@ -446,6 +454,18 @@ class Graph:
 
     def close(self) -> None:
         self._handle.close()
+
+
+def describe_mismatches(entities: list[Entity], type_name: str, type_hash: str) -> str:
+    """What other type or definition the nodes behind ``entities`` use, for messages: a robot on
+    another release (or a topic of another type) is visible in the graph but never matches."""
+    found = []
+    for e in sorted(entities, key=lambda e: (e.node_path, e.zid)):
+        if e.type != type_name:
+            found.append(f"{e.node_path} (zenoh {e.zid}) uses it as {e.type}")
+        elif e.type_hash != type_hash:
+            found.append(f"{e.node_path} (zenoh {e.zid}) has another definition of {e.type} ({e.type_hash}, here {type_hash})")
+    return "; ".join(dict.fromkeys(found))
 
 
 def describe_peers(entities: list[Entity]) -> str:
@@ -494,7 +514,7 @@ class Node:
         return qualify(name, self.namespace)
 
     def _declare(self, kind: str, name: str, type_name: str, qos: str = DEFAULT_QOS) -> tuple[str, str]:
-        """Declare an entity's token; (its data key, its token)."""
+        """Declare an entity's token; (its data key, its token). The key ends with the type hash."""
         if not self.types.known(type_name):
             raise ConfigError(f"unknown ROS 2 type {type_name!r} for {name}")
         type_hash = self.types.hash(type_name)
@@ -508,6 +528,11 @@ class Node:
         name = self.qualify(topic)
         key, token = self._declare("MP", name, type_name, qos)
         return Publisher(self, name, type_name, key, gid_of(token))
+
+    def subscribers(self, publisher: Publisher) -> list[Entity]:
+        """The subscriptions of other sessions that receive what ``publisher`` publishes: same topic,
+        type and type hash (a subscriber of another type or definition has another key)."""
+        return [e for e in self.graph.subscribers(publisher.name, publisher.type_name, publisher.type_hash) if e.zid != self.zid]
 
     def subscribe(self, topic: str, type_name: str, handler: Callable[[Any], None], *, qos: str = DEFAULT_QOS,
                   on_malformed: Callable[[str], None] | None = None) -> Closeable:
@@ -555,6 +580,7 @@ class Node:
 class Publisher:
     def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
         self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self.type_hash = key.rsplit("/", 1)[1]
         self._sequence = itertools.count(1)
 
     def publish(self, values: Any) -> None:
@@ -567,10 +593,16 @@ class Client:
 
     def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
         self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self.type_hash = key.rsplit("/", 1)[1]
         self._sequence = itertools.count(1)
 
     def servers(self) -> list[Entity]:
-        return self.node.graph.servers(self.name, self.type_name)
+        """The servers that answer this client: same service, type and type hash."""
+        return self.node.graph.servers(self.name, self.type_name, self.type_hash)
+
+    def mismatches(self) -> str:
+        """The servers of this service that never answer it (another type or definition), described."""
+        return describe_mismatches(self.node.graph.servers(self.name), self.type_name, self.type_hash)
 
     def call(self, request: Any, *, timeout: float, cancel: QueryCancel | None = None) -> Any:
         """The response to ``request``. ``OutcomeUnknown`` when no server answered in ``timeout``

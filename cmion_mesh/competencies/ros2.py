@@ -176,19 +176,18 @@ class Ros2Competency(Competency):
             _release(node)
 
     def wait_subscriber(self, ctx: RunContext, publisher: ros2.Publisher) -> bool:
-        """Wait for a subscriber of ``publisher``'s topic; False (with the reason) if none came."""
+        """Wait for a subscriber of ``publisher``'s topic, type and type hash (one of another type
+        or definition never receives these messages); False (with the reason) if none came."""
         node = publisher.node
         timeout = self.seconds("subscriber_timeout")
-
-        def present() -> bool:
-            return any(e.kind == "MS" and e.name == publisher.name and e.zid != node.zid for e in node.graph.entities())
-
-        if node.graph.wait_for(present, timeout, ctx.cancelled):
+        if node.graph.wait_for(lambda: bool(node.subscribers(publisher)), timeout, ctx.cancelled):
             return True
         if ctx.cancelled.is_set():
             return False
+        others = ros2.describe_mismatches([e for e in node.graph.subscribers(publisher.name) if e.zid != node.zid],
+                                          publisher.type_name, publisher.type_hash)
         return ctx.fail(f"no ROS 2 node subscribes to {publisher.name} ({publisher.type_name}) on domain {node.domain} "
-                        f"within {timeout:g} s")
+                        f"within {timeout:g} s" + (f": {others}" if others else ""))
 
 
 # --- navigation ------------------------------------------------------------------------------------
@@ -259,8 +258,9 @@ class Ros2Navigation(Ros2Competency):
         if not graph.wait_for(lambda: bool(client.servers()), server_timeout, ctx.cancelled):
             if ctx.cancelled.is_set():
                 return False
+            others = client.send_goal.mismatches()
             return ctx.fail(f"no ROS 2 node serves the action {client.name} ({client.type_name}) on domain "
-                            f"{self.node.domain} within {server_timeout:g} s")
+                            f"{self.node.domain} within {server_timeout:g} s" + (f": {others}" if others else ""))
         who = ros2.describe_peers(client.servers())
         events: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._events = events
