@@ -246,6 +246,14 @@ class Types:
     def known(self, type_name: str) -> bool:
         return type_name in self._store.fielddefs or type_name in self._services
 
+    def string_fields(self, type_name: str) -> list[str]:
+        """The names of the string fields of a message type (``data`` for ``std_msgs/msg/String``)."""
+        with self._lock:
+            if type_name not in self._store.fielddefs:
+                raise ConfigError(f"unknown ROS 2 type {type_name!r}")
+            _, fields = self._store.fielddefs[type_name]
+        return [name for name, desc in fields if desc[0] == Nodetype.BASE and desc[1][0] == "string"]
+
     def register_messages(self, definitions: Iterable[tuple[str, str]]) -> None:
         """Register message types from ``.msg`` text (``pkg/msg/Name`` or ``pkg/srv/Name_Request``...)."""
         found: dict[str, Any] = {}

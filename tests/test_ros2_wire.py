@@ -9,7 +9,7 @@ import threading
 import pytest
 
 from cmion_mesh import ros2
-from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Velocity
+from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport import Sample
@@ -145,6 +145,12 @@ def test_competency_parameters() -> None:
         Ros2Velocity("topic=cmd-vel")
     with pytest.raises(ConfigError, match="blackboard or worldmodel"):
         Ros2SensorBridge("store=disk")
+    # The speech field is checked when the library loads, not when the robot is told to speak.
+    assert Ros2Speech("type=std_msgs/msg/Header", "field=frame_id").options["field"] == "frame_id"
+    with pytest.raises(ConfigError, match=r"field 'text' is not a string field of std_msgs/msg/String \(its string fields: data\)"):
+        Ros2Speech("field=text")
+    with pytest.raises(ConfigError, match="field 'linear' is not a string field of geometry_msgs/msg/Twist"):
+        Ros2Speech("type=geometry_msgs/msg/Twist", "field=linear")
 
 
 def test_a_query_ends_when_cancelled() -> None:

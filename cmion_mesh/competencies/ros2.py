@@ -464,6 +464,10 @@ class Ros2Speech(Ros2Competency):
         super().__init__(*parameters, name=name)
         self.agent = keys.check_name(self.options["agent"], "Ros2Speech: agent")
         self.check_type(self.options["type"], "type")
+        strings = _shared_types().string_fields(self.options["type"])
+        if self.options["field"] not in strings:
+            raise ConfigError(f"Ros2Speech: field {self.options['field']!r} is not a string field of {self.options['type']} "
+                              f"(its string fields: {', '.join(strings) or 'none'})")
         ros2.qualify(self.options["topic"], self.namespace)
         self.seconds("subscriber_timeout")
         self.publisher: ros2.Publisher | None = None
