@@ -143,6 +143,10 @@ def test_competency_parameters() -> None:
         Ros2SensorBridge("sensor.odom=odom Odometry")
     with pytest.raises(ConfigError, match="invalid ROS 2 name"):
         Ros2Velocity("topic=cmd-vel")
+    with pytest.raises(ConfigError, match=r"Ros2Velocity: invalid ROS 2 namespace '/robot 1'"):
+        Ros2Velocity("namespace=/robot 1")
+    with pytest.raises(ConfigError, match="'nav2_msgs/action/NavigateToPose' is an action, not a message type"):
+        Ros2SensorBridge("sensor.nav=navigate_to_pose nav2_msgs/action/NavigateToPose")
     with pytest.raises(ConfigError, match="blackboard or worldmodel"):
         Ros2SensorBridge("store=disk")
     # The speech field is checked when the library loads, not when the robot is told to speak.

@@ -143,14 +143,18 @@ class Ros2Competency(Competency):
             raise ConfigError(f"{label}: domain {self.domain} out of range (0..232)")
         self.namespace = options.get("namespace", "")
         if self.namespace.strip("/"):
-            ros2.qualify("x", self.namespace)
+            try:
+                ros2.qualify("x", self.namespace)
+            except ConfigError:
+                raise ConfigError(f"{label}: invalid ROS 2 namespace {self.namespace!r}: use letters, digits, _ and /") from None
         self.node_name = options.get("node", "")
         self.node: ros2.Node | None = None
 
     def check_type(self, type_name: str, what: str) -> str:
         """``type_name`` if it is a ROS 2 type this library knows; else ``ConfigError`` (at load
         time, so that the library file's line is named, not a failure when the daemon starts)."""
-        ros2.split_type(type_name)
+        if ros2.split_type(type_name)[1] == "action" and _shared_types().known(f"{type_name}_SendGoal"):
+            raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is an action, not a message type")
         if not _shared_types().known(type_name):
             raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is not a ROS 2 Jazzy type known here "
                               "(std_msgs, geometry_msgs, nav_msgs, sensor_msgs... and nav2_msgs/action/NavigateToPose)")
