@@ -57,6 +57,9 @@ DEFAULT_QOS = "::,10:,:,:,,"
 #: An action's status topic: transient local, keep last 1.
 STATUS_QOS = ":1:,1:,:,:,,"
 GID_SIZE = 16
+#: Seconds between two reports (log line, ``on_malformed``) of malformed messages on one
+#: subscription: a robot publishing a mismatched topic at 50 Hz must not flood the log.
+MALFORMED_EVERY = 10.0
 _ATTACHMENT = struct.Struct("<qqB")
 
 # action_msgs/msg/GoalStatus
@@ -546,15 +549,26 @@ class Node:
                   on_malformed: Callable[[str], None] | None = None) -> Closeable:
         """``handler(message)`` for each message on ``topic``, on the transport's worker thread. A
         sample that is not a ``type_name`` is refused: logged, naming the topic and the node(s)
-        publishing it, and passed to ``on_malformed``; the subscription goes on."""
+        publishing it, and passed to ``on_malformed`` (the first at once, then at most one every
+        ``MALFORMED_EVERY`` seconds, saying how many were refused meanwhile); the subscription goes on."""
         name = self.qualify(topic)
         key, _ = self._declare("MS", name, type_name, qos)
+        gate = threading.Lock()
+        refused = {"last": -math.inf, "since": 0}
 
         def each(sample: Sample) -> None:
             try:
                 message = self.types.decode(type_name, sample.payload)
             except ProtocolError as exc:
+                now = time.monotonic()
+                with gate:
+                    if now - refused["last"] < MALFORMED_EVERY:
+                        refused["since"] += 1
+                        return
+                    since, refused["since"], refused["last"] = int(refused["since"]), 0, now
                 reason = f"refused a message on {name} from {describe_peers(self.graph.publishers(name))}: {exc}"
+                if since:
+                    reason += f" ({since} more refused since the last report)"
                 log.warning("%s", reason)
                 if on_malformed is not None:
                     on_malformed(reason)

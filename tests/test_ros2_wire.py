@@ -12,6 +12,7 @@ from cmion_mesh import ros2
 from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import Sample
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -180,3 +181,24 @@ def test_a_query_ends_when_cancelled() -> None:
         assert not waiter.is_alive() and out == [[]]
         held[0].finish()
         cancel.cancel()  # twice: harmless
+
+
+def test_malformed_messages_are_reported_without_flooding(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot publishing a topic the mesh cannot decode, at sensor rate: the first refusal is
+    reported at once, the next ones at most every MALFORMED_EVERY seconds, counted."""
+    twist = "geometry_msgs/msg/Twist"
+    with MemoryTransport(MemoryNetwork()) as transport, ros2.Node(transport, "n") as node:
+        reports: list[str] = []
+        good: list[object] = []
+        node.subscribe("cmd_vel", twist, good.append, on_malformed=reports.append)
+        key = ros2.topic_key(0, "/cmd_vel", twist, node.types.hash(twist))
+        for _ in range(50):
+            transport.publish(key, b"\x00\x01\x00\x00short", attachment=ros2.encode_attachment(1, bytes(16)))
+        transport.publish(key, node.types.encode(twist, {"linear": {"x": 1.0}}), attachment=ros2.encode_attachment(2, bytes(16)))
+        wait_for(lambda: len(good) == 1, 10, "the good message after the bad ones")
+        assert len(reports) == 1 and "refused a message on /cmd_vel" in reports[0] and "more refused" not in reports[0]
+        monkeypatch.setattr(ros2, "MALFORMED_EVERY", 0.0)
+        transport.publish(key, b"", attachment=ros2.encode_attachment(3, bytes(16)))
+        wait_for(lambda: len(reports) == 2, 10, "the next report")
+        # the next report counts the 49 held back since the first
+        assert reports[1].endswith("(49 more refused since the last report)"), reports[1]

@@ -348,7 +348,7 @@ class Ros2Navigation(Ros2Competency):
                     last_feedback = now
                     self._feedback(ctx, value)
             elif kind == "malformed":
-                log.warning("%s: %s", self.name, value)
+                log.debug("%s: %s", self.name, value)  # the node has logged it
             elif kind == "cancel":
                 if cancel_deadline is None:
                     cancel_deadline = time.monotonic() + self.seconds("cancel_timeout")
