@@ -35,6 +35,7 @@ import itertools
 import logging
 import math
 import os
+import string
 import struct
 import threading
 import time
@@ -69,6 +70,8 @@ STATUS_NAMES = {0: "unknown", 1: "accepted", 2: "executing", 3: "canceling", 4: 
 
 # --- names, keys, tokens -----------------------------------------------------------------------
 
+_NAME_CHARS = frozenset(string.ascii_letters + string.digits + "_")
+
 
 def qualify(name: str, namespace: str = "") -> str:
     """The fully qualified name of ``name`` in ``namespace`` (``odom`` in ``/robot1``: ``/robot1/odom``);
@@ -76,8 +79,12 @@ def qualify(name: str, namespace: str = "") -> str:
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     full = name if name.startswith("/") else f"{ns}/{name}"
     parts = full.strip("/").split("/")
-    if not name or any(not p or not all(c.isalnum() or c == "_" for c in p) or p[0].isdigit() for p in parts):
-        raise ConfigError(f"invalid ROS 2 name {name!r} (namespace {namespace!r}): use letters, digits, _ and /")
+    # design.ros2.org "Topic and Service name mapping": ASCII alphanumerics and _, tokens that do
+    # not start with a digit, no repeated _, no trailing /. A name ROS 2 refuses never matches.
+    if (not name or name.endswith("/") or "__" in full
+            or any(not p or not set(p) <= _NAME_CHARS or p[0].isdigit() for p in parts)):
+        raise ConfigError(f"invalid ROS 2 name {name!r} (namespace {namespace!r}): use ASCII letters, digits, _ and /, "
+                          "without a repeated _ or a trailing /")
     return "/" + "/".join(parts)
 
 

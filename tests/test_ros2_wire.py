@@ -68,7 +68,7 @@ def test_names() -> None:
     assert ros2.qualify("scan", "robot1/") == "/robot1/scan"
     assert ros2.dds_type("nav2_msgs/action/NavigateToPose_SendGoal") == "nav2_msgs::action::dds_::NavigateToPose_SendGoal_"
     assert ros2.ros_type("nav2_msgs::action::dds_::NavigateToPose_SendGoal_") == "nav2_msgs/action/NavigateToPose_SendGoal"
-    for bad in ("", "a//b", "9lives", "bad-name"):
+    for bad in ("", "a//b", "9lives", "bad-name", "speech/", "navigate__to_pose", "caf\u00e9"):
         with pytest.raises(ConfigError):
             ros2.qualify(bad)
     with pytest.raises(ConfigError, match="type name"):
