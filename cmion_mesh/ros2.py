@@ -35,6 +35,7 @@ import itertools
 import logging
 import math
 import os
+import string
 import struct
 import threading
 import time
@@ -57,6 +58,9 @@ DEFAULT_QOS = "::,10:,:,:,,"
 #: An action's status topic: transient local, keep last 1.
 STATUS_QOS = ":1:,1:,:,:,,"
 GID_SIZE = 16
+#: Seconds between two reports (log line, ``on_malformed``) of malformed messages on one
+#: subscription: a robot publishing a mismatched topic at 50 Hz must not flood the log.
+MALFORMED_EVERY = 10.0
 _ATTACHMENT = struct.Struct("<qqB")
 
 # action_msgs/msg/GoalStatus
@@ -66,6 +70,8 @@ STATUS_NAMES = {0: "unknown", 1: "accepted", 2: "executing", 3: "canceling", 4: 
 
 # --- names, keys, tokens -----------------------------------------------------------------------
 
+_NAME_CHARS = frozenset(string.ascii_letters + string.digits + "_")
+
 
 def qualify(name: str, namespace: str = "") -> str:
     """The fully qualified name of ``name`` in ``namespace`` (``odom`` in ``/robot1``: ``/robot1/odom``);
@@ -73,8 +79,12 @@ def qualify(name: str, namespace: str = "") -> str:
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     full = name if name.startswith("/") else f"{ns}/{name}"
     parts = full.strip("/").split("/")
-    if not name or any(not p or not all(c.isalnum() or c == "_" for c in p) or p[0].isdigit() for p in parts):
-        raise ConfigError(f"invalid ROS 2 name {name!r} (namespace {namespace!r}): use letters, digits, _ and /")
+    # design.ros2.org "Topic and Service name mapping": ASCII alphanumerics and _, tokens that do
+    # not start with a digit, no repeated _, no trailing /. A name ROS 2 refuses never matches.
+    if (not name or name.endswith("/") or "__" in full
+            or any(not p or not set(p) <= _NAME_CHARS or p[0].isdigit() for p in parts)):
+        raise ConfigError(f"invalid ROS 2 name {name!r} (namespace {namespace!r}): use ASCII letters, digits, _ and /, "
+                          "without a repeated _ or a trailing /")
     return "/" + "/".join(parts)
 
 
@@ -246,6 +256,14 @@ class Types:
     def known(self, type_name: str) -> bool:
         return type_name in self._store.fielddefs or type_name in self._services
 
+    def string_fields(self, type_name: str) -> list[str]:
+        """The names of the string fields of a message type (``data`` for ``std_msgs/msg/String``)."""
+        with self._lock:
+            if type_name not in self._store.fielddefs:
+                raise ConfigError(f"unknown ROS 2 type {type_name!r}")
+            _, fields = self._store.fielddefs[type_name]
+        return [name for name, desc in fields if desc[0] == Nodetype.BASE and desc[1][0] == "string"]
+
     def register_messages(self, definitions: Iterable[tuple[str, str]]) -> None:
         """Register message types from ``.msg`` text (``pkg/msg/Name`` or ``pkg/srv/Name_Request``...)."""
         found: dict[str, Any] = {}
@@ -414,8 +432,16 @@ class Graph:
         with self._changed:
             return list(self._entities.values())
 
-    def servers(self, service: str, type_name: str | None = None) -> list[Entity]:
-        return [e for e in self.entities() if e.kind == "SS" and e.name == service and (type_name is None or e.type == type_name)]
+    def servers(self, service: str, type_name: str | None = None, type_hash: str | None = None) -> list[Entity]:
+        """The servers of ``service``; with ``type_name`` and ``type_hash``, only those of that type
+        and definition (rmw_zenoh's keys carry the hash: a server of another one never answers)."""
+        return [e for e in self.entities() if e.kind == "SS" and e.name == service and (type_name is None or e.type == type_name)
+                and (type_hash is None or e.type_hash == type_hash)]
+
+    def subscribers(self, topic: str, type_name: str | None = None, type_hash: str | None = None) -> list[Entity]:
+        """The subscriptions of ``topic`` (of that type and definition, when given)."""
+        return [e for e in self.entities() if e.kind == "MS" and e.name == topic and (type_name is None or e.type == type_name)
+                and (type_hash is None or e.type_hash == type_hash)]
 
     def publishers(self, topic: str) -> list[Entity]:
         return [e for e in self.entities() if e.kind == "MP" and e.name == topic]
@@ -446,6 +472,18 @@ class Graph:
 
     def close(self) -> None:
         self._handle.close()
+
+
+def describe_mismatches(entities: list[Entity], type_name: str, type_hash: str) -> str:
+    """What other type or definition the nodes behind ``entities`` use, for messages: a robot on
+    another release (or a topic of another type) is visible in the graph but never matches."""
+    found = []
+    for e in sorted(entities, key=lambda e: (e.node_path, e.zid)):
+        if e.type != type_name:
+            found.append(f"{e.node_path} (zenoh {e.zid}) uses it as {e.type}")
+        elif e.type_hash != type_hash:
+            found.append(f"{e.node_path} (zenoh {e.zid}) has another definition of {e.type} ({e.type_hash}, here {type_hash})")
+    return "; ".join(dict.fromkeys(found))
 
 
 def describe_peers(entities: list[Entity]) -> str:
@@ -494,7 +532,7 @@ class Node:
         return qualify(name, self.namespace)
 
     def _declare(self, kind: str, name: str, type_name: str, qos: str = DEFAULT_QOS) -> tuple[str, str]:
-        """Declare an entity's token; (its data key, its token)."""
+        """Declare an entity's token; (its data key, its token). The key ends with the type hash."""
         if not self.types.known(type_name):
             raise ConfigError(f"unknown ROS 2 type {type_name!r} for {name}")
         type_hash = self.types.hash(type_name)
@@ -509,19 +547,35 @@ class Node:
         key, token = self._declare("MP", name, type_name, qos)
         return Publisher(self, name, type_name, key, gid_of(token))
 
+    def subscribers(self, publisher: Publisher) -> list[Entity]:
+        """The subscriptions of other sessions that receive what ``publisher`` publishes: same topic,
+        type and type hash (a subscriber of another type or definition has another key)."""
+        return [e for e in self.graph.subscribers(publisher.name, publisher.type_name, publisher.type_hash) if e.zid != self.zid]
+
     def subscribe(self, topic: str, type_name: str, handler: Callable[[Any], None], *, qos: str = DEFAULT_QOS,
                   on_malformed: Callable[[str], None] | None = None) -> Closeable:
         """``handler(message)`` for each message on ``topic``, on the transport's worker thread. A
         sample that is not a ``type_name`` is refused: logged, naming the topic and the node(s)
-        publishing it, and passed to ``on_malformed``; the subscription goes on."""
+        publishing it, and passed to ``on_malformed`` (the first at once, then at most one every
+        ``MALFORMED_EVERY`` seconds, saying how many were refused meanwhile); the subscription goes on."""
         name = self.qualify(topic)
         key, _ = self._declare("MS", name, type_name, qos)
+        gate = threading.Lock()
+        refused = {"last": -math.inf, "since": 0}
 
         def each(sample: Sample) -> None:
             try:
                 message = self.types.decode(type_name, sample.payload)
             except ProtocolError as exc:
+                now = time.monotonic()
+                with gate:
+                    if now - refused["last"] < MALFORMED_EVERY:
+                        refused["since"] += 1
+                        return
+                    since, refused["since"], refused["last"] = int(refused["since"]), 0, now
                 reason = f"refused a message on {name} from {describe_peers(self.graph.publishers(name))}: {exc}"
+                if since:
+                    reason += f" ({since} more refused since the last report)"
                 log.warning("%s", reason)
                 if on_malformed is not None:
                     on_malformed(reason)
@@ -555,6 +609,7 @@ class Node:
 class Publisher:
     def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
         self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self.type_hash = key.rsplit("/", 1)[1]
         self._sequence = itertools.count(1)
 
     def publish(self, values: Any) -> None:
@@ -567,10 +622,16 @@ class Client:
 
     def __init__(self, node: Node, name: str, type_name: str, key: str, gid: bytes) -> None:
         self.node, self.name, self.type_name, self.key, self.gid = node, name, type_name, key, gid
+        self.type_hash = key.rsplit("/", 1)[1]
         self._sequence = itertools.count(1)
 
     def servers(self) -> list[Entity]:
-        return self.node.graph.servers(self.name, self.type_name)
+        """The servers that answer this client: same service, type and type hash."""
+        return self.node.graph.servers(self.name, self.type_name, self.type_hash)
+
+    def mismatches(self) -> str:
+        """The servers of this service that never answer it (another type or definition), described."""
+        return describe_mismatches(self.node.graph.servers(self.name), self.type_name, self.type_hash)
 
     def call(self, request: Any, *, timeout: float, cancel: QueryCancel | None = None) -> Any:
         """The response to ``request``. ``OutcomeUnknown`` when no server answered in ``timeout``

@@ -9,9 +9,10 @@ import threading
 import pytest
 
 from cmion_mesh import ros2
-from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Velocity
+from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import Sample
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -67,7 +68,7 @@ def test_names() -> None:
     assert ros2.qualify("scan", "robot1/") == "/robot1/scan"
     assert ros2.dds_type("nav2_msgs/action/NavigateToPose_SendGoal") == "nav2_msgs::action::dds_::NavigateToPose_SendGoal_"
     assert ros2.ros_type("nav2_msgs::action::dds_::NavigateToPose_SendGoal_") == "nav2_msgs/action/NavigateToPose_SendGoal"
-    for bad in ("", "a//b", "9lives", "bad-name"):
+    for bad in ("", "a//b", "9lives", "bad-name", "speech/", "navigate__to_pose", "caf\u00e9"):
         with pytest.raises(ConfigError):
             ros2.qualify(bad)
     with pytest.raises(ConfigError, match="type name"):
@@ -143,8 +144,18 @@ def test_competency_parameters() -> None:
         Ros2SensorBridge("sensor.odom=odom Odometry")
     with pytest.raises(ConfigError, match="invalid ROS 2 name"):
         Ros2Velocity("topic=cmd-vel")
+    with pytest.raises(ConfigError, match=r"Ros2Velocity: invalid ROS 2 namespace '/robot 1'"):
+        Ros2Velocity("namespace=/robot 1")
+    with pytest.raises(ConfigError, match="'nav2_msgs/action/NavigateToPose' is an action, not a message type"):
+        Ros2SensorBridge("sensor.nav=navigate_to_pose nav2_msgs/action/NavigateToPose")
     with pytest.raises(ConfigError, match="blackboard or worldmodel"):
         Ros2SensorBridge("store=disk")
+    # The speech field is checked when the library loads, not when the robot is told to speak.
+    assert Ros2Speech("type=std_msgs/msg/Header", "field=frame_id").options["field"] == "frame_id"
+    with pytest.raises(ConfigError, match=r"field 'text' is not a string field of std_msgs/msg/String \(its string fields: data\)"):
+        Ros2Speech("field=text")
+    with pytest.raises(ConfigError, match="field 'linear' is not a string field of geometry_msgs/msg/Twist"):
+        Ros2Speech("type=geometry_msgs/msg/Twist", "field=linear")
 
 
 def test_a_query_ends_when_cancelled() -> None:
@@ -170,3 +181,24 @@ def test_a_query_ends_when_cancelled() -> None:
         assert not waiter.is_alive() and out == [[]]
         held[0].finish()
         cancel.cancel()  # twice: harmless
+
+
+def test_malformed_messages_are_reported_without_flooding(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot publishing a topic the mesh cannot decode, at sensor rate: the first refusal is
+    reported at once, the next ones at most every MALFORMED_EVERY seconds, counted."""
+    twist = "geometry_msgs/msg/Twist"
+    with MemoryTransport(MemoryNetwork()) as transport, ros2.Node(transport, "n") as node:
+        reports: list[str] = []
+        good: list[object] = []
+        node.subscribe("cmd_vel", twist, good.append, on_malformed=reports.append)
+        key = ros2.topic_key(0, "/cmd_vel", twist, node.types.hash(twist))
+        for _ in range(50):
+            transport.publish(key, b"\x00\x01\x00\x00short", attachment=ros2.encode_attachment(1, bytes(16)))
+        transport.publish(key, node.types.encode(twist, {"linear": {"x": 1.0}}), attachment=ros2.encode_attachment(2, bytes(16)))
+        wait_for(lambda: len(good) == 1, 10, "the good message after the bad ones")
+        assert len(reports) == 1 and "refused a message on /cmd_vel" in reports[0] and "more refused" not in reports[0]
+        monkeypatch.setattr(ros2, "MALFORMED_EVERY", 0.0)
+        transport.publish(key, b"", attachment=ros2.encode_attachment(3, bytes(16)))
+        wait_for(lambda: len(reports) == 2, 10, "the next report")
+        # the next report counts the 49 held back since the first
+        assert reports[1].endswith("(49 more refused since the last report)"), reports[1]

@@ -143,14 +143,18 @@ class Ros2Competency(Competency):
             raise ConfigError(f"{label}: domain {self.domain} out of range (0..232)")
         self.namespace = options.get("namespace", "")
         if self.namespace.strip("/"):
-            ros2.qualify("x", self.namespace)
+            try:
+                ros2.qualify("x", self.namespace)
+            except ConfigError:
+                raise ConfigError(f"{label}: invalid ROS 2 namespace {self.namespace!r}: use letters, digits, _ and /") from None
         self.node_name = options.get("node", "")
         self.node: ros2.Node | None = None
 
     def check_type(self, type_name: str, what: str) -> str:
         """``type_name`` if it is a ROS 2 type this library knows; else ``ConfigError`` (at load
         time, so that the library file's line is named, not a failure when the daemon starts)."""
-        ros2.split_type(type_name)
+        if ros2.split_type(type_name)[1] == "action" and _shared_types().known(f"{type_name}_SendGoal"):
+            raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is an action, not a message type")
         if not _shared_types().known(type_name):
             raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is not a ROS 2 Jazzy type known here "
                               "(std_msgs, geometry_msgs, nav_msgs, sensor_msgs... and nav2_msgs/action/NavigateToPose)")
@@ -176,19 +180,18 @@ class Ros2Competency(Competency):
             _release(node)
 
     def wait_subscriber(self, ctx: RunContext, publisher: ros2.Publisher) -> bool:
-        """Wait for a subscriber of ``publisher``'s topic; False (with the reason) if none came."""
+        """Wait for a subscriber of ``publisher``'s topic, type and type hash (one of another type
+        or definition never receives these messages); False (with the reason) if none came."""
         node = publisher.node
         timeout = self.seconds("subscriber_timeout")
-
-        def present() -> bool:
-            return any(e.kind == "MS" and e.name == publisher.name and e.zid != node.zid for e in node.graph.entities())
-
-        if node.graph.wait_for(present, timeout, ctx.cancelled):
+        if node.graph.wait_for(lambda: bool(node.subscribers(publisher)), timeout, ctx.cancelled):
             return True
         if ctx.cancelled.is_set():
             return False
+        others = ros2.describe_mismatches([e for e in node.graph.subscribers(publisher.name) if e.zid != node.zid],
+                                          publisher.type_name, publisher.type_hash)
         return ctx.fail(f"no ROS 2 node subscribes to {publisher.name} ({publisher.type_name}) on domain {node.domain} "
-                        f"within {timeout:g} s")
+                        f"within {timeout:g} s" + (f": {others}" if others else ""))
 
 
 # --- navigation ------------------------------------------------------------------------------------
@@ -259,8 +262,9 @@ class Ros2Navigation(Ros2Competency):
         if not graph.wait_for(lambda: bool(client.servers()), server_timeout, ctx.cancelled):
             if ctx.cancelled.is_set():
                 return False
+            others = client.send_goal.mismatches()
             return ctx.fail(f"no ROS 2 node serves the action {client.name} ({client.type_name}) on domain "
-                            f"{self.node.domain} within {server_timeout:g} s")
+                            f"{self.node.domain} within {server_timeout:g} s" + (f": {others}" if others else ""))
         who = ros2.describe_peers(client.servers())
         events: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._events = events
@@ -344,7 +348,7 @@ class Ros2Navigation(Ros2Competency):
                     last_feedback = now
                     self._feedback(ctx, value)
             elif kind == "malformed":
-                log.warning("%s: %s", self.name, value)
+                log.debug("%s: %s", self.name, value)  # the node has logged it
             elif kind == "cancel":
                 if cancel_deadline is None:
                     cancel_deadline = time.monotonic() + self.seconds("cancel_timeout")
@@ -464,6 +468,10 @@ class Ros2Speech(Ros2Competency):
         super().__init__(*parameters, name=name)
         self.agent = keys.check_name(self.options["agent"], "Ros2Speech: agent")
         self.check_type(self.options["type"], "type")
+        strings = _shared_types().string_fields(self.options["type"])
+        if self.options["field"] not in strings:
+            raise ConfigError(f"Ros2Speech: field {self.options['field']!r} is not a string field of {self.options['type']} "
+                              f"(its string fields: {', '.join(strings) or 'none'})")
         ros2.qualify(self.options["topic"], self.namespace)
         self.seconds("subscriber_timeout")
         self.publisher: ros2.Publisher | None = None
