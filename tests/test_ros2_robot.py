@@ -105,6 +105,9 @@ def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon
         assert robot.event("result")["status"] == 4
         feedback = bb(client, "navigation/feedback")
         assert feedback is not None and set(feedback) >= {"distance_remaining", "x", "y"}
+        # The robot's three feedbacks come 0.05 s apart, within feedback_interval (0.2 s): the
+        # blackboard still ends with the last one (at the goal), not the first one written.
+        assert (feedback["distance_remaining"], feedback["x"], feedback["y"]) == (0.0, 4.0, 2.5), feedback
         assert bb(client, "navigation/state") == "arrived"
         assert client.get_property(BODY, keys.WORLD_MODEL, "Self", "location").value == "Kitchen"
 

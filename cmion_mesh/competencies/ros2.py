@@ -328,25 +328,38 @@ class Ros2Navigation(Ros2Competency):
               events: queue.SimpleQueue[tuple[str, Any]], timeout: float) -> bool:
         interval = self.seconds("feedback_interval")
         last_feedback = -math.inf
+        # The newest feedback that came within ``interval`` of the last one written: written when
+        # its turn comes or the goal ends, so the blackboard never keeps an older one than the robot sent.
+        pending: Any = None
         deadline = time.monotonic() + timeout
         cancel_deadline: float | None = None
         if ctx.cancelled.is_set():
             events.put(("cancel", None))
         while True:
-            left = (cancel_deadline if cancel_deadline is not None else deadline) - time.monotonic()
+            end = cancel_deadline if cancel_deadline is not None else deadline
+            wake = end if pending is None else min(end, last_feedback + interval)
             try:
-                kind, value = events.get(timeout=max(0.0, left))
+                kind, value = events.get(timeout=max(0.0, wake - time.monotonic()))
             except queue.Empty:
+                if pending is not None and time.monotonic() < end:
+                    self._feedback(ctx, pending)
+                    last_feedback, pending = time.monotonic(), None
+                    continue
                 if cancel_deadline is not None:
                     return self._failed(ctx, f"{who} did not end the goal to {target} within "
                                              f"{self.seconds('cancel_timeout'):g} s of its cancel", "stopped")
                 _quietly("cancel on timeout", client.cancel, goal_id, self.seconds("cancel_timeout"))
                 return self._failed(ctx, f"the goal to {target} did not end within {timeout:g} s (cancelled)")
+            if kind != "feedback" and pending is not None:
+                self._feedback(ctx, pending)
+                pending = None
             if kind == "feedback":
                 now = time.monotonic()
                 if now - last_feedback >= interval:
-                    last_feedback = now
                     self._feedback(ctx, value)
+                    last_feedback, pending = now, None
+                else:
+                    pending = value
             elif kind == "malformed":
                 log.debug("%s: %s", self.name, value)  # the node has logged it
             elif kind == "cancel":
