@@ -1206,7 +1206,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=0, help="stop after this many messages")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     p.add_argument("--liveliness", action="store_true", help="count liveliness tokens appearing and going (automatic "
-                                                              "when a chunk of KEY starts with @)")
+                                                              "when a chunk of KEY starts with @, but @outcome)")
     _common(p)
     p.set_defaults(func=cmd_hz)
 
@@ -1218,7 +1218,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--once", action="store_true", help="stop after the first message (--count 1)")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     p.add_argument("--raw", action="store_true", help="never decode: show every payload raw")
-    p.add_argument("--liveliness", action="store_true", help="watch liveliness tokens (automatic when a chunk of KEY starts with @)")
+    p.add_argument("--liveliness", action="store_true",
+                   help="watch liveliness tokens (automatic when a chunk of KEY starts with @, but @outcome)")
     _common(p)
     p.set_defaults(func=cmd_echo)
 

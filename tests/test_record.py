@@ -208,7 +208,10 @@ def test_answers_are_told_only_while_someone_listens() -> None:
         key = keys.request_key("m", "robot", "asked", "describe")
         assert send_request(tool_t, key, Describe()).status == "accepted"
         assert not [k for k in published if "@outcome" in k], "nobody listens: nothing told"
-        with tool_t.subscribe(keys.outcome_pattern("m"), lambda s: told.append(decode(s.payload, RequestAnswered))):
+        # What `cmion-mesh echo '*/@outcome/**'` does: a subscription (not a liveliness watch).
+        from cmion_mesh.tap import Tap, resolve
+
+        with Tap(tool_t, resolve("m", "*/@outcome/**"), lambda seen: told.append(decode(seen.payload, RequestAnswered))):
             assert send_request(tool_t, key, Describe()).status == "accepted"
             assert send_request(tool_t, keys.request_key("m", "robot", "asked", "nothing"), Describe()).status == "rejected"
             wait_for(lambda: len(told) == 2, 10, "two answers told")
