@@ -186,6 +186,34 @@ def test_replay_filters_and_rejects_a_bad_rate(session: Session, tmp_path: Path)
             replay(MeshClient(t, "fresh"), session.clean, rate=-1)
 
 
+@pytest.mark.parametrize("waiting_for", ["a subscriber", "an embodiment"])
+def test_replay_stops_at_once_while_it_waits_to_join(session: Session, waiting_for: str) -> None:
+    """Ctrl-C (``stop``) ends replay's join wait at once, not when --join-timeout has passed."""
+    import threading
+
+    from cmion_mesh.replay import replay
+
+    with MemoryTransport(MemoryNetwork(), "replay") as t:
+        client = MeshClient(t, "empty")
+        waiting = threading.Event()
+        if waiting_for == "a subscriber":
+            wait = t.wait_subscribers
+            t.wait_subscribers = lambda key, timeout: (waiting.set(), wait(key, timeout))[-1]  # type: ignore[method-assign]
+        else:
+            wait_alive = client.presence.wait
+            client.presence.wait = lambda predicate, timeout: (waiting.set(), wait_alive(predicate, timeout))[-1]  # type: ignore[method-assign]
+        stop = threading.Event()
+        done: list[Any] = []
+        worker = threading.Thread(target=lambda: done.append(replay(client, session.clean, join_timeout=120, stop=stop,
+                                                                    wait_for=["robot"] if waiting_for == "an embodiment" else ())))
+        worker.start()
+        assert waiting.wait(30), "replay waits to join"
+        stop.set()
+        worker.join(10)
+        assert not worker.is_alive(), "still waiting after the stop"
+    assert done[0].published == 0
+
+
 def test_answers_are_told_only_while_someone_listens() -> None:
     from cmion_mesh import keys
     from cmion_mesh.ion import Component, Simulation, send_request
