@@ -9,8 +9,10 @@ are not replayed: a replayed token or property would claim a body that is not th
 
 Join, then publish: before the first event, replay waits (within ``join_timeout``) for a
 subscriber matching it to be known to its session (and for ``wait_for`` embodiments to be alive):
-published before the mesh knows of it, an event reaches nobody. Every wait ends at once when
-``stop`` is set (Ctrl-C).
+published before the mesh knows of it, an event reaches nobody. Zenoh says only whether *some*
+subscriber matches: the first one known may be a daemon next door while a monitor's subscription
+is still on its way (it comes over its own link, found by gossip), so replay then waits
+``SETTLE`` more before the first event. Every wait ends at once when ``stop`` is set (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ from cmion_mesh.record import EVENT_SCHEMA, Recorded, RecordingReader
 
 #: Longest single sleep between two events: a stop request is seen within it.
 SLEEP_SLICE = 0.25
+#: After a first subscriber is known, how long the others' subscriptions have to arrive (they
+#: come a few milliseconds apart on one host: this leaves room for a LAN).
+SETTLE = 0.25
 
 _event_json = msgspec.json.Decoder(Event)
 
@@ -124,7 +129,7 @@ def replay(
             key = "/".join((keys.ROOT, client.mesh, *rest))
             if first_log is None:
                 listened = _until(functools.partial(transport.wait_subscribers, key), join_timeout, stop)
-                if listened is None:
+                if listened is None or (listened and stop.wait(SETTLE)):
                     break
                 stats.listened = listened
                 if not stats.listened and warn is not None:

@@ -159,8 +159,15 @@ def test_replay_into_a_fresh_mesh_shows_a_listener_the_same_events(session: Sess
     recorded = events_in(session.clean)
     fresh = unique_mesh("replay")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with Daemon(cli_argv("events", "--json", "--mesh", fresh, "--listen", endpoint, "--no-multicast", "--count",
-                         str(len(recorded)), "--join-timeout", "0.1"), name="listener") as listener:
+    # As in a mesh with daemons: the replay reaches another subscriber first (this hub, which it
+    # connects to, as a daemon that follows the mesh), and the listener only through gossip, over a
+    # link of its own.
+    first = recorded[0]
+    first_key = f"cmion/{fresh}/{first['embodiment']}/ev/{first['component']}/{first['name']}"
+    with ZenohTransport(TransportConfig(listen=(endpoint,), multicast=False)) as hub, hub.subscribe(first_key, lambda _: None), \
+            Daemon(cli_argv("events", "--json", "--mesh", fresh, "--connect", endpoint, "--no-multicast", "--count",
+                            str(len(recorded)), "--join-timeout", "0.1"), name="listener") as listener:
+        assert hub.wait_subscribers(f"cmion/{fresh}/nobody/ev/only/TheListener", 30), "the listener subscribes"
         replay = subprocess.run(cli_argv("replay", str(session.clean), "--mesh", fresh, "--connect", endpoint, "--no-multicast",
                                          "--rate", "20", "--join-timeout", "20", "--json"),
                                 capture_output=True, text=True, timeout=120)
