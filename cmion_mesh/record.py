@@ -681,7 +681,9 @@ def info(path: str | Path) -> dict[str, Any]:
         "messages": sum(counts.values()),
         "channels": dict(sorted(counts.items())),
         "embodiments": sorted(embodiments),
-        "described": {name: {k: described[name].get(k, "") for k in ("version", "host", "pid", "inhabitant")}
+        # Values that were not strings are kept as JSON: an embodiment nobody inhabits says "null".
+        "described": {name: {k: "" if (v := described[name].get(k, "")) == "null" else v
+                             for k in ("version", "host", "pid", "inhabitant")}
                       for name in sorted(described)},
         "migrations": [dataclasses.asdict(m) for m in migrations.values()],
         "requests": dict(sorted(answers.items())),

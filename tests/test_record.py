@@ -136,8 +136,11 @@ def test_record_info_summarises_the_migrations(session: Session) -> None:
     journey = [(m["source"], m["target"], m["outcome"], len(m["steps"])) for m in summary["migrations"]]
     assert journey == [("robot", "screen", "succeeded", 4), ("screen", "phone", "succeeded", 4), ("phone", "robot", "succeeded", 4)]
     assert summary["duration"] > 0 and summary["messages"] == sum(summary["channels"].values())
+    # Described as they were when recording began: the companion on the robot, the others empty.
+    assert {n: d["inhabitant"] for n, d in summary["described"].items()} == {"robot": "spirit", "screen": "", "phone": ""}
     text = record.format_info(record.info(session.clean))
-    assert "migrations: 3" in text and "TRUNCATED" not in text
+    assert "migrations: 3" in text and "TRUNCATED" not in text and "inhabitant null" not in text
+    assert "inhabitant -" in text
 
 
 def test_a_killed_recorder_leaves_a_file_the_reader_opens(session: Session) -> None:
