@@ -67,9 +67,20 @@ def events(reader: RecordingReader, filters: Sequence[str] = ()) -> Iterator[tup
     chunks below ``cmion/<mesh>/``."""
     patterns = [_relative(f) for f in filters]
     for message in reader.messages():
-        if message.schema != EVENT_SCHEMA or "*" in message.topic:
-            continue  # an overflow channel's topic is a pattern: its events are found by their fields below
-        rest = message.topic.split("/")[2:]
+        if message.schema != EVENT_SCHEMA:
+            continue
+        if "*" in message.topic:
+            # The overflow channel (a file with more event keys than ``record.MAX_CHANNELS``): its
+            # topic is a pattern, each event's key is made of its own fields.
+            try:
+                fields = _event_json.decode(message.data)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            rest = [fields.embodiment, keys.EVENTS, fields.component, fields.name]
+            if not all(keys.is_name(chunk) for chunk in rest):
+                continue
+        else:
+            rest = message.topic.split("/")[2:]
         if patterns and not any(keys.matches_chunks(p, rest) for p in patterns):
             continue
         yield message, rest

@@ -18,7 +18,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import Timeline, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import Event, encode
+from cmion_mesh.messages import Event, decode, encode
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.record import Recorder, RecordingReader
 from cmion_mesh.testing.wait import wait_for
@@ -223,6 +223,28 @@ def test_replay_stops_at_once_while_it_waits_to_join(session: Session, waiting_f
         worker.join(10)
         assert not worker.is_alive(), "still waiting after the stop"
     assert done[0].published == 0
+
+
+def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past ``MAX_CHANNELS`` event keys, events share one channel whose topic is a pattern; replay
+    still publishes each on its own key."""
+    from cmion_mesh.replay import replay
+
+    monkeypatch.setattr(record, "MAX_CHANNELS", 2)
+    network = MemoryNetwork()
+    sent = [Event("robot", "c", f"E{i}", {"i": i}, i, 1.0 + i) for i in range(5)]
+    with MemoryTransport(network, "mesh") as t, Recorder(t, "m", tmp_path / "o.mcap") as recorder:
+        for event in sent:
+            t.publish(f"cmion/m/robot/ev/c/{event.name}", encode(event))
+        wait_for(lambda: _count(recorder) == 5, 10, "five events written")
+    assert "cmion/m/*/ev/**" in record.info(tmp_path / "o.mcap")["channels"]
+    heard: list[tuple[str, Event]] = []
+    with MemoryTransport(network, "listener") as listener_t, MemoryTransport(network, "replay") as replay_t, \
+            listener_t.subscribe("cmion/fresh/**", lambda s: heard.append((s.key, decode(s.payload, Event)))):
+        stats = replay(MeshClient(replay_t, "fresh"), tmp_path / "o.mcap", rate=0)
+        wait_for(lambda: len(heard) == 5, 10, "five replayed events")
+    assert stats.published == 5
+    assert sorted(heard, key=lambda h: h[1].seq) == [(f"cmion/fresh/robot/ev/c/{e.name}", e) for e in sent]
 
 
 def test_answers_are_told_only_while_someone_listens() -> None:
