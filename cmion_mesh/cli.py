@@ -1171,8 +1171,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                         "(default: the whole mesh; liveliness is always recorded); `info FILE...` summarises recordings instead")
     p.add_argument("-o", "--output", metavar="FILE", help="the file (default: cmion-<mesh>-<date>-<time>.mcap here)")
     p.add_argument("--force", action="store_true", help="overwrite FILE if it exists (default: refuse)")
-    p.add_argument("--split-size", metavar="SIZE", help="start a new file (FILE-0001.mcap...) past this size, e.g. 100M, 1G")
-    p.add_argument("--split-time", type=float, metavar="SECONDS", help="start a new file after this many seconds")
+    p.add_argument("--split-size", metavar="SIZE",
+                   help="start a new file (FILE-0001.mcap...) with the first message past this size, e.g. 100M, 1G")
+    p.add_argument("--split-time", type=float, metavar="SECONDS",
+                   help="start a new file with the first message after this many seconds")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: at Ctrl-C)")
     _join_timeout(p)
     _common(p)

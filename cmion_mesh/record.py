@@ -360,6 +360,7 @@ class Recorder:
         self._report = report or (lambda text: print(text, file=sys.stderr, flush=True))
         self._inbox = _Inbox(max_queued, MAX_QUEUED_BYTES)
         self._split = bool(split_bytes or split_seconds)
+        self._split_due = False  # the part is full or old: the next thing written starts a new one
         self._alive: set[str] = set()
         self._meta: dict[str, dict[str, str]] = {"cmion-mesh": {
             "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}",
@@ -433,6 +434,9 @@ class Recorder:
         last_report = 0.0
         while True:
             items = self._inbox.take(next_flush - time.monotonic())
+            if items and self._split_due:
+                self._split_due = False
+                self._next_part()
             for stamp, item in items:
                 self._write(stamp, item)
             self._part.wrote()
@@ -447,9 +451,10 @@ class Recorder:
                 self.stats.dropped = dropped
                 self._part.flush()
                 next_flush = now + self.flush_interval
-                if self._split and ((self.split_bytes and self._part.size() >= self.split_bytes)
-                                    or (self.split_seconds and now - self._part.started >= self.split_seconds)):
-                    self._next_part()
+                if self._split and not self._split_due and (
+                        (self.split_bytes and self._part.size() >= self.split_bytes)
+                        or (self.split_seconds and now - self._part.started >= self.split_seconds)):
+                    self._split_due = True  # not now: an idle mesh would leave a trail of empty files
             if self._inbox.closed and not items:
                 return
 

@@ -356,6 +356,20 @@ def test_what_a_killed_recorder_leaves_opens_in_any_mcap_reader(tmp_path: Path) 
         assert make_reader(f).get_summary() is not None
 
 
+def test_a_split_recording_makes_no_empty_part(tmp_path: Path) -> None:
+    """A part past its size starts a new one with the next message only: none came, none made."""
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.01) as recorder:
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: len(events_in(tmp_path / "q-0000.mcap")) == 1, 10, "the tick on disk")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
+            wait_for(lambda: len(recorder.stats.files) == 2 and len(events_in(tmp_path / "q-0001.mcap")) == 1, 10,
+                     "the second tick in a second part")
+        files = recorder.stats.files
+    assert [Path(f).name for f in files] == ["q-0000.mcap", "q-0001.mcap"]
+    assert [len(events_in(Path(f))) for f in files] == [1, 1]
+
+
 def test_bad_input_is_named(tmp_path: Path) -> None:
     (tmp_path / "not.mcap").write_bytes(b"hello, this is not mcap at all")
     with pytest.raises(ConfigError, match=r"not\.mcap"):
