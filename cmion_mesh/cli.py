@@ -1171,8 +1171,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                         "(default: the whole mesh; liveliness is always recorded); `info FILE...` summarises recordings instead")
     p.add_argument("-o", "--output", metavar="FILE", help="the file (default: cmion-<mesh>-<date>-<time>.mcap here)")
     p.add_argument("--force", action="store_true", help="overwrite FILE if it exists (default: refuse)")
-    p.add_argument("--split-size", metavar="SIZE", help="start a new file (FILE-0001.mcap...) past this size, e.g. 100M, 1G")
-    p.add_argument("--split-time", type=float, metavar="SECONDS", help="start a new file after this many seconds")
+    p.add_argument("--split-size", metavar="SIZE",
+                   help="start a new file (FILE-0001.mcap...) with the first message past this size, e.g. 100M, 1G")
+    p.add_argument("--split-time", type=float, metavar="SECONDS",
+                   help="start a new file with the first message after this many seconds")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: at Ctrl-C)")
     _join_timeout(p)
     _common(p)
@@ -1206,7 +1208,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, default=0, help="stop after this many messages")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     p.add_argument("--liveliness", action="store_true", help="count liveliness tokens appearing and going (automatic "
-                                                              "when a chunk of KEY starts with @)")
+                                                              "when a chunk of KEY starts with @, but @outcome)")
     _common(p)
     p.set_defaults(func=cmd_hz)
 
@@ -1218,7 +1220,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--once", action="store_true", help="stop after the first message (--count 1)")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     p.add_argument("--raw", action="store_true", help="never decode: show every payload raw")
-    p.add_argument("--liveliness", action="store_true", help="watch liveliness tokens (automatic when a chunk of KEY starts with @)")
+    p.add_argument("--liveliness", action="store_true",
+                   help="watch liveliness tokens (automatic when a chunk of KEY starts with @, but @outcome)")
     _common(p)
     p.set_defaults(func=cmd_echo)
 

@@ -28,7 +28,10 @@ recorder received the message, ``publish_time`` the event's own ``time`` (the pu
 
 Bounded memory: the subscriptions' workers hand samples to a bounded inbox; the writer thread
 drains it into MCAP chunks of ``CHUNK_SIZE``, and writes the chunk in progress out at least every
-``FLUSH_INTERVAL``, so a killed recorder loses at most that much. If the writer falls behind and
+``FLUSH_INTERVAL``, so a killed recorder loses at most that much. After each write the file gets a
+provisional end (``DataEnd``, a ``Footer`` naming no summary, the magic), which the next write
+overwrites: a killed recorder's file is a valid MCAP file without a summary, which every reader
+opens (``make_reader(f).iter_messages()`` too), unless it was killed in the middle of a write. If the writer falls behind and
 the inbox is full, samples are dropped and counted, never silently: on stderr, and in the file
 (metadata ``cmion-mesh.drops``, and ``cmion-mesh.end``).
 """
@@ -53,10 +56,11 @@ from typing import IO, Any
 
 import msgspec
 from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
 from mcap.records import Channel, DataEnd, Footer, Header, Metadata, Schema, Statistics
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
@@ -85,6 +89,9 @@ ANSWER_SCHEMA = "cmion_mesh.RequestAnswered"
 #: Liveliness token kinds recorded, each one channel.
 TOKEN_KINDS = (keys.ALIVE, keys.CLAIM, keys.COMPETENCY, keys.CUSTODY)
 PROFILE = "cmion-mesh"
+#: The end a file gets after each write, until the next one overwrites it: ``DataEnd`` (no CRC),
+#: a ``Footer`` with no summary, the magic. A finished file's footer names its summary.
+OPEN_END = struct.pack("<BQI", Opcode.DATA_END, 4, 0) + struct.pack("<BQQQI", Opcode.FOOTER, 20, 0, 0, 0) + MCAP0_MAGIC
 
 
 class StorageSample(msgspec.Struct, frozen=True):
@@ -260,7 +267,8 @@ class _Part:
         self.closed = False
         for name, data in meta.items():
             self.writer.add_metadata(name, data)
-        self._stream.flush()  # the header on disk at once: a recorder killed now leaves a file that opens
+        self._end_at = -1
+        self._open_end()  # the header on disk at once: a recorder killed now leaves a file that opens
 
     def channel(self, topic: str, schema: str) -> int:
         channel = self.channels.get(topic)
@@ -285,8 +293,24 @@ class _Part:
         if self.pending:
             self.writer.flush()  # type: ignore[no-untyped-call]
             self.pending = 0
-        else:
-            self._stream.flush()  # metadata (drops, descriptions) written since, if any
+        self._open_end()  # after metadata (drops, descriptions) written since, too
+
+    def wrote(self) -> None:
+        """After a batch: if a full chunk went out, the open end after it (else nothing)."""
+        if self._stream.tell() != self._end_at:
+            self._open_end()
+
+    def _open_end(self) -> None:
+        """Write what was written since the last time, then ``OPEN_END`` after it, and go back to
+        where it starts: the next record overwrites it (nothing to do when nothing was written)."""
+        self._stream.flush()
+        at = self._stream.tell()
+        if at == self._end_at:
+            return
+        self._stream.write(OPEN_END)
+        self._stream.flush()
+        self._stream.seek(at)
+        self._end_at = at
 
     def size(self) -> int:
         return self._stream.tell()
@@ -298,6 +322,7 @@ class _Part:
         try:
             self.writer.add_metadata("cmion-mesh.end", end)
             self.writer.finish()  # type: ignore[no-untyped-call]
+            self._stream.truncate()  # nothing of an open end after the real one
         finally:
             self._stream.close()
 
@@ -335,6 +360,7 @@ class Recorder:
         self._report = report or (lambda text: print(text, file=sys.stderr, flush=True))
         self._inbox = _Inbox(max_queued, MAX_QUEUED_BYTES)
         self._split = bool(split_bytes or split_seconds)
+        self._split_due = False  # the part is full or old: the next thing written starts a new one
         self._alive: set[str] = set()
         self._meta: dict[str, dict[str, str]] = {"cmion-mesh": {
             "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}",
@@ -408,8 +434,12 @@ class Recorder:
         last_report = 0.0
         while True:
             items = self._inbox.take(next_flush - time.monotonic())
+            if items and self._split_due:
+                self._split_due = False
+                self._next_part()
             for stamp, item in items:
                 self._write(stamp, item)
+            self._part.wrote()
             now = time.monotonic()
             if now >= next_flush or self._inbox.closed:
                 dropped = self._inbox.dropped
@@ -421,9 +451,10 @@ class Recorder:
                 self.stats.dropped = dropped
                 self._part.flush()
                 next_flush = now + self.flush_interval
-                if self._split and ((self.split_bytes and self._part.size() >= self.split_bytes)
-                                    or (self.split_seconds and now - self._part.started >= self.split_seconds)):
-                    self._next_part()
+                if self._split and not self._split_due and (
+                        (self.split_bytes and self._part.size() >= self.split_bytes)
+                        or (self.split_seconds and now - self._part.started >= self.split_seconds)):
+                    self._split_due = True  # not now: an idle mesh would leave a trail of empty files
             if self._inbox.closed and not items:
                 return
 
@@ -547,6 +578,7 @@ class RecordingReader:
         self.truncated = False
         self.complete = False
         self.error = ""
+        self._data_end = False
         self.statistics: Statistics | None = None
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
@@ -592,8 +624,11 @@ class RecordingReader:
             elif isinstance(record, Statistics):
                 self.statistics = record
             elif isinstance(record, DataEnd):
-                self.complete = True
+                self._data_end = True
             elif isinstance(record, Footer):
+                # A recorder's finished file names its summary; an open end (a killed recorder's) does not.
+                own = self.header is not None and self.header.profile == PROFILE
+                self.complete = self._data_end and (record.summary_start != 0 or not own)
                 return
 
 
@@ -651,7 +686,9 @@ def info(path: str | Path) -> dict[str, Any]:
         "messages": sum(counts.values()),
         "channels": dict(sorted(counts.items())),
         "embodiments": sorted(embodiments),
-        "described": {name: {k: described[name].get(k, "") for k in ("version", "host", "pid", "inhabitant")}
+        # Values that were not strings are kept as JSON: an embodiment nobody inhabits says "null".
+        "described": {name: {k: "" if (v := described[name].get(k, "")) == "null" else v
+                             for k in ("version", "host", "pid", "inhabitant")}
                       for name in sorted(described)},
         "migrations": [dataclasses.asdict(m) for m in migrations.values()],
         "requests": dict(sorted(answers.items())),

@@ -9,11 +9,15 @@ are not replayed: a replayed token or property would claim a body that is not th
 
 Join, then publish: before the first event, replay waits (within ``join_timeout``) for a
 subscriber matching it to be known to its session (and for ``wait_for`` embodiments to be alive):
-published before the mesh knows of it, an event reaches nobody.
+published before the mesh knows of it, an event reaches nobody. Zenoh says only whether *some*
+subscriber matches: the first one known may be a daemon next door while a monitor's subscription
+is still on its way (it comes over its own link, found by gossip), so replay then waits
+``SETTLE`` more before the first event. Every wait ends at once when ``stop`` is set (Ctrl-C).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -24,13 +28,16 @@ from pathlib import Path
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.client import MeshClient, alive_list, did_you_mean
+from cmion_mesh.errors import ConfigError, MeshError, NotAlive
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.record import EVENT_SCHEMA, Recorded, RecordingReader
 
 #: Longest single sleep between two events: a stop request is seen within it.
 SLEEP_SLICE = 0.25
+#: After a first subscriber is known, how long the others' subscriptions have to arrive (they
+#: come a few milliseconds apart on one host: this leaves room for a LAN).
+SETTLE = 0.25
 
 _event_json = msgspec.json.Decoder(Event)
 
@@ -60,12 +67,44 @@ def events(reader: RecordingReader, filters: Sequence[str] = ()) -> Iterator[tup
     chunks below ``cmion/<mesh>/``."""
     patterns = [_relative(f) for f in filters]
     for message in reader.messages():
-        if message.schema != EVENT_SCHEMA or "*" in message.topic:
-            continue  # an overflow channel's topic is a pattern: its events are found by their fields below
-        rest = message.topic.split("/")[2:]
+        if message.schema != EVENT_SCHEMA:
+            continue
+        if "*" in message.topic:
+            # The overflow channel (a file with more event keys than ``record.MAX_CHANNELS``): its
+            # topic is a pattern, each event's key is made of its own fields.
+            try:
+                fields = _event_json.decode(message.data)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            rest = [fields.embodiment, keys.EVENTS, fields.component, fields.name]
+            if not all(keys.is_name(chunk) for chunk in rest):
+                continue
+        else:
+            rest = message.topic.split("/")[2:]
         if patterns and not any(keys.matches_chunks(p, rest) for p in patterns):
             continue
         yield message, rest
+
+
+def _alive(client: MeshClient, name: str) -> Callable[[float], bool]:
+    return lambda seconds: client.presence.wait(lambda names: name in names, seconds)
+
+
+def _until(ready: Callable[[float], bool], timeout: float, stop: threading.Event) -> bool | None:
+    """``ready(seconds)`` called for slices of ``timeout`` until it is True (True), ``stop`` is set
+    (None: Ctrl-C is not kept waiting for the whole join) or ``timeout`` has passed (False). A
+    ``ready`` that answers at once is asked again a slice later, not in a busy loop."""
+    deadline = time.monotonic() + timeout
+    for _ in range(1_000_000):  # bounded: each round waits a slice of what is left
+        began = time.monotonic()
+        part = max(0.0, min(deadline - began, SLEEP_SLICE))
+        if ready(part):
+            return True
+        if stop.wait(max(0.0, part - (time.monotonic() - began))):
+            return None
+        if time.monotonic() >= deadline:
+            return False
+    return False
 
 
 def replay(
@@ -79,7 +118,13 @@ def replay(
     stop = stop or threading.Event()
     stats = ReplayStats()
     for embodiment in wait_for:
-        client.wait_for_embodiment(embodiment, timeout=join_timeout)
+        alive = _until(_alive(client, embodiment), join_timeout, stop)
+        if alive is None:
+            return stats
+        if not alive:
+            seen = client.presence.alive()
+            raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {client.mesh!r} within {join_timeout:g} s "
+                           f"(alive: {alive_list(seen)}){did_you_mean(embodiment, seen)}")
     started = time.monotonic()
     first_log: int | None = None
     transport = client.transport
@@ -94,7 +139,10 @@ def replay(
                 continue
             key = "/".join((keys.ROOT, client.mesh, *rest))
             if first_log is None:
-                stats.listened = transport.wait_subscribers(key, join_timeout)
+                listened = _until(functools.partial(transport.wait_subscribers, key), join_timeout, stop)
+                if listened is None or (listened and stop.wait(SETTLE)):
+                    break
+                stats.listened = listened
                 if not stats.listened and warn is not None:
                     warn(f"replay: nobody in mesh {client.mesh!r} subscribes to {key} (waited {join_timeout:g} s); "
                          "publishing anyway")

@@ -5,7 +5,8 @@ Keys: one that starts with ``cmion/`` (or ``/``, which is dropped) is absolute, 
 expression; any other is relative to the mesh: ``robot/ev/**`` is ``cmion/<mesh>/robot/ev/**``,
 ``**`` is everything the mesh publishes. A key expression with a chunk that starts with ``@``
 (``@alive/*``, ``@competency/robot/**``) names liveliness tokens, watched as they appear and go
-(zenoh's ``**`` never matches such a chunk). What is seen is what is *published*: events, storage
+(zenoh's ``**`` never matches such a chunk); ``@outcome`` is the exception: requests' answers are
+published there (``*/@outcome/**``). What is seen is what is *published*: events, storage
 changes, liveliness; requests are queries, which zenoh hands to queryables, not to subscribers.
 
 Times are taken when a sample reaches the subscription's worker (``time.monotonic``), as
@@ -54,7 +55,9 @@ def resolve(mesh: str, key: str) -> str:
 
 
 def is_liveliness(expression: str) -> bool:
-    return any(chunk.startswith("@") for chunk in expression.split("/"))
+    """Whether ``expression`` names liveliness tokens: a chunk starts with ``@``, except ``@outcome``,
+    where requests' answers are *published* (``keys.OUTCOMES``)."""
+    return any(chunk.startswith("@") and chunk != keys.OUTCOMES for chunk in expression.split("/"))
 
 
 @dataclass(frozen=True, slots=True)

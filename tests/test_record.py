@@ -11,15 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, make_reader
+from mcap.reader import make_reader
 
 from cmion_mesh import record
 from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import Timeline, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
-from cmion_mesh.messages import Event, encode
+from cmion_mesh.messages import Event, decode, encode
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.record import Recorder, RecordingReader
 from cmion_mesh.testing.wait import wait_for
@@ -137,14 +136,19 @@ def test_record_info_summarises_the_migrations(session: Session) -> None:
     journey = [(m["source"], m["target"], m["outcome"], len(m["steps"])) for m in summary["migrations"]]
     assert journey == [("robot", "screen", "succeeded", 4), ("screen", "phone", "succeeded", 4), ("phone", "robot", "succeeded", 4)]
     assert summary["duration"] > 0 and summary["messages"] == sum(summary["channels"].values())
+    # Described as they were when recording began: the companion on the robot, the others empty.
+    assert {n: d["inhabitant"] for n, d in summary["described"].items()} == {"robot": "spirit", "screen": "", "phone": ""}
     text = record.format_info(record.info(session.clean))
-    assert "migrations: 3" in text and "TRUNCATED" not in text
+    assert "migrations: 3" in text and "TRUNCATED" not in text and "inhabitant null" not in text
+    assert "inhabitant -" in text
 
 
 def test_a_killed_recorder_leaves_a_file_the_reader_opens(session: Session) -> None:
     got: list[dict[str, Any]] = []
-    with open(session.killed, "rb") as f, pytest.raises(McapError):  # the end: no footer, the file stops after its last chunk
-        for _, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+    with open(session.killed, "rb") as f:  # as any MCAP user opens a file
+        reader = make_reader(f)
+        assert reader.get_summary() is None  # the recorder never finished it: its open end names no summary
+        for _, channel, message in reader.iter_messages():
             if "/ev/" in channel.topic:
                 got.append(json.loads(message.data))
     steps = {ident(_builtins(e)) for e in session.seen if e.name == "MigrationStep"}
@@ -159,8 +163,15 @@ def test_replay_into_a_fresh_mesh_shows_a_listener_the_same_events(session: Sess
     recorded = events_in(session.clean)
     fresh = unique_mesh("replay")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with Daemon(cli_argv("events", "--json", "--mesh", fresh, "--listen", endpoint, "--no-multicast", "--count",
-                         str(len(recorded)), "--join-timeout", "0.1"), name="listener") as listener:
+    # As in a mesh with daemons: the replay reaches another subscriber first (this hub, which it
+    # connects to, as a daemon that follows the mesh), and the listener only through gossip, over a
+    # link of its own.
+    first = recorded[0]
+    first_key = f"cmion/{fresh}/{first['embodiment']}/ev/{first['component']}/{first['name']}"
+    with ZenohTransport(TransportConfig(listen=(endpoint,), multicast=False)) as hub, hub.subscribe(first_key, lambda _: None), \
+            Daemon(cli_argv("events", "--json", "--mesh", fresh, "--connect", endpoint, "--no-multicast", "--count",
+                            str(len(recorded)), "--join-timeout", "0.1"), name="listener") as listener:
+        assert hub.wait_subscribers(f"cmion/{fresh}/nobody/ev/only/TheListener", 30), "the listener subscribes"
         replay = subprocess.run(cli_argv("replay", str(session.clean), "--mesh", fresh, "--connect", endpoint, "--no-multicast",
                                          "--rate", "20", "--join-timeout", "20", "--json"),
                                 capture_output=True, text=True, timeout=120)
@@ -186,6 +197,56 @@ def test_replay_filters_and_rejects_a_bad_rate(session: Session, tmp_path: Path)
             replay(MeshClient(t, "fresh"), session.clean, rate=-1)
 
 
+@pytest.mark.parametrize("waiting_for", ["a subscriber", "an embodiment"])
+def test_replay_stops_at_once_while_it_waits_to_join(session: Session, waiting_for: str) -> None:
+    """Ctrl-C (``stop``) ends replay's join wait at once, not when --join-timeout has passed."""
+    import threading
+
+    from cmion_mesh.replay import replay
+
+    with MemoryTransport(MemoryNetwork(), "replay") as t:
+        client = MeshClient(t, "empty")
+        waiting = threading.Event()
+        if waiting_for == "a subscriber":
+            wait = t.wait_subscribers
+            t.wait_subscribers = lambda key, timeout: (waiting.set(), wait(key, timeout))[-1]  # type: ignore[method-assign]
+        else:
+            wait_alive = client.presence.wait
+            client.presence.wait = lambda predicate, timeout: (waiting.set(), wait_alive(predicate, timeout))[-1]  # type: ignore[method-assign]
+        stop = threading.Event()
+        done: list[Any] = []
+        worker = threading.Thread(target=lambda: done.append(replay(client, session.clean, join_timeout=120, stop=stop,
+                                                                    wait_for=["robot"] if waiting_for == "an embodiment" else ())))
+        worker.start()
+        assert waiting.wait(30), "replay waits to join"
+        stop.set()
+        worker.join(10)
+        assert not worker.is_alive(), "still waiting after the stop"
+    assert done[0].published == 0
+
+
+def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past ``MAX_CHANNELS`` event keys, events share one channel whose topic is a pattern; replay
+    still publishes each on its own key."""
+    from cmion_mesh.replay import replay
+
+    monkeypatch.setattr(record, "MAX_CHANNELS", 2)
+    network = MemoryNetwork()
+    sent = [Event("robot", "c", f"E{i}", {"i": i}, i, 1.0 + i) for i in range(5)]
+    with MemoryTransport(network, "mesh") as t, Recorder(t, "m", tmp_path / "o.mcap") as recorder:
+        for event in sent:
+            t.publish(f"cmion/m/robot/ev/c/{event.name}", encode(event))
+        wait_for(lambda: _count(recorder) == 5, 10, "five events written")
+    assert "cmion/m/*/ev/**" in record.info(tmp_path / "o.mcap")["channels"]
+    heard: list[tuple[str, Event]] = []
+    with MemoryTransport(network, "listener") as listener_t, MemoryTransport(network, "replay") as replay_t, \
+            listener_t.subscribe("cmion/fresh/**", lambda s: heard.append((s.key, decode(s.payload, Event)))):
+        stats = replay(MeshClient(replay_t, "fresh"), tmp_path / "o.mcap", rate=0)
+        wait_for(lambda: len(heard) == 5, 10, "five replayed events")
+    assert stats.published == 5
+    assert sorted(heard, key=lambda h: h[1].seq) == [(f"cmion/fresh/robot/ev/c/{e.name}", e) for e in sent]
+
+
 def test_answers_are_told_only_while_someone_listens() -> None:
     from cmion_mesh import keys
     from cmion_mesh.ion import Component, Simulation, send_request
@@ -208,7 +269,10 @@ def test_answers_are_told_only_while_someone_listens() -> None:
         key = keys.request_key("m", "robot", "asked", "describe")
         assert send_request(tool_t, key, Describe()).status == "accepted"
         assert not [k for k in published if "@outcome" in k], "nobody listens: nothing told"
-        with tool_t.subscribe(keys.outcome_pattern("m"), lambda s: told.append(decode(s.payload, RequestAnswered))):
+        # What `cmion-mesh echo '*/@outcome/**'` does: a subscription (not a liveliness watch).
+        from cmion_mesh.tap import Tap, resolve
+
+        with Tap(tool_t, resolve("m", "*/@outcome/**"), lambda seen: told.append(decode(seen.payload, RequestAnswered))):
             assert send_request(tool_t, key, Describe()).status == "accepted"
             assert send_request(tool_t, keys.request_key("m", "robot", "asked", "nothing"), Describe()).status == "rejected"
             wait_for(lambda: len(told) == 2, 10, "two answers told")
@@ -264,6 +328,46 @@ def test_split_by_size_makes_parts_that_each_open(tmp_path: Path) -> None:
         assert not summary["truncated"]
         ticks += [e["data"]["i"] for e in events_in(Path(path))]
     assert ticks == list(range(200))
+
+
+def test_what_a_killed_recorder_leaves_opens_in_any_mcap_reader(tmp_path: Path) -> None:
+    """The file as it is on disk while the recorder runs is what SIGKILL leaves: after each write,
+    a valid MCAP file with no summary; cut in the middle of a write, readable up to its last chunk."""
+    live = tmp_path / "live.mcap"
+    with MemoryTransport(MemoryNetwork(), "mesh") as t, Recorder(t, "m", live, flush_interval=0.01) as recorder:
+        for i in range(30):
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": i}, i, 1.0)))
+        wait_for(lambda: len(events_in(live)) == 30, 10, "the ticks on disk")
+        left = live.read_bytes()
+        assert recorder.stats.messages == 30
+    (tmp_path / "killed.mcap").write_bytes(left)
+    with open(tmp_path / "killed.mcap", "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is None
+        assert [json.loads(m.data)["data"]["i"] for _, _, m in reader.iter_messages()] == list(range(30))
+    summary = record.info(tmp_path / "killed.mcap")
+    assert summary["truncated"] and summary["messages"] >= 30
+    (tmp_path / "cut.mcap").write_bytes(left[: len(left) - len(record.OPEN_END) - 5])  # killed while writing
+    cut = record.info(tmp_path / "cut.mcap")
+    assert cut["truncated"] and cut["mesh"] == "m"
+    # Closed, the file has its real end: a summary, nothing of an open end left after it.
+    assert not record.info(live)["truncated"]
+    with open(live, "rb") as f:
+        assert make_reader(f).get_summary() is not None
+
+
+def test_a_split_recording_makes_no_empty_part(tmp_path: Path) -> None:
+    """A part past its size starts a new one with the next message only: none came, none made."""
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.01) as recorder:
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: len(events_in(tmp_path / "q-0000.mcap")) == 1, 10, "the tick on disk")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
+            wait_for(lambda: len(recorder.stats.files) == 2 and len(events_in(tmp_path / "q-0001.mcap")) == 1, 10,
+                     "the second tick in a second part")
+        files = recorder.stats.files
+    assert [Path(f).name for f in files] == ["q-0000.mcap", "q-0001.mcap"]
+    assert [len(events_in(Path(f))) for f in files] == [1, 1]
 
 
 def test_bad_input_is_named(tmp_path: Path) -> None:

@@ -23,6 +23,8 @@ def test_keys_are_relative_to_the_mesh_unless_absolute() -> None:
     assert resolve("m", "cmion/other/robot/bb/**") == "cmion/other/robot/bb/**"
     assert resolve("m", "/demo/raw/*") == "demo/raw/*"
     assert is_liveliness(resolve("m", "@alive/*")) and not is_liveliness(resolve("m", "robot/**"))
+    # Requests' answers are published under @outcome (a verbatim chunk), not liveliness tokens.
+    assert not is_liveliness(resolve("m", "*/@outcome/**")) and is_liveliness(resolve("m", "@custody/**"))
     for bad in ("robot//ev", "", "robot/ev?x", "a b"):
         with pytest.raises(InvalidName):
             resolve("m", bad)
