@@ -872,7 +872,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     stop = Interrupter()  # before any thread: interrupted or terminated, the demo still stops its daemons
     from cmion_mesh.demo import run_demo
 
-    return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait)
+    return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait, record=args.record)
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
@@ -1297,6 +1297,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: a fresh one)")
     p.add_argument("--web", action="store_true",
                    help="the screen and the phone serve their pages (addresses printed): answer the companion on the screen's page")
+    p.add_argument("--record", metavar="FILE", help="record the demo's mesh to this MCAP file (as `record` does; "
+                                                      "never overwritten): read it with `record info FILE` or replay it")
     p.set_defaults(func=cmd_demo)
     if not sub.found:
         return build_parser(None)

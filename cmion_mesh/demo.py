@@ -28,16 +28,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import MeshError
+from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Event, MindState
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import TransportConfig
 from cmion_mesh.zenoh_transport import ZenohTransport
+
+if TYPE_CHECKING:
+    from cmion_mesh.record import Recorder
 
 BODIES = ("robot", "screen", "phone")
 COMPANION = "spirit"
@@ -204,12 +207,33 @@ def _react(client: MeshClient, scenario: Scenario, tl: Timeline, event: Event, p
     return False
 
 
-def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None) -> int:
+def _record(client: MeshClient, path: str, stack: contextlib.ExitStack) -> Recorder:
+    """A recorder of the demo's mesh, closed by ``stack`` at the latest, with the three bodies
+    described in its file. Describing them also joins: their answers come after they learnt of
+    the recorder's subscriptions (one link, in order), so nothing of the story is missed."""
+    from cmion_mesh.record import Recorder
+
+    recorder = stack.enter_context(Recorder(client.transport, client.mesh, path, overwrite=False))
+    described: list[dict[str, Any]] = []
+
+    def all_described() -> bool:
+        described[:] = client.describe_all(timeout=1.0)
+        return len(described) == len(BODIES)
+
+    wait_for(all_described, 30, "the three embodiments described")
+    recorder.describe(described)
+    return recorder
+
+
+def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None,
+             record: str | None = None) -> int:
     """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons).
     ``web``: with the pages (see the module's doc); ``wait`` blocks until the person is done looking
-    (the command line's Ctrl-C)."""
+    (the command line's Ctrl-C); ``record``: an MCAP file to record the demo's mesh into (``record``)."""
     tl = Timeline()
     mesh = mesh if mesh and mesh != keys.DEFAULT_MESH else unique_mesh("demo")
+    if record is not None and Path(record).exists():  # refused before any daemon starts
+        raise ConfigError("exists already: not overwritten (another name)", path=record)
     serve = ("--web", "127.0.0.1:0")
     with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state, contextlib.ExitStack() as stack:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
@@ -219,6 +243,9 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
             config = TransportConfig(connect=tuple(scenario.endpoints.values()), multicast=False)
             with ZenohTransport(config) as transport:
                 client = MeshClient(transport, mesh)
+                if record is not None:
+                    recorder = _record(client, record, stack)
+                    tl.say(f"recording mesh {mesh!r} to {record}")
                 if web:
                     for name, address in web_pages(scenario, stack).items():
                         tl.say(f"{name}: {address}")
@@ -235,6 +262,11 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
                 tl.say(f"back on the robot; it remembers the visit: {GUEST} {facts}; {sum(kinds.values())} episodes ({episodes})")
                 hosts = [h.embodiment for h in scenario.hops]
                 tl.say(f"journey: robot -> {' -> '.join(hosts)}; exactly one embodiment inhabited at every step")
+                if record is not None:
+                    recorder.close()
+                    stats = recorder.stats
+                    tl.say(f"recorded {stats.messages} messages to {record}" + (f"; DROPPED {stats.dropped}" if stats.dropped else "")
+                           + f" (cmion-mesh record info {record})")
                 if web and wait is not None:
                     tl.say("the pages stay open until Ctrl-C")
                     with contextlib.suppress(KeyboardInterrupt):  # a Ctrl-C just before the wait is the same stop

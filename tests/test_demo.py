@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
@@ -50,11 +51,24 @@ def test_spirit_of_the_building(tmp_path: Path, mesh: str) -> None:
     assert any("goal 'welcome Guest' achieved" in line for line in lines)
 
 
-def test_demo_command_runs_and_ends_by_itself() -> None:
-    result = subprocess.run(cli_argv("demo"), capture_output=True, text=True, timeout=150, stdin=subprocess.DEVNULL)
+def test_demo_command_runs_and_ends_by_itself_recording_its_mesh(tmp_path: Path) -> None:
+    recording = tmp_path / "demo.mcap"
+    result = subprocess.run(cli_argv("demo", "--record", str(recording)), capture_output=True, text=True, timeout=150,
+                            stdin=subprocess.DEVNULL)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "journey: robot -> screen -> phone -> robot" in result.stdout
     assert result.stdout.rstrip().endswith("done")
+    # The recording holds the story the demo told: three migrations, each with its four steps.
+    summary = json.loads(subprocess.run(cli_argv("record", "info", str(recording), "--json"), capture_output=True, text=True,
+                                        timeout=60, check=True).stdout)
+    assert not summary["truncated"] and summary["embodiments"] == ["phone", "robot", "screen"], summary
+    hops = [(m["source"], m["target"], m["outcome"], len(m["steps"])) for m in summary["migrations"]]
+    assert hops == [("robot", "screen", "succeeded", 4), ("screen", "phone", "succeeded", 4), ("phone", "robot", "succeeded", 4)]
+    assert f"recorded {summary['messages']} messages to {recording}" in result.stdout
+    # A recording is evidence: a second demo refuses to write over it, before starting anything.
+    again = subprocess.run(cli_argv("demo", "--record", str(recording)), capture_output=True, text=True, timeout=60,
+                           stdin=subprocess.DEVNULL)
+    assert again.returncode == 2 and "exists already" in again.stderr and "starting" not in again.stdout, again
 
 
 def processes_naming(text: str) -> list[int]:
