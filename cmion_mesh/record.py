@@ -252,6 +252,8 @@ class _Part:
     def __init__(self, path: Path, meta: dict[str, dict[str, str]], *, exclusive: bool = False) -> None:
         self.path = path
         self.started = time.monotonic()
+        if path.is_dir():
+            raise ConfigError("is a folder: name the recording's file (-o FOLDER/name.mcap)", path=str(path))
         try:
             self._stream: IO[bytes] = open(path, "xb" if exclusive else "wb")  # noqa: SIM115  (closed by close())
         except FileExistsError:

@@ -392,3 +392,5 @@ def test_a_recording_is_never_overwritten_unless_asked(tmp_path: Path) -> None:
         with Recorder(t, "m", tmp_path / "kept.mcap", overwrite=True):
             pass
     assert not record.info(tmp_path / "kept.mcap")["truncated"]
+    with MemoryTransport(MemoryNetwork(), "mesh") as t, pytest.raises(ConfigError, match="is a folder"):
+        Recorder(t, "m", tmp_path, overwrite=True)
