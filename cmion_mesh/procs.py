@@ -14,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import os
 import queue
+import random
 import signal
 import socket
 import subprocess
@@ -27,12 +28,44 @@ from collections.abc import Callable, Sequence
 PR_SET_PDEATHSIG = 1
 
 
+#: Where ``free_port`` looks first, below the kernel's ephemeral range (see ``_ephemeral_floor``).
+_PORTS_FROM = 20000
+#: Ports ``free_port`` handed out in this process, never handed out again by it.
+_handed_out: set[int] = set()
+_ports = random.Random()  # seeded per process: two processes try different ports first
+
+
+def _ephemeral_floor() -> int:
+    """The lowest port the kernel gives to outgoing connections and to binds on port 0."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    """A TCP port on 127.0.0.1 that was free a moment ago, for a process about to listen on it.
+
+    Chosen below the kernel's ephemeral range where there is one: a port from that range can be
+    taken meanwhile by any outgoing connection (every zenoh session that links to a peer takes
+    one), and a daemon starting 0.2 s later then fails with "Address already in use"."""
+    floor = _ephemeral_floor()
+    for _ in range(64 if floor > _PORTS_FROM else 0):
+        port = _ports.randrange(_PORTS_FROM, floor)
+        if port in _handed_out:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+        chosen: int = s.getsockname()[1]
+        return chosen
 
 
 def unique_mesh(prefix: str = "t") -> str:

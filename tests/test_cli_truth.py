@@ -186,7 +186,8 @@ def test_act_against_a_daemon_killed_mid_action_ends_at_once_with_4(bodies: Scen
     with victim:
         line = victim.wait_line("up in mesh", 30)
         assert any("companion 'spirit' already lives on 'robot': it is not born here" in x for x in victim.lines), line
-        assert run_cli("wm", "set", "victim", "Lab/travelSteps", "100000", *net(bodies))[0] == 0
+        wrote = run_cli("wm", "set", "victim", "Lab/travelSteps", "100000", *net(bodies))
+        assert wrote[0] == 0, wrote
         act = Daemon(cli_argv("act", "victim", "GoTo", "Lab", *net(bodies)), name="act")
         with act, client_of(bodies) as client:
             wait_for(lambda: bb_value(client, "victim", "navigation", "state") == "moving", 20, "the trip started")
