@@ -28,14 +28,14 @@ from collections.abc import Callable, Sequence
 PR_SET_PDEATHSIG = 1
 
 
-#: Where ``free_port`` looks first, below the kernel's ephemeral range (see ``_ephemeral_floor``).
-_PORTS_FROM = 20000
+#: Where ``free_port`` looks first, below the kernel's ephemeral range (see ``ephemeral_floor``).
+PORTS_FROM = 20000
 #: Ports ``free_port`` handed out in this process, never handed out again by it.
 _handed_out: set[int] = set()
 _ports = random.Random()  # seeded per process: two processes try different ports first
 
 
-def _ephemeral_floor() -> int:
+def ephemeral_floor() -> int:
     """The lowest port the kernel gives to outgoing connections and to binds on port 0."""
     try:
         with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
@@ -50,9 +50,9 @@ def free_port() -> int:
     Chosen below the kernel's ephemeral range where there is one: a port from that range can be
     taken meanwhile by any outgoing connection (every zenoh session that links to a peer takes
     one), and a daemon starting 0.2 s later then fails with "Address already in use"."""
-    floor = _ephemeral_floor()
-    for _ in range(64 if floor > _PORTS_FROM else 0):
-        port = _ports.randrange(_PORTS_FROM, floor)
+    floor = ephemeral_floor()
+    for _ in range(64 if floor > PORTS_FROM else 0):
+        port = _ports.randrange(PORTS_FROM, floor)
         if port in _handed_out:
             continue
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -157,9 +157,9 @@ def test_a_sigkilled_demo_style_parent_leaves_no_daemon() -> None:
 def test_free_ports_come_from_below_the_range_outgoing_connections_take() -> None:
     """A port handed to a daemon about to listen must not be one that any outgoing connection can
     take before the daemon binds it (a test's daemon then failed: "Address already in use")."""
-    floor = procs._ephemeral_floor()
-    if floor <= procs._PORTS_FROM:
+    floor = procs.ephemeral_floor()
+    if floor <= procs.PORTS_FROM:
         pytest.skip(f"no room below this kernel's ephemeral range (from {floor})")
     ports = [procs.free_port() for _ in range(50)]
     assert len(set(ports)) == 50, "never the same port twice"
-    assert all(procs._PORTS_FROM <= port < floor for port in ports), (floor, ports)
+    assert all(procs.PORTS_FROM <= port < floor for port in ports), (floor, ports)
