@@ -158,9 +158,14 @@ class MeshClient:
         """Return once ``embodiment`` is alive as seen from here, however long it takes to start
         (``join`` instead says at once that it is not alive); ``NotAlive`` after ``timeout``."""
         if not self.presence.wait(lambda alive: embodiment in alive, timeout):
-            alive = self.presence.alive()
-            raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
-                           f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
+            raise self.not_alive(embodiment, timeout)
+
+    def not_alive(self, embodiment: str, timeout: float) -> NotAlive:
+        """The error for ``embodiment`` not alive after ``timeout`` s: it names those alive, and a
+        close name when there is one."""
+        alive = self.presence.alive()
+        return NotAlive(f"embodiment {embodiment!r} not alive in mesh {self.mesh!r} within {timeout:g} s "
+                        f"(alive: {alive_list(alive)}){did_you_mean(embodiment, alive)}")
 
     def reported_alive(self, asked: Iterable[str], deadline: float) -> set[str]:
         """The embodiments that the daemons ``asked`` see alive (those that answer before ``deadline``)."""

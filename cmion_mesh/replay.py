@@ -28,8 +28,8 @@ from pathlib import Path
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.client import MeshClient, alive_list, did_you_mean
-from cmion_mesh.errors import ConfigError, MeshError, NotAlive
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.record import EVENT_SCHEMA, Recorded, RecordingReader
 
@@ -122,9 +122,7 @@ def replay(
         if alive is None:
             return stats
         if not alive:
-            seen = client.presence.alive()
-            raise NotAlive(f"embodiment {embodiment!r} not alive in mesh {client.mesh!r} within {join_timeout:g} s "
-                           f"(alive: {alive_list(seen)}){did_you_mean(embodiment, seen)}")
+            raise client.not_alive(embodiment, join_timeout)
     started = time.monotonic()
     first_log: int | None = None
     transport = client.transport
