@@ -254,6 +254,7 @@ class Embodiment:
             "version": self.version,
             "started_at": self.started_at,
             "zenoh_id": self.transport.id,
+            "publications_dropped": self.transport.dropped_publications,
         }
 
     def standins(self) -> list[dict[str, Any]]:

@@ -20,8 +20,10 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
   ``request_catalogue()`` as value: a query on ``.../rq/**`` is answered by every component.
 * ``start()`` runs updates on a thread of the simulation's own; a simulation that is not started
   is stepped by its owner with ``run_once()`` (deterministic tests).
-* Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control);
-  requests are zenoh queries on ``.../rq/<component>/<request>``. Local events and requests
+* Events are zenoh publications on ``.../ev/<component>/<event>`` (blocking congestion control,
+  handed to the transport's publisher thread: raising one never waits for the network, so a
+  subscriber that stops reading stalls no update); requests are zenoh queries on
+  ``.../rq/<component>/<request>``. Local events and requests
   between components of one simulation are delivered directly, in order, and still published.
   A remote event reaches each subscription whose pattern its key matches once (each ``on_event``
   has its own zenoh subscriber), and only if its fields name the key it was published on.
@@ -505,7 +507,7 @@ class Simulation:
         event = Event(embodiment, component, name, data, next(self._seq), time.time())
         self._events.append((event, key, None))
         try:
-            self.transport.publish(key, encode(event))  # encoded once, whoever subscribes
+            self.transport.publish(key, encode(event))  # encoded once, whoever subscribes; queued, never waits
         except MeshError as exc:
             log.warning("could not publish %s: %s", key, exc)
 

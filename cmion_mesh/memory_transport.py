@@ -162,6 +162,10 @@ class MemoryTransport:
         if self._closed:
             raise ClosedError(f"transport {self._id} is closed")
 
+    @property
+    def dropped_publications(self) -> int:
+        return 0  # delivered at once, into unbounded queues
+
     def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
         self._deliver(Sample(key, payload, False, attachment))
 

@@ -9,6 +9,10 @@ they may call the transport, but they should hand long work on to a queue. ``sub
 hands over everything that has arrived by the time its worker looks, in order, as one list: the
 thread hop after it is paid once per batch, not once per sample.
 
+Blocking publications (``publish`` with ``block``, ``delete``) never make their caller wait for
+the network: they are sent in order by a thread of the transport, so that a subscriber that stops
+reading delays no update loop (see ``outbox``). A refusal found then is logged, not raised.
+
 Error contract: every method of a transport, and ``reply``/``reply_err``/``finish`` of an
 ``IncomingQuery``, raises only
 
@@ -161,10 +165,19 @@ class Transport(Protocol):
     def id(self) -> str: ...
 
     def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
-        """Publish. ``block`` = wait rather than drop under congestion (events, changes);
+        """Publish. ``block`` (events, changes): a subscriber that reads gets it, however long the
+        network makes it wait; the caller never waits: it is queued, in order, for the transport's
+        publisher thread (``outbox``), and dropped and counted (``dropped_publications``) only when
+        that queue is full. ``block=False``: sent now, dropped for a subscriber whose link is full.
         ``attachment`` travels beside the payload (rmw_zenoh requires one on every ROS 2 sample)."""
 
-    def delete(self, key: str) -> None: ...
+    def delete(self, key: str) -> None:
+        """A delete on ``key``, queued as a blocking publication is (after those before it)."""
+
+    @property
+    def dropped_publications(self) -> int:
+        """Blocking publications and deletes dropped so far because they could not be sent in time
+        (the publisher's queue was full, or the transport closed while they waited)."""
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
                   attachments: bool = False) -> Closeable:

@@ -6,6 +6,12 @@ Workers end when their channel closes (undeclare or session close). A subscriber
 everything its channel holds when it looks (``subscribe_batches``): under load, the handler and
 the hop that follows it run once per batch rather than once per sample.
 
+Blocking publications and deletes go the other way through one thread of their own (an
+``outbox.Outbox``): zenoh makes a blocking put wait while any subscriber's link is full, and the
+update loop must not wait for a subscriber that stopped reading. zenoh gives such a link up after
+``CONGESTED_LINK_WAIT_US`` rather than its default 5 s, so that the other subscribers' events wait
+that long at most behind it.
+
 Errors are mapped at this boundary and nowhere else: every call into zenoh runs inside
 ``_zenoh_errors``, so what escapes is what ``transport.Transport`` documents - ``ClosedError``
 after ``close()``, ``TransportError`` (naming the operation and key) for whatever zenoh refused,
@@ -25,6 +31,7 @@ from typing import Any
 import zenoh
 
 from cmion_mesh.errors import ClosedError, ConfigError, TransportError
+from cmion_mesh.outbox import Outbox
 from cmion_mesh.transport import (
     MAX_BATCH,
     BatchHandler,
@@ -44,6 +51,8 @@ log = logging.getLogger(__name__)
 #: Channel depth for events and queries: deep enough to absorb bursts; a full channel makes
 #: zenoh apply back-pressure (blocking congestion control) rather than drop.
 CHANNEL_CAPACITY = 4096
+#: Keys with a declared publisher (and keys checked) kept at most; cleared when full.
+MAX_PUBLISHERS = 4096
 _ALL = zenoh.QueryTarget.ALL
 _NONE = zenoh.ConsolidationMode.NONE
 
@@ -77,7 +86,10 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
             raise ConfigError(f"invalid zenoh config: {exc}", path=str(path)) from None
     else:
         zc = zenoh.Config()
+    own_wait = cfg.config_file is not None and zc.get_json(CONGESTED_LINK_KEY) != zenoh.Config().get_json(CONGESTED_LINK_KEY)
     for key, raw in settings(cfg):
+        if key == CONGESTED_LINK_KEY and own_wait:
+            continue
         try:
             zc.insert_json5(key, raw)
         except zenoh.ZError as exc:
@@ -92,10 +104,20 @@ def build_config(cfg: TransportConfig) -> zenoh.Config:
 #: wait for the mesh's tokens themselves, so nothing relies on ``open`` having waited.
 SCOUT_WAIT_MS = 50
 
+#: How long a blocking publication (or a reply, a declaration) waits for room on a link whose
+#: queue is full before zenoh gives that link up (closes it; the peer may connect again). zenoh's
+#: default is 5 s: that long, every publication of the session stood behind one subscriber that
+#: stopped reading, each time it did. A link that takes no batch (64 KiB) in half a second does
+#: not keep up with this session; a reader that merely paused for less loses nothing. The outbox
+#: (``outbox``) keeps the update loop from waiting at all; this bounds how long the other
+#: subscribers' events wait behind the stuck one. A zenoh file that sets its own value keeps it.
+CONGESTED_LINK_WAIT_US = 500_000
+CONGESTED_LINK_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+
 
 def settings(cfg: TransportConfig) -> list[tuple[str, str]]:
     """The zenoh settings (key, JSON5 value) ``build_config`` puts on top of the file or defaults."""
-    values: list[tuple[str, Any]] = [("mode", cfg.mode)]
+    values: list[tuple[str, Any]] = [("mode", cfg.mode), (CONGESTED_LINK_KEY, CONGESTED_LINK_WAIT_US)]
     if not cfg.config_file:  # a user's zenoh file keeps its own scouting delay
         values.append(("scouting/delay", SCOUT_WAIT_MS))
     if cfg.connect:
@@ -280,7 +302,9 @@ class ZenohTransport:
         self._entities: list[_Entity] = []
         self._lock = threading.Lock()
         self._closed = False
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}  # the outbox's thread's own
+        self._checked: set[str] = set()  # keys zenoh took: checked once, not per publication
+        self._outbox = Outbox(self._send, name="publisher")
 
     @property
     def id(self) -> str:
@@ -305,39 +329,53 @@ class ZenohTransport:
         return entity
 
     def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
-        if attachment is not None:
-            with self._errors(f"publish {key}"):
-                congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-                self._session.put(key, payload, congestion_control=congestion, attachment=attachment)
+        if block:
+            self._outbox_put(key, payload, attachment)
             return
-        pub = self._publishers.get(key) if block else None
-        if pub is not None:  # the hot path: an event or change on a key published before
-            try:
-                pub.put(payload)
-                return
-            except zenoh.ZError as exc:
-                raise _mapped(f"publish {key}", exc, self._closed) from None
         with self._errors(f"publish {key}"):
-            if not block:
+            if attachment is None:
                 self._session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP)
-                return
-            # A declared publisher per key keeps routing state warm for repeated events.
-            pub = self._publishers.get(key)
-            if pub is None:
-                with self._lock:
-                    pub = self._publishers.get(key)
-                    if pub is None:
-                        if len(self._publishers) > 4096:
-                            self._publishers.clear()
-                        pub = self._session.declare_publisher(
-                            key, congestion_control=zenoh.CongestionControl.BLOCK
-                        )
-                        self._publishers[key] = pub
-            pub.put(payload)
+            else:
+                self._session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, attachment=attachment)
 
     def delete(self, key: str) -> None:
-        with self._errors(f"delete {key}"):
-            self._session.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._outbox_put(key, None, None)
+
+    def _outbox_put(self, key: str, payload: bytes | None, attachment: bytes | None) -> None:
+        """Hand a blocking publication to the outbox, its key checked here so that a key zenoh
+        refuses is the caller's ``TransportError``, not a line in the log."""
+        if self._closed:
+            raise ClosedError(f"publish {key}: the transport is closed")
+        if key not in self._checked:
+            with self._errors(f"publish {key}"):
+                zenoh.KeyExpr(key)
+            if len(self._checked) >= MAX_PUBLISHERS:
+                self._checked.clear()
+            self._checked.add(key)
+        self._outbox.put(key, payload, attachment)
+
+    def _send(self, key: str, payload: bytes | None, attachment: bytes | None) -> None:
+        """Send one blocking publication: on the outbox's thread only (it owns ``_publishers``)."""
+        block = zenoh.CongestionControl.BLOCK
+        try:
+            if payload is None:
+                self._session.delete(key, congestion_control=block)
+            elif attachment is not None:
+                self._session.put(key, payload, congestion_control=block, attachment=attachment)
+            else:
+                # A declared publisher per key keeps routing state warm for repeated events.
+                pub = self._publishers.get(key)
+                if pub is None:
+                    if len(self._publishers) >= MAX_PUBLISHERS:
+                        self._publishers.clear()
+                    pub = self._publishers[key] = self._session.declare_publisher(key, congestion_control=block)
+                pub.put(payload)
+        except zenoh.ZError as exc:
+            raise _mapped(f"publish {key}", exc, self._closed) from None
+
+    @property
+    def dropped_publications(self) -> int:
+        return self._outbox.dropped
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
                   attachments: bool = False) -> Closeable:
@@ -507,15 +545,18 @@ class ZenohTransport:
                 return
             self._closed = True
             entities, self._entities = self._entities, []
-            publishers, self._publishers = list(self._publishers.values()), {}
-        for pub in publishers:
-            try:
-                pub.undeclare()  # type: ignore[no-untyped-call]
-            except zenoh.ZError:
-                pass  # gone already: closing is all that was asked
+        # What is queued goes out first (a tool that publishes, then closes, loses nothing), while
+        # the session is still open; a link that takes nothing more is given up by zenoh meanwhile.
+        self._outbox.close()
+        if not self._outbox.sending:
+            for pub in self._publishers.values():
+                with contextlib.suppress(zenoh.ZError):  # gone already: closing is all that was asked
+                    pub.undeclare()  # type: ignore[no-untyped-call]
         for entity in entities:
             entity.close()
         try:
             self._session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError as exc:
             log.debug("closing the zenoh session: %s", exc)
+        self._outbox.join(5.0)  # a publication still waiting returned when the session closed
+        self._publishers.clear()
