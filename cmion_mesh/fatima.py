@@ -17,14 +17,19 @@ migrates) and ``sleeping`` (accepted; the migration manager decides when the min
 extensions: ``port:N`` (default 46874, or ``CMION_MESH_FATIMA_PORT`` when set; ``port:0`` takes a free port, written to the blackboard as
 ``<name>/port``), ``host:ADDR`` (default 127.0.0.1; ``host:0.0.0.0`` for every interface),
 ``name:N`` (the component's name, default ``fatima``), ``stop-wait:S`` (seconds between ``CMD Stop``
-and ``CMD GET-STATE``, default 0.5; CMION waited 2) and ``state-timeout:S`` (how long FAtiMA may
+and ``CMD GET-STATE``, default 0.5; CMION waited 2), ``state-timeout:S`` (how long FAtiMA may
 take to answer ``GET-STATE``/``SET-STATE``, default 4; with ``migrating``, the two must add up to
-less than the migration's ``SECTION_DEADLINE``). An unknown word is a configuration error.
+less than the migration's ``SECTION_DEADLINE``) and ``handshake-timeout:S`` (how long a new
+connection may take to send its handshake, default 5). An unknown word is a configuration error.
 
 **Connections.** One mind at a time: while one is connected, another connection is refused
 (closed at once, with a warning naming both peers, once per host and ``REFUSED_LOG_INTERVAL``);
 when the connected mind's socket closes, the next connection is accepted. The first line must be
-a handshake (``parse_handshake``). Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at
+a handshake (``parse_handshake``), of at most ``MAX_HANDSHAKE_LINE`` bytes, within
+``handshake-timeout`` (``HANDSHAKE_TIMEOUT``) seconds, or the connection is closed. Until then a
+connection is pending and holds nothing: the mind is the first to complete a handshake (the others
+pending are then closed), so a connection that sends a few bytes and stops keeps no mind out. At
+most ``MAX_PENDING`` wait at a time: one more closes the oldest. Lines are UTF-8 ending in ``\\n`` (``\\r\\n`` accepted), at
 most ``MAX_LINE`` bytes (a longer one closes the connection with an error naming the peer; one
 that is not UTF-8 is dropped and logged). Sockets are read and written by threads of their own:
 the update loop never waits for the mind. Both directions are bounded (``Link``): at most
@@ -104,6 +109,16 @@ MAX_IN_FLIGHT = 64
 MAX_QUEUED = 8 * 1024 * 1024
 #: Refused connections from one host are logged once in this many seconds (the others are counted).
 REFUSED_LOG_INTERVAL = 10.0
+#: Seconds a new connection has to send its handshake (its first line), by default (option
+#: ``handshake-timeout:S``): beyond, it is closed. Until its handshake a connection is only pending:
+#: it never holds the mind's place, so one that sends a few bytes and stops keeps nobody out.
+HANDSHAKE_TIMEOUT = 5.0
+#: Connections accepted and not yet handshaken at a time: one more closes the oldest of them (a
+#: mind sends its handshake as it connects, so it is the newest, and gets its turn).
+MAX_PENDING = 8
+#: Longest first line: a handshake is a few words, and a pending connection must not fill the
+#: memory with ``MAX_LINE`` bytes before saying who it is.
+MAX_HANDSHAKE_LINE = 64 * 1024
 #: Seconds before a held retry of a failed action is answered ``ACTION-FAILED``.
 HELD_ANSWER_DELAY = 1.0
 #: First and longest hold window of a failed action (seconds): retries within it do not run the rules.
@@ -133,6 +148,7 @@ class Options:
     name: str = "fatima"
     stop_wait: float = 0.5
     state_timeout: float = 4.0
+    handshake_timeout: float = HANDSHAKE_TIMEOUT
 
 
 _FLAGS = ("modular", "persistent", "migrating", "sleeping")
@@ -148,7 +164,7 @@ def parse_options(parameters: Sequence[str]) -> Options:
         if not sep:
             if key not in _FLAGS:
                 raise MeshError(f"unknown option {word!r} of the FAtiMA connector (known: {', '.join(_FLAGS)}, port:N, host:ADDR, "
-                                "name:N, stop-wait:S, state-timeout:S)")
+                                "name:N, stop-wait:S, state-timeout:S, handshake-timeout:S)")
             flags.add(key)
             continue
         try:
@@ -168,6 +184,11 @@ def parse_options(parameters: Sequence[str]) -> Options:
                 if not 0.0 <= seconds <= 600.0:
                     raise ValueError("not a number of seconds from 0 to 600")
                 values[key.replace("-", "_")] = seconds
+            elif key == "handshake-timeout":
+                seconds = float(raw)
+                if not 0.0 < seconds <= 600.0:  # 0 would close every connection before its handshake
+                    raise ValueError("not a number of seconds above 0, up to 600")
+                values["handshake_timeout"] = seconds
             else:
                 raise ValueError("unknown option")
         except ValueError as exc:
@@ -378,6 +399,7 @@ class Link:
         self.agent = ""
         self.handshaken = False
         self.connected_at = time.time()
+        self.handshake_timer: Timer | None = None  # the deadline of its handshake (loop)
         self._on_line = on_line
         self._on_closed = on_closed
         self._out: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
@@ -410,6 +432,11 @@ class Link:
     @property
     def open(self) -> bool:
         return not (self._closed.is_set() or self._dead.is_set())
+
+    @property
+    def closed(self) -> bool:
+        """``close`` was called (it may still be under way)."""
+        return self._closed.is_set()
 
     def send(self, line: str) -> None:
         if not self.open:
@@ -458,6 +485,7 @@ class Link:
     def _read(self) -> None:
         buffer = bytearray()
         searched = 0
+        limit = MAX_HANDSHAKE_LINE  # until the first line is handed on: then MAX_LINE
         why = "closed by the mind"
         try:
             while not self._closed.is_set():
@@ -470,7 +498,7 @@ class Link:
                 buffer += chunk
                 while True:
                     end = buffer.find(b"\n", searched)
-                    if end < 0 or end > MAX_LINE:
+                    if end < 0 or end > limit:
                         searched = len(buffer)
                         break
                     raw = bytes(buffer[:end])
@@ -487,10 +515,11 @@ class Link:
                         continue
                     if not self._hand_on(line):
                         break
+                    limit = MAX_LINE
                 if not self.open:
                     break  # closing: what is left was the mind's, for a loop that no longer wants it
-                if len(buffer) > MAX_LINE and buffer.find(b"\n", 0, MAX_LINE + 1) < 0:
-                    why = f"sent a line longer than {MAX_LINE} bytes"
+                if len(buffer) > limit and buffer.find(b"\n", 0, limit + 1) < 0:
+                    why = f"sent a line longer than {limit} bytes"
                     log.error("FAtiMA mind at %s %s: connection closed", self.peer, why)
                     buffer.clear()
                     break
@@ -543,7 +572,7 @@ class Listener:
         try:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             self.sock.bind((host, port))
-            self.sock.listen(4)
+            self.sock.listen(MAX_PENDING)
         except OSError as exc:
             self.sock.close()
             raise MeshError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
@@ -621,7 +650,10 @@ class FAtiMAConnector(Mind):
         self.listener: Listener | None = None
         self.link: Link | None = None  # the connected mind (loop)
         self._links_lock = threading.Lock()
-        self._accepted: Link | None = None  # the link the listener holds (accept thread, under the lock)
+        self._accepted: Link | None = None  # the handshaken mind the listener knows of (under the lock)
+        # Connections not yet handshaken, oldest first (under the lock): at most MAX_PENDING; one
+        # removed from here (timed out, pushed out, refused) can no longer become the mind.
+        self._pending: dict[Link, None] = {}
         self._running: dict[str, _Running] = {}
         self._outgoing: _Outgoing | None = None
         self._given: tuple[Link, str] | None = None  # the mind that gave its state to a migration, and the state
@@ -633,7 +665,9 @@ class FAtiMAConnector(Mind):
         # Facts the mind's semantic memory wrote into the world model: their change events are not
         # told back to the mind, which knows them ({(entity, property): (value as told, persistent)}).
         self._told: OrderedDict[tuple[str, str], tuple[str, bool]] = OrderedDict()
-        self._refused: dict[str, tuple[float, int]] = {}  # host -> (last logged, refusals not logged since) (accept thread)
+        # (host, what) -> (last logged, not logged since): for the warnings of ``_warn_limited``.
+        self._refused: dict[tuple[str, str], tuple[float, int]] = {}
+        self._refused_lock = threading.Lock()
 
     # --- life cycle (loop) --------------------------------------------------------------------------
 
@@ -659,6 +693,9 @@ class FAtiMAConnector(Mind):
             self.listener.close()
         with self._links_lock:
             link, self._accepted = self._accepted, None
+            pending, self._pending = list(self._pending), {}
+        for waiting in pending:
+            waiting.close()
         if link is not None:
             if link.handshaken and link.open:
                 link.send(SAVE_COMMAND)  # the body stops: the mind keeps what it learnt in its files
@@ -668,43 +705,61 @@ class FAtiMAConnector(Mind):
     def connection(self) -> dict[str, Any]:
         """For the embodiment's description: where it listens, which mind is connected, the counts."""
         link = self.link
+        with self._links_lock:
+            pending = len(self._pending)
         return {"protocol": "fatima", "listening": self.listener.address if self.listener is not None else None,
                 "connected": link is not None and link.handshaken, "peer": link.peer if link is not None else None,
                 "agent": link.agent if link is not None else None, "held_retries": self.gate.held_retries,
                 "lines_in_flight": link.in_flight if link is not None else 0,
-                "bytes_queued": link.queued if link is not None else 0, **self._counts}
+                "bytes_queued": link.queued if link is not None else 0, "pending": pending, **self._counts}
 
     # --- connections (accept thread -> loop) --------------------------------------------------------
 
     def _accept(self, conn: socket.socket, peer: str) -> None:
+        """A new connection: refused while a mind is connected, else pending until its handshake
+        (``_handshake``), its deadline (``_handshake_overdue``) or a newer one pushing it out."""
+        refused_by: str | None = None
+        pushed_out: Link | None = None
         with self._links_lock:
             current = self._accepted
             if current is not None and current.open:
-                self._log_refused(peer, current.peer)
-                conn.close()
-                return
-            link = Link(conn, peer, self._line_in, self._closed_in)
-            self._accepted = link
+                refused_by = current.peer
+            else:
+                pushed_out = next(iter(self._pending)) if len(self._pending) >= MAX_PENDING else None
+                if pushed_out is not None:
+                    del self._pending[pushed_out]
+                link = Link(conn, peer, self._line_in, self._closed_in)
+                self._pending[link] = None
+        if refused_by is not None:
+            self._warn_limited(peer, "refused", f"refused a connection from {peer}: the mind at {refused_by} is connected "
+                                                "(one mind at a time)")
+            conn.close()
+            return
+        if pushed_out is not None:
+            why = f"{MAX_PENDING} newer connections wait for theirs"
+            if not self.sim.post(functools.partial(self._drop_pending, pushed_out, why)):
+                pushed_out.close()
         if self.sim.post(functools.partial(self._connected, link)):
-            link.start()  # after the loop has it: its lines come after it
+            link.start()  # after the loop has it: its lines come after it, its deadline before them
         else:
             link.close()
 
-    def _log_refused(self, peer: str, connected: str) -> None:
-        """A warning per host and ``REFUSED_LOG_INTERVAL`` (a mind retrying in a loop must not flood
-        the log), saying how many refusals went unlogged since the last."""
+    def _warn_limited(self, peer: str, what: str, message: str) -> None:
+        """A warning per host, kind (``what``) and ``REFUSED_LOG_INTERVAL`` (a mind retrying in a
+        loop, or a host opening connection after connection, must not flood the log), saying how
+        many went unlogged since the last."""
         host = peer.rsplit(":", 1)[0]
         now = time.monotonic()
-        last, unlogged = self._refused.get(host, (-REFUSED_LOG_INTERVAL, 0))
-        if now - last < REFUSED_LOG_INTERVAL:
-            self._refused[host] = (last, unlogged + 1)
-            return
-        while len(self._refused) >= MAX_HELD:
-            del self._refused[next(iter(self._refused))]
-        self._refused[host] = (now, 0)
-        more = f" ({unlogged} more from {host} refused unlogged since the last warning)" if unlogged else ""
-        log.warning("FAtiMA connector %r: refused a connection from %s: the mind at %s is connected (one mind at a time)%s",
-                    self.name, peer, connected, more)
+        with self._refused_lock:
+            last, unlogged = self._refused.get((host, what), (-REFUSED_LOG_INTERVAL, 0))
+            if now - last < REFUSED_LOG_INTERVAL:
+                self._refused[(host, what)] = (last, unlogged + 1)
+                return
+            while len(self._refused) >= MAX_HELD:
+                del self._refused[next(iter(self._refused))]
+            self._refused[(host, what)] = (now, 0)
+        more = f" ({unlogged} more from {host} {what} unlogged since the last warning)" if unlogged else ""
+        log.warning("FAtiMA connector %r: %s%s", self.name, message, more)
 
     def _line_in(self, link: Link, line: str) -> None:
         if not self.sim.post(functools.partial(self._take_line, link, line)):
@@ -721,13 +776,36 @@ class FAtiMAConnector(Mind):
             link.close()
 
     def _connected(self, link: Link) -> None:
-        old = self.link
-        if old is not None and old is not link:  # its end was seen by the listener before its report came here
-            self._disconnected(old, "connection lost")
-        self.link = link
-        self._counts["connections"] += 1
+        """A pending connection (loop): its handshake is due within ``handshake_timeout``."""
+        if not link.closed:
+            link.handshake_timer = self.sim.call_later(self.options.handshake_timeout,
+                                                       functools.partial(self._handshake_overdue, link))
+
+    def _handshake_overdue(self, link: Link) -> None:
+        if not link.handshaken:
+            self._drop_pending(link, f"no handshake within {self.options.handshake_timeout:g} s")
+
+    def _is_pending(self, link: Link) -> bool:
+        with self._links_lock:
+            return link in self._pending
+
+    def _drop_pending(self, link: Link, why: str) -> None:
+        """Close a connection that has not handshaken (loop); said once, whatever closes it first."""
+        with self._links_lock:
+            self._pending.pop(link, None)
+        if link.handshake_timer is not None:
+            link.handshake_timer.cancel()
+            link.handshake_timer = None
+        if link.closed:
+            return
+        link.close()
+        self._warn_limited(link.peer, "closed before a handshake",
+                           f"closed the connection from {link.peer} before its handshake: {why}")
 
     def _disconnected(self, link: Link, why: str) -> None:
+        if not link.handshaken:
+            self._drop_pending(link, why)
+            return
         with self._links_lock:
             if self._accepted is link:
                 self._accepted = None
@@ -738,7 +816,7 @@ class FAtiMAConnector(Mind):
         if self._closing:
             return
         log.warning("FAtiMA mind %s at %s disconnected (%s); its %d running action(s) are cancelled",
-                    link.agent or "(before its handshake)", link.peer, why, len(self._running))
+                    link.agent, link.peer, why, len(self._running))
         self.raise_event("MindDisconnected", {"mind": self.name, "agent": link.agent, "peer": link.peer, "reason": why})
         self._blackboard(SetProperty(self.name, "connected", False))
         for action_id in list(self._running):
@@ -758,11 +836,10 @@ class FAtiMAConnector(Mind):
     # --- lines from the mind (loop) -----------------------------------------------------------------
 
     def _on_line(self, link: Link, line: str) -> None:
-        if link is not self.link:  # lines read before the mind left are still its lines
-            return
-        if not link.handshaken:
-            self._handshake(link, line)
-            return
+        if link is not self.link:
+            if not link.handshaken and self._is_pending(link):
+                self._handshake(link, line)
+            return  # else lines read before the connection was closed: nobody wants them now
         head, _, rest = line.strip().partition(" ")
         where = f"FAtiMA mind {link.agent} at {link.peer}"
         if head == "look-at":
@@ -784,9 +861,32 @@ class FAtiMAConnector(Mind):
         try:
             hello = parse_handshake(line)
         except MeshError as exc:
-            log.error("FAtiMA mind at %s: bad handshake: %s; connection closed", link.peer, exc)
-            self._disconnected(link, f"bad handshake: {exc}")
+            self._drop_pending(link, f"bad handshake: {exc}")
             return
+        with self._links_lock:
+            current = self._accepted
+            others: list[Link] = []
+            taken_by: str | None = None
+            if current is not None and current.open:
+                taken_by = current.peer  # a mind connected since this one was accepted
+                self._pending.pop(link, None)
+            else:
+                self._accepted = link
+                others = [other for other in self._pending if other is not link]
+                self._pending.clear()
+        if taken_by is not None:
+            self._drop_pending(link, f"the mind at {taken_by} is connected (one mind at a time)")
+            return
+        for other in others:  # the place is taken: they would be refused at their handshake
+            self._drop_pending(other, f"the mind at {link.peer} connected first (one mind at a time)")
+        if link.handshake_timer is not None:
+            link.handshake_timer.cancel()
+            link.handshake_timer = None
+        old = self.link
+        if old is not None:  # its end was seen by the listener before its report came here
+            self._disconnected(old, "connection lost")
+        self.link = link
+        self._counts["connections"] += 1
         link.agent = hello.agent
         link.handshaken = True
         link.send("OK")

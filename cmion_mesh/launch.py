@@ -18,6 +18,7 @@ SIGKILLed (``procs.child_setup``), so none is left running for ever.
 
 from __future__ import annotations
 
+import functools
 import os
 import queue
 import re
@@ -27,7 +28,7 @@ import sys
 import threading
 import time
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -51,6 +52,14 @@ KILL_WAIT = 5.0
 #: A second stop signal kills at once only this long after the first: some tools deliver one
 #: signal twice at once (GNU timeout signals its child, then its whole process group).
 SECOND_SIGNAL_GAP = 1.0
+#: Largest launch file read: one is a few KiB; a bigger one is a mistake, not a mesh to start.
+MAX_FILE = 1024 * 1024
+#: Deepest nesting of arrays and inline tables, and most parts of a dotted key. Python's TOML
+#: reader recurses once per level (its stack gives out at a few hundred, as a RecursionError) and
+#: takes a time growing with the square of a key's parts; a launch file needs two or three.
+MAX_NESTING = 32
+#: Longest ``stop_timeout`` / ``ready_timeout``: the clocks waited on overflow beyond some size.
+MAX_SECONDS = 24 * 3600.0
 
 _COMMON = {"name": str, "args": list, "env": dict, "after": list, "on_failure": str, "ready": str, "cwd": str}
 _KEYS: dict[str, dict[str, type]] = {
@@ -103,8 +112,11 @@ def resolve_file(given: str) -> Path:
     from cmion_mesh.resources import data_dir
 
     path = Path(given)
-    if path.is_file():
-        return path
+    try:
+        if path.is_file():
+            return path
+    except OSError as exc:  # a name too long, a folder on the way that cannot be searched...
+        raise ConfigError(f"cannot read the launch file: {exc.strerror or exc}", path=given) from None
     if "/" not in given:
         shipped = data_dir("embodiments") / (given if given.endswith(SUFFIX) else given + SUFFIX)
         if shipped.is_file():
@@ -127,11 +139,17 @@ def _header_lines(text: str) -> dict[tuple[str, int], int]:
     return found
 
 
+@functools.lru_cache(maxsize=4)
+def _lines(text: str) -> list[str]:
+    """The file's lines, split once (every key's line is looked up in them)."""
+    return text.splitlines()
+
+
 def _key_line(text: str, start: int | None, key: str) -> int | None:
     """Line of ``key = ...`` in the table whose header is on line ``start``."""
     if start is None:
         return None
-    lines = text.splitlines()
+    lines = _lines(text)
     for number in range(start, len(lines)):
         line = lines[number]
         if line.lstrip().startswith("["):
@@ -183,37 +201,116 @@ class _Checker:
 
 
 def _type_problem(value: Any, kind: type) -> str:
+    # Every string of a launch file ends up in a command line, an environment or a path, none of
+    # which can carry a NUL character.
     if kind is float:
-        return "" if isinstance(value, int | float) and not isinstance(value, bool) and value > 0 else "a positive number"
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        return "" if number and 0 < value <= MAX_SECONDS else f"a positive number of seconds, at most {MAX_SECONDS:g}"
     if kind is int:
         return "" if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else "a whole number >= 0"
     if kind is list:
-        return "" if isinstance(value, list) and all(isinstance(v, str) for v in value) else "a list of strings"
+        return "" if isinstance(value, list) and all(_text(v) for v in value) else "a list of strings (without NUL characters)"
     if kind is dict:
-        return "" if isinstance(value, dict) and all(isinstance(v, str) for v in value.values()) else "a table of strings"
+        fine = isinstance(value, dict) and all(_text(v) and _text(k) and k and "=" not in k for k, v in value.items())
+        return "" if fine else "a table of strings (names without '=', no NUL characters)"
     if kind is bool:
         return "" if isinstance(value, bool) else "true or false"
-    return "" if isinstance(value, str) else "a string"
+    return "" if _text(value) else "a string (without NUL characters)"
+
+
+def _text(value: Any) -> bool:
+    return isinstance(value, str) and "\0" not in value
 
 
 def _show(value: Any) -> str:
     return f"{type(value).__name__} {value!r}"[:80]
 
 
-def load(path: str | Path, *, mesh: str | None = None) -> LaunchFile:
-    """Read and check a launch file; every problem in one ``ConfigError`` (file and line of the first)."""
-    path = Path(path)
+def _nesting_problem(text: str) -> tuple[int, str] | None:
+    """The line where arrays or inline tables nest deeper than ``MAX_NESTING``, or where a dotted
+    key has more parts, and which; None when nowhere. Strings and comments are skipped (what is in
+    them is no structure); the rest is left to the TOML reader, which reports its own errors."""
+    depth = dots = 0
+    line, i, end = 1, 0, len(text)
+    while i < end:
+        c = text[i]
+        if c in "\"'":
+            quote = c * 3 if text.startswith(c * 3, i) else c
+            i += len(quote)
+            while i < end and not text.startswith(quote, i):
+                if text[i] == "\n":
+                    if len(quote) == 1:
+                        break  # an unterminated string: the TOML reader says so
+                    line += 1
+                elif text[i] == "\\" and c == '"' and i + 1 < end:
+                    i += 1  # an escape: the next character is not the end of the string
+                    if text[i] == "\n":
+                        line += 1
+                i += 1
+            if text.startswith(quote, i):
+                i += len(quote)
+                while len(quote) == 3 and i < end and text[i] == c and text.startswith(quote, i - 3):
+                    i += 1  # up to two more quotes just before the end belong to the string
+            continue
+        if c == "#":
+            comment_end = text.find("\n", i)
+            i = end if comment_end < 0 else comment_end
+            continue
+        if c == ".":
+            dots += 1
+            if dots >= MAX_NESTING:
+                return line, f"a dotted key of more than {MAX_NESTING} parts"
+        elif c in "[{":
+            depth, dots = depth + 1, 0
+            if depth > MAX_NESTING:
+                return line, f"arrays or inline tables nested more than {MAX_NESTING} deep"
+        elif c in "]}":
+            depth, dots = max(0, depth - 1), 0
+        elif not (c.isalnum() or c in "_-+: \t"):  # a key's parts, a number's, a date's go on; anything else ends them
+            dots = 0
+        line += c == "\n"
+        i += 1
+    return None
+
+
+def _read(path: Path) -> str:
+    """The launch file's text: ``ConfigError`` naming the file (and the line) when it cannot be."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read the launch file: {exc}", path=str(path)) from None
+        with path.open("rb") as file:
+            raw = file.read(MAX_FILE + 1)
+    except OSError as exc:
+        raise ConfigError(f"cannot read the launch file: {exc.strerror or exc}", path=str(path)) from None
+    if len(raw) > MAX_FILE:
+        raise ConfigError(f"the launch file is larger than {MAX_FILE // 1024} KiB: not a launch file", path=str(path))
     try:
-        data = tomllib.loads(text)
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(f"not UTF-8 (byte {raw[exc.start]:#04x}: {exc.reason}): a launch file is UTF-8 text",
+                          path=str(path), line=line) from None
+
+
+def _parse(path: Path, text: str) -> dict[str, Any]:
+    deep = _nesting_problem(text)
+    if deep is not None:
+        raise ConfigError(f"too deep for a launch file: {deep[1]}", path=str(path), line=deep[0])
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         message = str(exc)
         at = re.search(r"\(at line (\d+), column \d+\)", message)
         line = int(at.group(1)) if at else max(1, len(text.splitlines()))
         raise ConfigError(f"not valid TOML: {re.sub(r' [(]at .*[)]$', '', message)}", path=str(path), line=line) from None
+    except RecursionError:  # nesting the scan above did not see: still the file's fault, not ours
+        raise ConfigError("too deep for a launch file: arrays, inline tables or keys nested beyond what can be read",
+                          path=str(path)) from None
+
+
+def load(path: str | Path, *, mesh: str | None = None) -> LaunchFile:
+    """Read and check a launch file; every problem in one ``ConfigError`` (file and line of the first)."""
+    path = Path(path)
+    text = _read(path)
+    data = _parse(path, text)
     found = Diagnostics()
     check = _Checker(path, text, found)
     for key in data:
@@ -315,22 +412,33 @@ def _ordered(specs: list[Spec], check: _Checker) -> tuple[Spec, ...]:
     out: list[Spec] = []
     state: dict[str, str] = {}
 
-    def visit(spec: Spec, path: list[str]) -> None:
-        if state.get(spec.name) == "done":
-            return
-        if state.get(spec.name) == "visiting":
-            cycle = [*path[path.index(spec.name):], spec.name]
-            check.found.error(f"a cycle of 'after': {' -> '.join(cycle)}", check.path, spec.line)
-            return
-        state[spec.name] = "visiting"
-        for other in spec.after:
-            if other in by_name and other != spec.name:
-                visit(by_name[other], [*path, spec.name])
-        state[spec.name] = "done"
-        out.append(spec)
+    def waits_for(spec: Spec) -> Iterator[Spec]:
+        return (by_name[other] for other in spec.after if other in by_name and other != spec.name)
 
-    for spec in specs:
-        visit(spec, [])
+    # Depth first, with a stack of our own: a chain of 'after' is as long as the file makes it,
+    # and Python's own stack is not.
+    for root in specs:
+        if state.get(root.name) == "done":
+            continue
+        state[root.name] = "visiting"
+        stack: list[tuple[Spec, Iterator[Spec]]] = [(root, waits_for(root))]
+        while stack:
+            spec, others = stack[-1]
+            for waited in others:
+                if state.get(waited.name) == "done":
+                    continue
+                if state.get(waited.name) == "visiting":
+                    path = [on.name for on, _ in stack]
+                    cycle = [*path[path.index(waited.name):], waited.name]
+                    check.found.error(f"a cycle of 'after': {' -> '.join(cycle)}", check.path, waited.line)
+                    continue
+                state[waited.name] = "visiting"
+                stack.append((waited, waits_for(waited)))
+                break
+            else:
+                stack.pop()
+                state[spec.name] = "done"
+                out.append(spec)
     return tuple(out)
 
 
@@ -507,7 +615,7 @@ class Launcher:
         policy = child.command.spec.on_failure
         if policy == "restart" and child.restarts < self.launch.restarts:
             child.restarts += 1
-            delay = min(MAX_BACKOFF, 2.0 ** (child.restarts - 1))
+            delay = min(MAX_BACKOFF, 2.0 ** min(child.restarts - 1, 16))  # no float overflow after 1024 restarts
             child.restart_at = time.monotonic() + delay
             self.out.say(f"{child.name} {why}: restarting in {delay:g} s (restart {child.restarts} of {self.launch.restarts})",
                          error=True)

@@ -38,7 +38,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import msgspec
 from starlette.applications import Starlette
@@ -54,6 +53,7 @@ from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport import Closeable, Sample
+from cmion_mesh.webserver import same_origin
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,6 @@ PLAN_ENDS = {"PlanSucceeded": "succeeded", "PlanFailed": "failed", "PlanCancelle
 STEP_STATES = {"StepStarted": "running", "StepSucceeded": "succeeded", "StepFailed": "failed", "StepCancelled": "cancelled",
                "StepWaiting": "waiting"}
 STORES = (keys.BLACKBOARD, keys.WORLD_MODEL)
-LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
 Schedule = Callable[..., None]
 
@@ -688,17 +687,9 @@ class MeshView:
         return out
 
     def same_origin(self, websocket: WebSocket) -> bool:
-        """Whether a page from this server opened the socket. A browser lets any site open a
-        WebSocket to 127.0.0.1, so a foreign page must not read the mesh (or act on it); and
-        served on loopback, a page must have asked for a loopback name, or a site whose name is
-        made to resolve to 127.0.0.1 (DNS rebinding) would count as this server's own."""
-        host = websocket.headers.get("host", "").lower()
-        if self.loopback and urlsplit(f"//{host}").hostname not in LOOPBACK_NAMES:
-            return False
-        origin = websocket.headers.get("origin")
-        if origin is None:
-            return True  # not a browser (a script, a test client): nothing to guard against here
-        return urlsplit(origin).netloc.lower() == host
+        """Whether a page from this server opened the socket: a foreign page must not read the
+        mesh (or act on it). The check the web body makes too (``webserver.same_origin``)."""
+        return same_origin(websocket.headers, loopback=self.loopback)
 
     async def _websocket(self, websocket: WebSocket) -> None:
         if not self.same_origin(websocket):

@@ -19,6 +19,12 @@ What the page senses comes back on the same WebSocket: a visitor present or gone
 a typed command. Each goes to the competencies that sense it (they wake at once) and from there
 into the same world-model and blackboard writes the simulated sensors make.
 
+Which pages: only the body's own. A WebSocket opened by a page of another site (its ``Origin``), or
+on a loopback body by a name that is not loopback (its ``Host``: a site made to resolve to
+127.0.0.1, DNS rebinding), is refused before it is accepted, and so are such names asking for the
+state or the speech: another page in the same browser neither drives the senses nor hears what the
+companion says. It is the live view's check (``webserver.same_origin``).
+
 Who may act: anyone who can open the page, in plain mode (it is bound to loopback unless told
 otherwise). With a ``key`` (``up --certs`` makes one, and prints the page's address with it), the
 page is read-only unless opened with ``?key=<key>``: watching stays open, but only the holder of
@@ -55,7 +61,7 @@ from cmion_mesh import keys
 from cmion_mesh.errors import InvalidName, MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
-from cmion_mesh.webserver import WebServer, parse_bind
+from cmion_mesh.webserver import LOOPBACK_NAMES, WebServer, host_allowed, parse_bind, same_origin
 
 if TYPE_CHECKING:
     from cmion_mesh.competencies.web import WebSense
@@ -116,6 +122,12 @@ class WebBody(Component):
     # --- serving ----------------------------------------------------------------------------------
 
     @property
+    def loopback(self) -> bool:
+        """Served on loopback (``up --web`` may set ``host`` after construction): then only loopback
+        names may ask for the page's state or open its socket."""
+        return self.host in LOOPBACK_NAMES
+
+    @property
     def url(self) -> str:
         if self._server is None:
             raise MeshError(f"web body {self.name!r} is not serving (enter it first)")
@@ -161,10 +173,20 @@ class WebBody(Component):
     async def _index(self, request: Request) -> Response:
         return FileResponse(str(static_dir() / "index.html"), headers={"cache-control": "no-cache"})
 
+    def _foreign(self, request: Request) -> Response | None:
+        """The refusal of a request for what the companion says by a rebound name, else None."""
+        if host_allowed(request.headers, loopback=self.loopback):
+            return None
+        return Response("this body answers to loopback names only", status_code=403, media_type="text/plain")
+
     async def _state_json(self, request: Request) -> Response:
-        return JSONResponse(self.snapshot())
+        refused = self._foreign(request)
+        return refused if refused is not None else JSONResponse(self.snapshot())
 
     async def _speech(self, request: Request) -> Response:
+        refused = self._foreign(request)
+        if refused is not None:
+            return refused
         with self._lock:
             wav = self._audio.get(request.path_params["utterance"])
         if wav is None:
@@ -172,6 +194,9 @@ class WebBody(Component):
         return Response(wav, media_type="audio/wav", headers={"cache-control": "no-store"})
 
     async def _socket(self, socket: WebSocket) -> None:
+        if not same_origin(socket.headers, loopback=self.loopback):
+            await socket.close(code=1008, reason="cross-origin page")
+            return
         await socket.accept()
         may_act = self.key is None or hmac.compare_digest(socket.query_params.get("key", ""), self.key)
         page = _Page()

@@ -14,8 +14,9 @@ import ipaddress
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
+from urllib.parse import urlsplit
 
 import uvicorn
 
@@ -25,6 +26,8 @@ _START_TIMEOUT = 10.0
 _STOP_TIMEOUT = 5.0
 # Open WebSockets are told to close at shutdown; a page that does not answer is not waited for longer.
 _GRACEFUL_SHUTDOWN = 1
+#: The names a page of a server bound to loopback may have been opened by.
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
 
 def parse_bind(text: str) -> tuple[str, int]:
@@ -50,6 +53,30 @@ def parse_bind(text: str) -> tuple[str, int]:
         except ValueError:
             raise ConfigError(f"bad web address {text!r}: {host!r} is not an IP address (or localhost)") from None
     return host, int(port_text)
+
+
+def host_allowed(headers: Mapping[str, str], *, loopback: bool) -> bool:
+    """Whether a request to a server bound to loopback (``loopback``) asked for it by a loopback
+    name. A site whose name is made to resolve to 127.0.0.1 (DNS rebinding) is, to the browser,
+    the origin of whatever this server answers: its requests name it in ``Host``, and are refused.
+    A server bound to another address is reached by names it cannot know; it checks nothing here."""
+    if not loopback:
+        return True
+    return urlsplit(f"//{headers.get('host', '').lower()}").hostname in LOOPBACK_NAMES
+
+
+def same_origin(headers: Mapping[str, str], *, loopback: bool) -> bool:
+    """Whether a WebSocket was opened by a page this server served: a browser lets any site open
+    a WebSocket to 127.0.0.1 (and says which in ``Origin``), so a foreign page must neither read
+    what the socket carries nor send on it; and on loopback the ``Host`` must be a loopback name
+    (``host_allowed``), or a rebound site would count as this server's own. The one check of both
+    the live view and the web body."""
+    if not host_allowed(headers, loopback=loopback):
+        return False
+    origin = headers.get("origin")
+    if origin is None:
+        return True  # not a browser (a script, a test client): nothing to guard against here
+    return urlsplit(origin).netloc.lower() == headers.get("host", "").lower()
 
 
 class _Server(uvicorn.Server):

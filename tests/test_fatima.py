@@ -16,6 +16,7 @@ file, each then with daemons and minds of its own.
 from __future__ import annotations
 
 import os
+import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Any
 
 import pytest
 
+from cmion_mesh import fatima
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import StorageError
 from cmion_mesh.messages import ActionStatus, Event, Migrate, SetProperty
@@ -278,6 +280,50 @@ def test_a_second_mind_is_refused(world: Mesh) -> None:
         assert "OK" not in intruder.received()
     assert "refused a connection" in world.robot.wait_line("refused a connection", 5)
     assert world.link("robot")["agent"] == "Spirit"
+
+
+def closed_by_the_body(sock: socket.socket, timeout: float) -> bool:
+    """Whether the body closed ``sock`` within ``timeout`` (it never sends a connection that did not
+    handshake anything: the first thing read is the end)."""
+    sock.settimeout(timeout)
+    try:
+        return sock.recv(64) == b""
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+
+
+def test_a_connection_that_never_handshakes_keeps_no_mind_out(tmp_path: Path) -> None:
+    """A slowloris (three bytes of a handshake, then nothing) and a crowd of idle sockets, all
+    before the mind: the mind still gets through its handshake at once and is served, and every
+    one of them is closed within the handshake timeout."""
+    mind_port = free_port()
+    config = write_config(tmp_path / "robot", "robot", "modular", mind_port)
+    robot = Daemon(cli_argv("up", str(config), "--mesh", unique_mesh(), "--listen", f"tcp/127.0.0.1:{free_port()}",
+                            "--no-multicast", "--state-dir", str(tmp_path / "state"), "--companion", "spirit"), name="robot")
+    idle: list[socket.socket] = []
+    try:
+        robot.wait_line("up in mesh", 30)
+        slow = socket.create_connection(("127.0.0.1", mind_port), timeout=10)
+        idle.append(slow)
+        slow.sendall(b"Spi")
+        for _ in range(3 * fatima.MAX_PENDING):
+            idle.append(socket.create_connection(("127.0.0.1", mind_port), timeout=10))
+        with PeerProcess(mind_port, "--agent", "Spirit", "--prop", "role:TestAgent") as mind:
+            mind.got("OK", timeout=fatima.HANDSHAKE_TIMEOUT)  # not after the slowloris's time is up: at once
+            mind.command("act Express wave")
+            mind.got("ACTION-FINISHED Spirit Express wave")
+            still_open = [i for i, sock in enumerate(idle) if not closed_by_the_body(sock, fatima.HANDSHAKE_TIMEOUT + 10)]
+            assert still_open == [], f"connections never handshaken still open: {still_open}"
+            start = mind.mark()
+            mind.command("act Express nod")  # served still, once they are gone
+            mind.got("ACTION-FINISHED Spirit Express nod", start=start)
+        robot.wait_line("before its handshake", 5)
+    finally:
+        for sock in idle:
+            sock.close()
+        robot.stop()
 
 
 def test_migrations(world: Mesh) -> None:

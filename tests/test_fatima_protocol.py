@@ -50,12 +50,15 @@ RULES = """<CompetencyManagerRules>
 def test_options_as_cmion_wrote_them_and_our_extensions() -> None:
     assert parse_options([]) == Options()
     assert parse_options([""]) == Options()
-    opts = parse_options(["Modular persistent migrating", "port:0 host:0.0.0.0 name:mind2 stop-wait:2 state-timeout:1.5"])
+    opts = parse_options(["Modular persistent migrating", "port:0 host:0.0.0.0 name:mind2 stop-wait:2 state-timeout:1.5",
+                          "handshake-timeout:0.5"])
     assert (opts.modular, opts.persistent, opts.migrating) == (True, True, True)
     assert (opts.port, opts.host, opts.name, opts.stop_wait, opts.state_timeout) == (0, "0.0.0.0", "mind2", 2.0, 1.5)
+    assert (opts.handshake_timeout, Options().handshake_timeout) == (0.5, fatima.HANDSHAKE_TIMEOUT)
     assert parse_options(["sleeping"]) == Options()
     for bad, why in (("magic", "unknown option 'magic'"), ("port:99999", "not a TCP port"), ("port:x", "port:x"),
-                     ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option")):
+                     ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option"),
+                     ("handshake-timeout:0", "above 0"), ("handshake-timeout:nan", "above 0")):
         with pytest.raises(MeshError, match=why):
             parse_options([bad])
     # A migration gives each component 5 s for its section: the connector's own wait must end first.
@@ -275,6 +278,49 @@ def test_refused_connections_are_logged_once_a_while(body: tuple[Embodiment, FAt
         monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 0.0)
         refused()
         assert len(warnings()) == 2 and "(2 more from 127.0.0.1 refused unlogged" in warnings()[1], warnings()
+
+
+def test_a_connection_without_a_handshake_is_closed_in_time(caplog: pytest.LogCaptureFixture) -> None:
+    mind = FAtiMAConnector("port:0", "handshake-timeout:0.5")
+    with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment("robot", transport=transport, components=[mind]):
+        wait_for(lambda: mind.listener is not None, 5, "the connector listening")
+        listener = mind.listener
+        assert listener is not None
+        with socket.create_connection(("127.0.0.1", listener.port), timeout=10) as slow:
+            slow.sendall(b"Spi")  # three bytes of a handshake, then nothing
+            assert slow.recv(100) == b""  # closed by the body (else the 10 s timeout fails the test)
+        wait_for(lambda: "before its handshake: no handshake within 0.5 s" in caplog.text, 5, "the deadline logged")
+        assert mind.connection()["pending"] == 0
+        with _peer(mind) as peer:
+            peer.connect()
+            peer.wait_for(lambda line: line == "OK")
+
+
+def test_pending_connections_are_bounded_and_the_newest_gets_through(caplog: pytest.LogCaptureFixture) -> None:
+    mind = FAtiMAConnector("port:0", "handshake-timeout:60")  # no deadline passes here: the bound alone acts
+    with MemoryTransport(MemoryNetwork(), "local") as transport, Embodiment("robot", transport=transport, components=[mind]):
+        wait_for(lambda: mind.listener is not None, 5, "the connector listening")
+        listener = mind.listener
+        assert listener is not None
+        # More idle connections than may wait: the oldest are closed at once, the others wait.
+        extra = 3
+        idle = [socket.create_connection(("127.0.0.1", listener.port), timeout=10) for _ in range(fatima.MAX_PENDING + extra)]
+        try:
+            for sock in idle[:extra]:
+                sock.settimeout(10)
+                assert sock.recv(100) == b""
+            wait_for(lambda: mind.connection()["pending"] == fatima.MAX_PENDING, 5, "the newest waiting for their handshakes")
+            with _peer(mind) as peer:  # the mind is the newest: it gets through, and the rest are closed
+                peer.connect()
+                peer.wait_for(lambda line: line == "OK")
+                for sock in idle[extra:]:
+                    sock.settimeout(10)
+                    assert sock.recv(100) == b""
+                assert mind.connection()["pending"] == 0 and mind.connection()["agent"] == "Spirit"
+        finally:
+            for sock in idle:
+                sock.close()
+    assert "newer connections wait for theirs" in caplog.text
 
 
 def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Embodiment, FAtiMAConnector]) -> None:

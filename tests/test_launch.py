@@ -79,6 +79,70 @@ def test_a_bad_file_is_refused_with_every_problem_by_line(tmp_path: Path, capsys
     assert all(p["command"][:2] == ["cmion-mesh", "up"] and "checked" in p["command"] for p in plan["processes"])
 
 
+ONE_PROCESS = '[[process]]\nname = "p"\ncommand = ["true"]\n'
+
+
+@pytest.mark.parametrize(("text", "line", "says"), [
+    ("x = " + "[" * 100_000 + "]" * 100_000 + "\n", 1, "too deep for a launch file: arrays or inline tables nested more than"),
+    (ONE_PROCESS + "x = " + "{a = " * 50_000 + "1" + "}" * 50_000 + "\n", 4, "too deep for a launch file: arrays or inline"),
+    ("[launch]\nmesh" + ".a" * 100_000 + " = 1\n" + ONE_PROCESS, 2, "too deep for a launch file: a dotted key of more than"),
+    ("[" + ".".join(["a"] * 100_000) + "]\n", 1, "too deep for a launch file: a dotted key of more than"),
+], ids=["arrays", "inline-tables", "dotted-key", "table-header"])
+def test_a_file_nested_too_deep_exits_2_naming_the_file_and_line(tmp_path: Path, text: str, line: int, says: str) -> None:
+    """Python's TOML reader recursed to a RecursionError (an internal error, exit 1), or took
+    minutes over a long dotted key; the launcher says what is wrong with the file instead."""
+    file = tmp_path / "deep.launch.toml"
+    file.write_text(text)
+    result = subprocess.run(cli_argv("launch", str(file)), capture_output=True, text=True, timeout=60)
+    assert (result.returncode, result.stdout) == (2, ""), result.stderr[-400:]
+    assert result.stderr.startswith(f"error: {file}:{line}: {says}") and result.stderr.count("\n") == 1, result.stderr[-400:]
+
+
+def test_a_long_chain_of_after_is_ordered_not_recursed(tmp_path: Path) -> None:
+    """Each process after the next one: the order was found by recursion, one level per process."""
+    file = tmp_path / "chain.launch.toml"
+    count = 3000
+    file.write_text("".join(f'[[process]]\nname = "p{i}"\ncommand = ["true"]\nafter = ["p{i + 1}"]\n\n' for i in range(count))
+                    + f'[[process]]\nname = "p{count}"\ncommand = ["true"]\n')
+    result = subprocess.run(cli_argv("launch", str(file), "--check", "--json"), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr[-400:]
+    names = [p["name"] for p in json.loads(result.stdout)["processes"]]
+    assert names == [f"p{i}" for i in range(count, -1, -1)]  # each after the one it waits for
+
+
+@pytest.mark.parametrize(("content", "line", "says"), [
+    (b'[launch]\nmesh = "caf\xe9"\n' + ONE_PROCESS.encode(), 2, "not UTF-8 (byte 0xe9: invalid continuation byte)"),
+    (b'[launch]\nmesh = "x\n', 2, "not valid TOML: Illegal character"),
+    (b'[launch]\nrestarts = "3"\n' + ONE_PROCESS.encode(), 2, "[launch]: 'restarts' must be a whole number >= 0, not str '3'"),
+    (b'[launch]\nstop_timeout = inf\n' + ONE_PROCESS.encode(), 2, "[launch]: 'stop_timeout' must be a positive number of seconds"),
+    (b'[launch]\nready_timeout = 1e300\n' + ONE_PROCESS.encode(), 2, "[launch]: 'ready_timeout' must be a positive number"),
+    (b'[launch]\nwat = 1\n' + ONE_PROCESS.encode(), 2, "[launch]: unknown key 'wat'"),
+    (b'[[process]]\nname = "p"\ncommand = ["echo", "a\\u0000b"]\n', 3, "[[process]] #1: 'command' must be a list of strings (without NUL"),
+    (b'[[process]]\nname = "p"\ncommand = ["true"]\nenv = { "A=B" = "x" }\n', 4,
+     "[[process]] #1: 'env' must be a table of strings (names without '='"),
+    (b'[[process]]\nname = "p"\ncommand = ["true"]\ncwd = "\\u0000"\n', 4,
+     "[[process]] #1: 'cwd' must be a string (without NUL characters)"),
+    (b"# " + b"x" * launch.MAX_FILE + b"\n" + ONE_PROCESS.encode(), None, "the launch file is larger than 1024 KiB"),
+], ids=["not-utf8", "toml-syntax", "wrong-type", "infinite-timeout", "huge-timeout", "unknown-key", "nul-in-command",
+        "env-name", "nul-in-cwd", "too-large"])
+def test_every_kind_of_bad_file_exits_2_with_one_line_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                 content: bytes, line: int | None, says: str) -> None:
+    file = tmp_path / "bad.launch.toml"
+    file.write_bytes(content)
+    assert main(["launch", str(file)]) == 2
+    captured = capsys.readouterr()
+    where = f"{file}:{line}" if line is not None else f"{file}"
+    assert captured.out == "" and captured.err.startswith(f"error: {where}: {says}") and captured.err.count("\n") == 1, captured.err
+
+
+def test_a_launch_file_that_cannot_be_read_exits_2_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    too_long = str(tmp_path / ("x" * 5000))
+    assert main(["launch", too_long]) == 2
+    assert capsys.readouterr().err == f"error: {too_long}: cannot read the launch file: File name too long\n"
+    with pytest.raises(ConfigError, match=r"^.*: cannot read the launch file: Is a directory$"):
+        launch.load(tmp_path)  # a folder where the file should be (the CLI names it as no launch file at all)
+
+
 def test_spirit_starts_three_daemons_that_find_each_other_and_sigint_stops_them_all(mesh: str) -> None:
     with Daemon(cli_argv("launch", "spirit", "--mesh", mesh), name="launch") as launcher:
         for body in BODIES:

@@ -9,15 +9,20 @@ the phone). Screenshots of each moment are written to tests/screenshots/.
 
 from __future__ import annotations
 
+import http.client
 import json
 import signal
 import socket
 import subprocess
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+from websockets.typing import Origin
 
 from cmion_mesh import keys, speech
 from cmion_mesh.client import MeshClient
@@ -142,6 +147,54 @@ def test_a_page_input_the_body_does_not_sense_is_refused_with_a_reason(chromium_
     finally:
         context.close()
         phone.stop()
+
+
+def test_only_the_bodys_own_pages_may_open_its_socket_or_read_its_state(mesh: str, tmp_path: Path) -> None:
+    """Another site open in the same browser (its ``Origin``), or one whose name was made to resolve
+    to 127.0.0.1 (DNS rebinding: its ``Host``), may neither drive the body's senses nor hear it."""
+    screen = Daemon(cli_argv("up", "screen", "--mesh", mesh, "--no-multicast", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                             "--state-dir", str(tmp_path / "screen"), "--web", "127.0.0.1:0"), name="screen")
+    try:
+        url = web_address(screen)
+        screen.wait_line("up in mesh", WAIT)
+        port = int(url.rsplit(":", 1)[1].split("/")[0])
+        ws_url = f"ws://127.0.0.1:{port}/ws"
+        mallory = json.dumps({"type": "visitor", "name": "Mallory", "present": True})
+
+        with pytest.raises(InvalidStatus) as refused, connect(ws_url, origin=Origin("http://evil.example"),
+                                                              open_timeout=WAIT) as ws:
+            ws.send(mallory)  # what a foreign page would do with a socket it was given
+        assert refused.value.response.status_code == 403
+        # DNS rebinding: evil.example made to resolve to 127.0.0.1, its page "same origin" with itself.
+        with socket.create_connection(("127.0.0.1", port)) as rebound, pytest.raises(InvalidStatus) as refused, \
+                connect(f"ws://evil.example:{port}/ws", sock=rebound, origin=Origin(f"http://evil.example:{port}"),
+                        open_timeout=WAIT) as ws:
+            ws.send(mallory)
+        assert refused.value.response.status_code == 403
+        for host in (f"evil.example:{port}", "evil.example"):
+            asked = http.client.HTTPConnection("127.0.0.1", port, timeout=WAIT)
+            try:
+                asked.request("GET", "/state", headers={"Host": host})
+                assert asked.getresponse().status == 403, f"/state answered to Host {host}"
+            finally:
+                asked.close()
+
+        for name in ("127.0.0.1", "localhost"):  # the body's own page, by either loopback name
+            with socket.create_connection(("127.0.0.1", port)) as own, \
+                    connect(f"ws://{name}:{port}/ws", sock=own, origin=Origin(f"http://{name}:{port}"), open_timeout=WAIT) as ws:
+                messages = [json.loads(ws.recv(timeout=WAIT)) for _ in range(2)]
+                assert messages[0] == {"type": "access", "act": True}
+                assert messages[1]["type"] == "state" and "Mallory" not in messages[1]["visitors"]
+                ws.send(json.dumps({"type": "visitor", "name": "Guest", "present": True}))
+                for _ in range(20):  # bounded: a state or two may come before the reply
+                    reply = json.loads(ws.recv(timeout=WAIT))
+                    if reply["type"] != "state":
+                        break
+                assert reply == {"type": "ok", "input": "visitor"}
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/state", timeout=WAIT) as answer:
+            assert json.loads(answer.read())["visitors"] == ["Guest"]
+    finally:
+        screen.stop()
 
 
 def test_up_refuses_a_web_address_in_use_naming_it(mesh: str, tmp_path: Path) -> None:
