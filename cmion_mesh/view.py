@@ -53,7 +53,7 @@ from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport import Closeable, Sample
-from cmion_mesh.webserver import same_origin
+from cmion_mesh.webserver import host_allowed, same_origin
 
 log = logging.getLogger(__name__)
 
@@ -677,6 +677,9 @@ class MeshView:
         return FileResponse(static_dir() / "index.html", headers={"Cache-Control": "no-store"})
 
     async def _snapshot_route(self, request: Request) -> Response:
+        # The snapshot is the whole mesh: a rebound name must not read it any more than the socket.
+        if not host_allowed(request.headers, loopback=self.loopback):
+            return Response("this view answers to loopback names only", status_code=403, media_type="text/plain")
         return JSONResponse(msgspec.to_builtins({**self.model.snapshot(), "allow_actions": self.allow_actions}))
 
     def _snapshot(self, page: Page) -> dict[str, Any]:

@@ -143,6 +143,19 @@ def test_a_page_from_another_site_may_not_open_the_socket(served: tuple[MeshView
         assert receive(ws)["type"] == "snapshot"
 
 
+def test_a_rebound_name_may_not_read_the_snapshot(served: tuple[MeshView, str, MemoryTransport]) -> None:
+    _, url, _ = served
+    port = int(url.split("/")[2].rsplit(":", 1)[1])
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as rebound:
+        rebound.sendall(f"GET /api/snapshot HTTP/1.1\r\nHost: evil.example:{port}\r\nConnection: close\r\n\r\n".encode())
+        status = rebound.makefile("rb").readline()
+    assert b" 403 " in status, status
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as own:
+        own.sendall(f"GET /api/snapshot HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
+        status = own.makefile("rb").readline()
+    assert b" 200 " in status, status
+
+
 def test_a_read_only_view_refuses_actions_and_bad_messages(served: tuple[MeshView, str, MemoryTransport]) -> None:
     _, url, _ = served
     with connect(url, max_size=None) as ws:
