@@ -9,6 +9,8 @@ in ``custody``; the durable records in ``records``. This module moves messages a
 * one thread per handshake in flight sends the prepare and the commit (``_send``,
   ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
   these threads touch only the records (locked) and hand everything else to the loop (``_post``);
+  a loop timer drops an incoming attempt still undecided at its bound (``_expire_incoming``), which
+  counts from the prepare's record, across restarts;
   while sending sections, ``_send`` has one short-lived thread write this side's copy of them, then
   the ``prepared`` record that names them, and two send chunks, all joined before it goes on;
 * the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
@@ -112,6 +114,9 @@ UPLOAD_IDLE = 60.0
 UPLOAD_IDLE_ENV = "CMION_MESH_UPLOAD_IDLE"
 #: Target: uploads held at once (one per sender); a ``have`` beyond them is refused busy.
 MAX_UPLOADS = 8
+#: Target: ``CMION_MESH_INCOMING_TIMEOUT`` changes ``handshake.INCOMING_BOUND``, the seconds after
+#: its prepare at which an attempt its source has neither committed nor aborted is dropped.
+INCOMING_TIMEOUT_ENV = "CMION_MESH_INCOMING_TIMEOUT"
 #: Pins of the section store held by the uploads staged here (one owner per sender).
 _STAGING = "staging"
 
@@ -208,16 +213,19 @@ class MigrationManager(Component):
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = SECTION_DEADLINE,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
                  admit: dict[str, bytes | None] | None = None, max_upload: int | None = None,
-                 upload_idle: float | None = None) -> None:
+                 upload_idle: float | None = None, incoming_timeout: float | None = None) -> None:
         """``admit``: which companions may enter (name -> trusted identity key, or None to pin it at the
         first commit); None admits any companion (its identity key is pinned at its first commit here).
-        ``max_upload``, ``upload_idle``: as ``MAX_UPLOAD`` and ``UPLOAD_IDLE``, else from the environment."""
+        ``max_upload``, ``upload_idle``, ``incoming_timeout``: as ``MAX_UPLOAD``, ``UPLOAD_IDLE`` and
+        ``handshake.INCOMING_BOUND``, else from the environment."""
         super().__init__("migration")
         self.admit = admit
         max_section()  # a bad CMION_MESH_MAX_SECTION stops the start, naming it
         self.max_upload = max_upload if max_upload is not None else \
             int(env_limit(MAX_UPLOAD_ENV, MAX_UPLOAD, low=1, high=2**50, unit="bytes"))
         self.upload_idle = upload_idle if upload_idle is not None else env_limit(UPLOAD_IDLE_ENV, UPLOAD_IDLE, low=0.1, high=86400)
+        self.incoming_timeout = incoming_timeout if incoming_timeout is not None else \
+            env_limit(INCOMING_TIMEOUT_ENV, handshake.INCOMING_BOUND, low=0.1, high=30 * 86400)
         self.records = Records(state_dir)
         #: Companions whose stored identity is unusable: reported (description, log, event), never run.
         self.damaged = self.records.damaged()
@@ -306,6 +314,7 @@ class MigrationManager(Component):
             elif record.state == "incoming":
                 self._claim(record.companion, record.epoch)
                 self._spawn(f"resolve-{record.companion}", self._resolve_incoming, record)
+                self._expire_later(record)  # from the prepare's time: overdue already, at the next update
         if self.identity is None:
             self._minds_sleep()
 
@@ -1151,8 +1160,8 @@ class MigrationManager(Component):
             return
         assert decision.key is not None and decision.identity is not None and decision.manifest is not None
         # The sections it carried were sent because they are missing here, or damaged: written anew.
-        incoming = self.records.put(decision.record, document=decision.document, sections=carried, key=decision.key,
-                                    replace=True)
+        incoming = self.records.put(msgspec.structs.replace(decision.record, since=time.time()), document=decision.document,
+                                    sections=carried, key=decision.key, replace=True)
         crash_point("target:incoming")
         self._step(incoming)
         self._unstage(msg.source, prepared=True)
@@ -1166,6 +1175,7 @@ class MigrationManager(Component):
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
         # abort may be lost for good: once overdue, ask the source, as after a restart.
         self._spawn(f"resolve-{msg.companion}", self._resolve_incoming, incoming, self.retry[1])
+        self._expire_later(incoming)
 
     def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
         decision = handshake.on_commit(msg, self.records.get(msg.companion), me=self.sim.embodiment)
@@ -1215,13 +1225,36 @@ class MigrationManager(Component):
         if settled.state == "active":
             self._activate(settled)
         else:
-            self.records.put(settled)
-            self._prepared.pop(record.attempt, None)
-            self._unstage(record.peer, record.attempt)
-            if self.identity is None:
-                self._withdraw_claim()
-            self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,
-                                                  "source": record.peer})
+            self._drop_incoming(settled, f"{record.peer!r} aborted it")
+
+    def _expire_later(self, record: Record) -> None:
+        """Loop: drop ``record``'s attempt at its deadline if it is still undecided then."""
+        due = handshake.incoming_deadline(record, self.incoming_timeout)
+        self.sim.call_later(max(0.0, due - time.time()), functools.partial(self._expire_incoming, record))
+
+    def _expire_incoming(self, record: Record) -> None:
+        current = self.records.get(record.companion)
+        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+            return  # decided meanwhile
+        expired = handshake.expire_incoming(current, now=time.time(), bound=self.incoming_timeout)
+        if expired is None:  # the clock went back since the timer was set
+            self._expire_later(current)
+            return
+        reason = (f"{current.peer!r} neither committed nor aborted attempt {current.attempt} of {current.companion!r} "
+                  f"within {self.incoming_timeout:g} s of its prepare")
+        log.warning("dropping the incoming migration: %s", reason)
+        self._drop_incoming(expired, reason)
+
+    def _drop_incoming(self, dropped: Record, reason: str) -> None:
+        """Loop: the attempt ``dropped`` ends here, durably first (the source is told ``dropped`` from
+        this record on); the embodiment is free for the next migration."""
+        self.records.put(dropped)
+        self._prepared.pop(dropped.attempt, None)
+        self._unstage(dropped.peer, dropped.attempt)
+        if self.identity is None:
+            self._withdraw_claim()
+        self.raise_event("MigrationDropped", {"companion": dropped.companion, "attempt": dropped.attempt,
+                                              "source": dropped.peer, "reason": reason})
 
 
 class _AnswerFuture(Future[Outcome]):

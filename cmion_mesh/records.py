@@ -75,7 +75,7 @@ def env_limit(name: str, default: float, *, low: float, high: float, unit: str =
     except ValueError:
         value = float("nan")
     if not low <= value <= high:  # NaN fails too
-        shown = [str(int(x)) if unit == "bytes" else f"{x:g}" for x in (low, high)]
+        shown = [str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (low, high)]
         raise ConfigError(f"{name}={raw[:40]!r}: not a number of {unit} between {shown[0]} and {shown[1]}")
     return value
 

@@ -2,12 +2,14 @@
 
 A process posing as strangers uploads sections (``have`` then ``migrate_sections``) that never
 become a prepare: the section folder stays within its bound while it grows, over-limit uploads are
-refused naming their sender, and idle uploads expire (their bytes deleted). After each, the real
-companion still migrates to the target.
+refused naming their sender, and idle uploads expire (their bytes deleted). A fake source whose
+prepare was accepted never commits, aborts or answers: the target drops the attempt at its bound,
+counted from the prepare across restarts. After each, the real companion still migrates there.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,13 +17,11 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
-from cmion_mesh.errors import ConfigError
+from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.handshake import have
 from cmion_mesh.identity import Identity
-from cmion_mesh.ion import send_request
 from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, Outcome, SectionChunk
 from cmion_mesh.migration import INLINE, MigrationManager
@@ -72,13 +72,19 @@ def folder_bytes(state: Path) -> int:
 
 
 class Stranger:
-    """Uploads the sections of its own companions to a target as ``sender``, never preparing."""
+    """Offers companions of its own to a target as ``sender``: uploads, prepares."""
 
-    def __init__(self, t: ZenohTransport, mesh: str, target: str, sender: str) -> None:
-        self.t, self.mesh, self.target, self.sender = t, mesh, target, sender
+    def __init__(self, client: MeshClient, target: str, sender: str) -> None:
+        self.client, self.target, self.sender = client, target, sender
 
     def ask(self, op: str, message: Any) -> Outcome:
-        return send_request(self.t, keys.request_key(self.mesh, self.target, "migration", op, self.sender), message, timeout=20)
+        return self.client.request(self.target, "migration", op, message, sender=self.sender, timeout=20)
+
+    def prepare(self, companion: str, attempt: str) -> Outcome:
+        """A prepare of a small companion of its own, its sections inside."""
+        packed = Identity(companion, 1, {"mind": {"entries": [f"{companion} is not spirit"]}}).pack_sections()
+        prepare = Holder(companion, self.sender).prepare(self.target, packed.manifest, attempt)
+        return self.ask("prepare", msgspec.structs.replace(prepare, sections=list(packed.data.values())))
 
     def offer(self, companion: str, size: int, attempt: str) -> tuple[Outcome, Any]:
         """``have`` of a companion of its own whose one section is about ``size`` bytes."""
@@ -104,8 +110,8 @@ ENV = {"CMION_MESH_MAX_CACHE": str(CACHE), "CMION_MESH_MAX_UPLOAD": str(UPLOAD),
 
 @pytest.mark.parametrize("mesh_of_two", [ENV], indirect=True)
 def test_uploads_that_never_become_a_prepare_are_bounded_and_expire(
-        mesh_of_two: tuple[Node, Node, ZenohTransport, MeshClient], mesh: str) -> None:
-    _a, b, t, client = mesh_of_two
+        mesh_of_two: tuple[Node, Node, ZenohTransport, MeshClient]) -> None:
+    _a, b, _t, client = mesh_of_two
     peak = 0
 
     def measured() -> None:
@@ -115,7 +121,7 @@ def test_uploads_that_never_become_a_prepare_are_bounded_and_expire(
 
     # One sender, uploads of 1.5 MiB for twelve companions of its own, one after the other, never
     # preparing: each new have ends the sender's previous upload and deletes what it wrote.
-    x = Stranger(t, mesh, "b", "x")
+    x = Stranger(client, "b", "x")
     for i in range(12):
         answer, packed = x.offer(f"c{i}", 3 * MIB // 2, f"x{i}")
         assert answer.status == "accepted" and answer.value == {"have": []}, answer
@@ -131,7 +137,7 @@ def test_uploads_that_never_become_a_prepare_are_bounded_and_expire(
     # busy, naming the sender whose chunk it is.
     refused: list[tuple[str, Outcome]] = []
     for name in ("y1", "y2", "y3"):
-        y = Stranger(t, mesh, "b", name)
+        y = Stranger(client, "b", name)
         answer, packed = y.offer(f"d-{name}", 3 * MIB // 2, f"{name}-1")
         assert answer.status == "accepted", answer
         answers = y.upload(f"d-{name}", f"{name}-1", packed)
@@ -218,8 +224,67 @@ def test_an_upload_ends_with_its_staging_and_counts_from_its_first_chunk(screen:
 
 
 def test_bad_bounds_in_the_environment_are_named(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    for variable, value in (("CMION_MESH_MAX_CACHE", "lots"), ("CMION_MESH_MAX_UPLOAD", "0"), ("CMION_MESH_UPLOAD_IDLE", "-1")):
+    for variable, value in (("CMION_MESH_MAX_CACHE", "lots"), ("CMION_MESH_MAX_UPLOAD", "0"), ("CMION_MESH_UPLOAD_IDLE", "-1"),
+                            ("CMION_MESH_INCOMING_TIMEOUT", "soon")):
         with monkeypatch.context() as m:
             m.setenv(variable, value)
             with pytest.raises(ConfigError, match=rf"{variable}='{value}': not a number of (bytes|seconds) between"):
                 MigrationManager(tmp_path / "state")
+
+
+BOUND = 6.0
+
+
+def b_record(b: Node, companion: str) -> dict[str, Any] | None:
+    """b's record of ``companion``, read as a file (a live daemon's folder is never tidied by a test)."""
+    path = b.state / f"{companion}.record.json"
+    return msgspec.json.decode(path.read_bytes()) if path.exists() else None
+
+
+def dropped(b: Node, companion: str) -> bool:
+    record = b_record(b, companion)
+    return record is not None and record["state"] == "dropped"
+
+
+@pytest.mark.parametrize("mesh_of_two", [{"CMION_MESH_INCOMING_TIMEOUT": str(BOUND)}], indirect=True)
+def test_a_prepare_never_committed_is_dropped_at_its_bound_across_restarts(
+        mesh_of_two: tuple[Node, Node, ZenohTransport, MeshClient], mesh: str) -> None:
+    _a, b, _t, client = mesh_of_two
+
+    def occupy(companion: str) -> float:
+        """A fake source's prepare, accepted by b; then the fake source is gone (it never commits,
+        aborts or answers b's questions). The prepare's durable time."""
+        with ZenohTransport(TransportConfig(connect=(b.endpoint,), multicast=False)) as fake_t:
+            fake = MeshClient(fake_t, mesh)
+            fake.wait_for_embodiment("b", timeout=20)
+            answer = Stranger(fake, "b", "x").prepare(companion, f"{companion}-1")
+            assert answer.status == "accepted", answer
+        record = b_record(b, companion)
+        assert record is not None and record["state"] == "incoming" and record["peer"] == "x", record
+        assert record["since"] > 0
+        return float(record["since"])
+
+    def restart_b() -> None:
+        assert b.daemon is not None
+        b.daemon.kill()
+        b.start()
+
+    # Restarted in between: still occupied, then dropped at the bound.
+    occupy("x1")
+    with pytest.raises(RequestRejected, match="occupied by companion 'x1'"):
+        migrate_once_seen(client, "spirit", "b")
+    restart_b()
+    record = b_record(b, "x1")
+    assert record is not None and record["state"] in ("incoming", "dropped")
+    wait_for(lambda: dropped(b, "x1"), BOUND + 30, "b drops the attempt nobody commits")
+    # Down past the bound: dropped as b starts, the bound counted from the prepare, not from the start.
+    since = occupy("x2")
+    assert b.daemon is not None
+    b.daemon.kill()
+    wait_for(lambda: time.time() > since + BOUND, BOUND + 10, "the attempt's bound passes while b is down")
+    b.start()
+    wait_for(lambda: dropped(b, "x2"), BOUND / 2, "b drops the attempt whose bound passed, as it starts")
+    # b is free again: the companion itself migrates there.
+    client.wait_for_embodiment("b", timeout=20)
+    assert migrate_once_seen(client, "spirit", "b")["target"] == "b"
+    wait_for(lambda: client.describe("b", timeout=1.0).get("inhabitant") == "spirit", 30, "spirit lives on b")
