@@ -4,7 +4,8 @@ Three embodiments run the real decisions of ``cmion_mesh.handshake`` (the same f
 ``MigrationManager`` calls) over a simulated network driven by one seeded random generator. Any
 message ever sent may be delivered late, lost, duplicated, reordered or **replayed later**; any
 embodiment may crash (losing everything but its durable record, document and key) and restart at
-any step; a waiting request may time out while its message is still in flight; and one embodiment
+any step; a waiting request may time out while its message is still in flight; a target may give
+up an incoming attempt at any point (its bound passed: ``handshake.expire_incoming``); and one embodiment
 turns hostile once it has held the companion: it keeps every custody key it had and forges
 prepares (forks of the chain) and commits with them. After every step: never two embodiments that
 may run the companion (``active`` or ``prepared``), and no record ever moves to an attempt that is
@@ -57,7 +58,8 @@ class Message:
 
 @dataclass
 class Op:
-    """A handshake thread: ``kind`` source (prepare/commit/status/abort stages) or resolve (target)."""
+    """A handshake thread: ``kind`` source (prepare/commit/status/abort stages) or resolve (target),
+    or a target's timer: ``expire`` drops its incoming attempt when it fires (``time_out``)."""
 
     oid: int
     kind: str
@@ -91,6 +93,7 @@ class World:
         self.flight: list[Message] = []
         self.history: list[Message] = []
         self.next_id = 1
+        self.expired = 0  # incoming attempts dropped at their bound
         home = self.nodes["a"]
         document = Identity(COMPANION, 1, SECTIONS).pack()
         home.key = self._new_key()
@@ -230,6 +233,7 @@ class World:
                 op = Op(self._id(), "resolve", "ask", decision.record)
                 node.ops[op.oid] = op
                 self._ask_source(node, op)
+                self._expire_later(node, decision.record)
             return decision.outcome
         if isinstance(payload, MigrateCommit):
             if message.src != payload.source:
@@ -248,6 +252,24 @@ class World:
 
     def _ask_source(self, node: Node, op: Op) -> None:
         self.send(node.name, op.record.peer, "status", MigrateStatus(COMPANION, op.record.attempt, op.record.epoch, "source"), op.oid)
+
+    def _expire_later(self, node: Node, record: Record) -> None:
+        op = Op(self._id(), "expire", "wait", record)
+        node.ops[op.oid] = op
+
+    def _expire(self, node: Node, op: Op) -> None:
+        """The incoming attempt's bound has passed, whatever else is under way (MigrationManager._expire_incoming)."""
+        del node.ops[op.oid]
+        current = node.record
+        if current is None or current.state != "incoming" or current.attempt != op.record.attempt:
+            return
+        bound = handshake.INCOMING_BOUND
+        expired = handshake.expire_incoming(current, now=handshake.incoming_deadline(current, bound), bound=bound)
+        if expired is None:
+            raise InvariantBroken(f"{node.name}: attempt {current.attempt} past its deadline is not dropped")
+        self.expired += 1
+        self.note(f"{node.name}: incoming {current.attempt[:6]} past its bound: dropped")
+        self._write(node, expired)
 
     def _resolve_answer(self, node: Node, op: Op, outcome: Outcome | None) -> None:
         current = node.record
@@ -281,6 +303,7 @@ class World:
             op = Op(self._id(), "resolve", "ask", record)
             node.ops[op.oid] = op
             self._ask_source(node, op)
+            self._expire_later(node, record)  # the bound counts from the prepare: it may have passed
 
     # --- a hostile former host ------------------------------------------------------------------------
 
@@ -325,11 +348,14 @@ class World:
     def _answer(self, node: Node, op: Op, outcome: Outcome | None) -> None:
         if op.kind == "source":
             self._source_answer(node, op, outcome)
+        elif op.kind == "expire":
+            self._expire(node, op)
         else:
             self._resolve_answer(node, op, outcome)
 
     def time_out(self) -> None:
-        """An op gives up waiting (its message may still be in flight): outcome unknown."""
+        """An op gives up waiting (its message may still be in flight): outcome unknown; or a
+        target's incoming attempt reaches its bound."""
         waiting = [(node, op) for node in self.nodes.values() for op in list(node.ops.values())]
         if waiting:
             node, op = self.rng.choice(waiting)
@@ -372,7 +398,9 @@ class World:
         """No more faults: deliver everything in order, time out what waits on a lost message."""
         for _ in range(limit):
             awaited = {m.reply_to for m in self.flight}
-            stalled = [(node, op) for node in self.nodes.values() for op in list(node.ops.values()) if op.oid not in awaited]
+            # A bound is long beside a delivery: healing settles by messages (expiry is tried while faulty).
+            stalled = [(node, op) for node in self.nodes.values() for op in list(node.ops.values())
+                       if op.oid not in awaited and op.kind != "expire"]
             if stalled:  # waiting for an answer that was lost: its timeout fires
                 node, op = stalled[0]
                 self._answer(node, op, None)

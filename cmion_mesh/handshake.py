@@ -38,6 +38,18 @@ or after a restart: committed (with the link) -> active; aborted -> dropped. A t
 reply or an error is "outcome unknown": asked again, never taken for success, and nothing is
 taken over because a peer went quiet.
 
+**An incoming attempt ends** (``expire_incoming``): T drops an attempt that S has neither
+committed nor aborted within ``INCOMING_BOUND`` seconds of the prepare's durable record, whether
+S is alive or not; the bound counts from the time the record keeps (``Record.since``), so a
+restart does not reset it. Giving up takes nothing over, and the argument above holds: T drops
+only from ``incoming``, so it has not been told committed (a commit makes it ``active``, never
+dropped), and the ``dropped`` record is written before T answers anything about it. S at
+``prepared`` has signed no link: it resumes on its own, or once T's answer comes (a repeated
+prepare is refused as stale). S at ``handed`` keeps the companion frozen until T answers: its
+commit, arriving after the drop, is refused (T holds no incoming attempt), it asks T, is told
+``dropped``, and resumes, the one host. The dropped record keeps the attempt's order, so neither
+that commit nor a replayed prepare of the attempt ever revives it.
+
 Custody (``custody``) makes the same decisions unforgeable by a former host: see its docstring.
 
 **Sections.** A SchemaVersion 2 document is a manifest naming its sections by hash (``identity``);
@@ -66,6 +78,9 @@ from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, 
 from cmion_mesh.records import Record
 
 POLICY_SECTION = "policy"
+#: Seconds T keeps an attempt ``incoming`` that its source has neither committed nor aborted,
+#: counted from the prepare's durable record: then T drops it (``expire_incoming``).
+INCOMING_BOUND = 60.0
 
 
 @dataclass(frozen=True)
@@ -251,7 +266,7 @@ def _activation(record: Record, link: Link, me: str) -> Record:
                        public_key=signing.decode_public(record.custody_key), document_sha256=bytes.fromhex(record.document))
     chain = [*record.chain, link]
     # The identity key is pinned here, at the commit, never at a prepare that may still be aborted.
-    return msgspec.structs.replace(record, state="active", epoch=link.epoch, seq=0, chain=chain, custody_key="",
+    return msgspec.structs.replace(record, state="active", epoch=link.epoch, seq=0, chain=chain, custody_key="", since=0.0,
                                    public_key=signing.encode_public(custody.identity_key(chain)))
 
 
@@ -280,7 +295,8 @@ def on_abort(msg: MigrateAbort, record: Record | None, *, requester: str) -> Dec
 def dropped(record: Record) -> Record:
     """T's record of an attempt that ended without a commit. Its order stays (never resurrected); the
     chain it offered stays only if it extends custody pinned here before: an aborted offer teaches nothing."""
-    return msgspec.structs.replace(record, state="dropped", custody_key="", chain=record.chain if record.public_key else [])
+    return msgspec.structs.replace(record, state="dropped", custody_key="", since=0.0,
+                                   chain=record.chain if record.public_key else [])
 
 
 def on_status(msg: MigrateStatus, record: Record | None, *, requester: str) -> Decision:
@@ -299,6 +315,20 @@ def on_status(msg: MigrateStatus, record: Record | None, *, requester: str) -> D
     if record is not None and ((ours and record.state != "dropped") or record.epoch > msg.epoch):
         return Decision(Outcome("accepted", "", {"state": "committed"}))
     return Decision(Outcome("accepted", "", {"state": "dropped"}))
+
+
+def incoming_deadline(record: Record, bound: float) -> float:
+    """When T gives up ``record``'s attempt if it is still undecided (seconds since the epoch): ``bound``
+    after its prepare was recorded (a record written before ``since`` existed: after its last write)."""
+    return (record.since or record.updated) + bound
+
+
+def expire_incoming(record: Record, *, now: float, bound: float = INCOMING_BOUND) -> Record | None:
+    """T ``incoming`` at ``now``: the dropped record once ``bound`` seconds have passed since the
+    prepare was recorded, else None (the commit, the abort or the source's answer may still come)."""
+    if record.state != "incoming" or now < incoming_deadline(record, bound):
+        return None
+    return dropped(record)
 
 
 def settle_incoming(record: Record, answer: Any, *, me: str) -> Record | None:

@@ -9,6 +9,8 @@ in ``custody``; the durable records in ``records``. This module moves messages a
 * one thread per handshake in flight sends the prepare and the commit (``_send``,
   ``_commit_until_acked``) or asks a peer about an undecided attempt (``_resolve_incoming``);
   these threads touch only the records (locked) and hand everything else to the loop (``_post``);
+  a loop timer drops an incoming attempt still undecided at its bound (``_expire_incoming``), which
+  counts from the prepare's record, across restarts;
   while sending sections, ``_send`` has one short-lived thread write this side's copy of them, then
   the ``prepared`` record that names them, and two send chunks, all joined before it goes on;
 * the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
@@ -33,6 +35,13 @@ from an earlier visit (checked against their hash), then only the others cross, 
 ``migrate_sections`` chunks, while the source writes its own copy to its disk. The target answers
 each request once what it received is on its disk. ``MigrationSucceeded`` says how many bytes were
 sent (``transfer``).
+
+A target holds one upload (``have`` and its sections) per sender, at most ``MAX_UPLOADS``. Every
+byte received counts, before it is written, against what one sender may upload ahead of its
+prepare (``MAX_UPLOAD``) and against the section folder's bound (``records.MAX_CACHE``, making room
+by evicting the cache); a chunk over either is refused naming its sender. An upload that never
+becomes a prepare is deleted when its sender's next ``have`` replaces it, when its prepare is
+refused or aborted, and once idle for ``UPLOAD_IDLE`` seconds.
 
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
@@ -60,7 +69,7 @@ from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
 from cmion_mesh.handshake import POLICY_SECTION, refuses
 from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer, send_request
 from cmion_mesh.messages import (
     Code,
     Migrate,
@@ -75,7 +84,7 @@ from cmion_mesh.messages import (
     SetPolicy,
 )
 from cmion_mesh.mind import Mind
-from cmion_mesh.records import HOSTING, IncomingSection, Record, Records
+from cmion_mesh.records import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -94,7 +103,21 @@ INLINE = 256 * 1024
 CHUNK = 4 * 1024 * 1024
 #: ``migrate_sections`` requests in flight at once.
 IN_FLIGHT = 2
-#: Pins of the section store held by the attempt being staged here.
+#: Target: most bytes of sections one sender may have uploaded here ahead of its prepare (``have``
+#: then ``migrate_sections``); ``CMION_MESH_MAX_UPLOAD`` changes it. Half the section cache
+#: (``records.MAX_CACHE``, which bounds all uploads together): no one sender takes all of it.
+MAX_UPLOAD = 512 * 1024 * 1024
+MAX_UPLOAD_ENV = "CMION_MESH_MAX_UPLOAD"
+#: Target: seconds an upload may wait for its next chunk or its prepare before it expires (its
+#: bytes deleted); ``CMION_MESH_UPLOAD_IDLE`` changes it.
+UPLOAD_IDLE = 60.0
+UPLOAD_IDLE_ENV = "CMION_MESH_UPLOAD_IDLE"
+#: Target: uploads held at once (one per sender); a ``have`` beyond them is refused busy.
+MAX_UPLOADS = 8
+#: Target: ``CMION_MESH_INCOMING_TIMEOUT`` changes ``handshake.INCOMING_BOUND``, the seconds after
+#: its prepare at which an attempt its source has neither committed nor aborted is dropped.
+INCOMING_TIMEOUT_ENV = "CMION_MESH_INCOMING_TIMEOUT"
+#: Pins of the section store held by the uploads staged here (one owner per sender).
 _STAGING = "staging"
 
 
@@ -133,13 +156,17 @@ class _Outgoing:
 
 @dataclass(eq=False)
 class _Staging:
-    """Target: the sections gathered for one attempt between its ``have`` and its prepare (loop)."""
+    """Target: the sections gathered for one attempt between its ``have`` and its prepare (loop):
+    an upload, one per sender, that ends with the prepare or expires (``_unstage``)."""
 
     attempt: str
     source: str
     refs: dict[str, SectionRef]  # sha256 -> section, as the manifest offered names them
     data: dict[str, Bytes] = field(default_factory=dict)  # checked bytes: held here already, or received
     partial: dict[str, IncomingSection] = field(default_factory=dict)
+    stored: set[str] = field(default_factory=set)  # sections this upload wrote: deleted if no prepare names them
+    received: int = 0  # bytes of this upload written to disk (partial sections included)
+    last: float = field(default_factory=time.monotonic)  # when it last took a chunk (or began)
 
     def abandon(self) -> None:
         for incoming in self.partial.values():
@@ -185,12 +212,20 @@ class MigrationManager(Component):
 
     def __init__(self, state_dir: str | os.PathLike[str], *, companion: str | None = None, section_deadline: float = SECTION_DEADLINE,
                  request_timeout: float = 10.0, retry: tuple[float, float] = (0.1, 2.0),
-                 admit: dict[str, bytes | None] | None = None) -> None:
+                 admit: dict[str, bytes | None] | None = None, max_upload: int | None = None,
+                 upload_idle: float | None = None, incoming_timeout: float | None = None) -> None:
         """``admit``: which companions may enter (name -> trusted identity key, or None to pin it at the
-        first commit); None admits any companion (its identity key is pinned at its first commit here)."""
+        first commit); None admits any companion (its identity key is pinned at its first commit here).
+        ``max_upload``, ``upload_idle``, ``incoming_timeout``: as ``MAX_UPLOAD``, ``UPLOAD_IDLE`` and
+        ``handshake.INCOMING_BOUND``, else from the environment."""
         super().__init__("migration")
         self.admit = admit
         max_section()  # a bad CMION_MESH_MAX_SECTION stops the start, naming it
+        self.max_upload = max_upload if max_upload is not None else \
+            int(env_limit(MAX_UPLOAD_ENV, MAX_UPLOAD, low=1, high=2**50, unit="bytes"))
+        self.upload_idle = upload_idle if upload_idle is not None else env_limit(UPLOAD_IDLE_ENV, UPLOAD_IDLE, low=0.1, high=86400)
+        self.incoming_timeout = incoming_timeout if incoming_timeout is not None else \
+            env_limit(INCOMING_TIMEOUT_ENV, handshake.INCOMING_BOUND, low=0.1, high=30 * 86400)
         self.records = Records(state_dir)
         #: Companions whose stored identity is unusable: reported (description, log, event), never run.
         self.damaged = self.records.damaged()
@@ -203,7 +238,8 @@ class MigrationManager(Component):
         self._outgoing: _Outgoing | None = None  # loop
         self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
         self._buckets: dict[str, TokenBucket] = {}  # sender -> prepare budget (loop)
-        self._staging: _Staging | None = None  # target: sections gathered for the next prepare (loop)
+        self._stagings: dict[str, _Staging] = {}  # target: sender -> sections gathered for its next prepare (loop)
+        self._upload_timer: Timer | None = None  # expires idle uploads (loop)
         self._memo = SectionMemo()  # the companion's section bytes last packed or received, with their hashes
         #: The last migration from here: bytes of the document sent and in all (``MigrationSucceeded``'s ``transfer``).
         self.last_transfer: dict[str, int] | None = None
@@ -278,6 +314,7 @@ class MigrationManager(Component):
             elif record.state == "incoming":
                 self._claim(record.companion, record.epoch)
                 self._spawn(f"resolve-{record.companion}", self._resolve_incoming, record)
+                self._expire_later(record)  # from the prepare's time: overdue already, at the next update
         if self.identity is None:
             self._minds_sleep()
 
@@ -314,7 +351,11 @@ class MigrationManager(Component):
             watch.close()
         self._watches = []
         self._stop.set()
-        self._unstage()
+        for source in list(self._stagings):
+            self._unstage(source)
+        if self._upload_timer is not None:
+            self._upload_timer.cancel()
+            self._upload_timer = None
         with self._threads_lock:
             threads, self._threads = self._threads, []
         for thread in threads:
@@ -873,7 +914,7 @@ class MigrationManager(Component):
                     self._on_commit(request, payload)
             case MigrateAbort() as payload:
                 decision = handshake.on_abort(payload, self.records.get(payload.companion), requester=request.requester)
-                self._unstage(payload.attempt)
+                self._unstage(request.requester, payload.attempt)
                 if decision.record is not None:
                     self.records.put(decision.record)
                     self._prepared.pop(payload.attempt, None)
@@ -923,14 +964,56 @@ class MigrationManager(Component):
         return bucket.take()
 
     def _staged(self, attempt: str, source: str) -> _Staging | None:
-        staging = self._staging
-        return staging if staging is not None and staging.attempt == attempt and staging.source == source else None
+        staging = self._stagings.get(source)
+        return staging if staging is not None and staging.attempt == attempt else None
 
-    def _unstage(self, attempt: str | None = None) -> None:
-        if self._staging is not None and (attempt is None or self._staging.attempt == attempt):
-            self._staging.abandon()
-            self._staging = None
-            self.records.sections.unpin(_STAGING)
+    def _unstage(self, source: str, attempt: str | None = None, *, prepared: bool = False) -> None:
+        """End ``source``'s upload (of ``attempt``, if given). Unless a record now names them
+        (``prepared``), the sections it wrote are deleted: an upload that never became a prepare
+        leaves nothing behind, but what another upload holds or a record names."""
+        staging = self._stagings.get(source)
+        if staging is None or (attempt is not None and staging.attempt != attempt):
+            return
+        del self._stagings[source]
+        self._end_upload(staging, prepared=prepared)
+
+    def _end_upload(self, staging: _Staging, *, prepared: bool = False) -> None:
+        staging.abandon()
+        store = self.records.sections
+        if self._stagings.get(staging.source) is None:
+            store.unpin(f"{_STAGING}/{staging.source}")
+        if staging.stored and not prepared:
+            removed = store.discard(staging.stored, self.records.referenced())
+            if removed:
+                log.info("upload of attempt %s from %s ended without a prepare: %d bytes of sections deleted",
+                         staging.attempt, staging.source, removed)
+
+    def _expire_uploads(self) -> None:
+        """Loop timer: end the uploads idle for ``upload_idle`` seconds; wake again for the next."""
+        self._upload_timer = None
+        now = time.monotonic()
+        for source, staging in list(self._stagings.items()):
+            if now - staging.last >= self.upload_idle:
+                log.info("upload of attempt %s from %s idle for %g s: expired", staging.attempt, source, self.upload_idle)
+                self._unstage(source)
+        if self._stagings and not self._stop.is_set():
+            due = min(s.last for s in self._stagings.values()) + self.upload_idle
+            self._upload_timer = self.sim.call_later(max(0.0, due - now), self._expire_uploads)
+
+    def _upload_room(self, staging: _Staging, size: int) -> str:
+        """"" if ``size`` more bytes of ``staging``'s upload may be written now, else why not (naming
+        its sender): at most ``max_upload`` per sender, and the section folder within its bound."""
+        me, store = self.sim.embodiment, self.records.sections
+        if staging.received + size > self.max_upload:
+            return (f"{staging.source!r} has uploaded {staging.received} bytes of sections to {me!r} for attempt "
+                    f"{staging.attempt}; {size} more is over the {self.max_upload} one sender may upload ahead of its "
+                    f"prepare ({MAX_UPLOAD_ENV})")
+        if not store.make_room(size, self.records.referenced):
+            return (f"busy: the section store of {me!r} is full ({store.size} of {store.max_cache} bytes, "
+                    f"{MAX_CACHE_ENV}, held by uploads not yet prepared and by companions here): {size} bytes more "
+                    f"from {staging.source!r} are refused; try again later")
+        staging.received += size
+        return ""
 
     def _on_have(self, request: IncomingRequest, msg: MigrateHave) -> None:
         """Target: which sections of the offered manifest are here already (each read and checked
@@ -943,6 +1026,10 @@ class MigrationManager(Component):
         if self._staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
             request.reject(f"busy: too many prepares from {msg.source!r}; try again later", Code.BUSY)
             return
+        if msg.source not in self._stagings and len(self._stagings) >= MAX_UPLOADS:
+            request.reject(f"busy: {len(self._stagings)} uploads to {self.sim.embodiment!r} are in progress, the most it "
+                           f"takes at once; {msg.source!r} may try again later", Code.BUSY)
+            return
         holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
         decision = handshake.on_have(msg, record, me=self.sim.embodiment,
                                      held=self.records.hosting(), admit=self.admit, live_claims=holders)
@@ -954,16 +1041,27 @@ class MigrationManager(Component):
         found, errors = store.read_many((ref for ref in staging.refs.values() if store.holds(ref)), self._memo.held())
         for error in errors.values():
             log.warning("%s; fetching it again from %s", error, msg.source)
-        # What nobody names yet is bounded by the cache: a larger offer would fill the disk.
+        # What nobody names yet is bounded by the cache, and by what one sender may upload: a larger
+        # offer would fill the disk.
         missing = sum(ref.size for ref in staging.refs.values() if ref.sha256 not in found)
         if missing > store.max_cache:
             request.reject(f"the sections of {msg.companion!r} missing at {self.sim.embodiment!r} total {missing} bytes, "
-                           f"over its section cache of {store.max_cache} bytes", Code.INVALID)
+                           f"over its section cache of {store.max_cache} bytes ({MAX_CACHE_ENV})", Code.INVALID)
+            return
+        if missing > self.max_upload:
+            request.reject(f"the sections of {msg.companion!r} that {msg.source!r} would upload to {self.sim.embodiment!r} "
+                           f"total {missing} bytes, over the {self.max_upload} one sender may upload ahead of its prepare "
+                           f"({MAX_UPLOAD_ENV})", Code.INVALID)
             return
         staging.data = dict(found)
-        self._unstage()  # one attempt staged at a time: a newer have replaces it
-        self._staging = staging
-        store.pin(_STAGING, staging.refs)
+        # One upload per sender: a newer have replaces it (and deletes what it wrote, but what the new one holds).
+        replaced = self._stagings.get(msg.source)
+        self._stagings[msg.source] = staging
+        store.pin(f"{_STAGING}/{msg.source}", staging.refs)
+        if replaced is not None:
+            self._end_upload(replaced)
+        if self._upload_timer is None:
+            self._upload_timer = self.sim.call_later(self.upload_idle, self._expire_uploads)
         request.accept({"have": sorted(found)})
 
     def _on_sections(self, request: IncomingRequest, msg: MigrateSections) -> None:
@@ -976,7 +1074,15 @@ class MigrationManager(Component):
             return
         complete: list[str] = []
         problems: list[str] = []
+        refusals: list[str] = []
         store = self.records.sections
+
+        def room(size: int) -> str:  # new bytes are counted before they are written
+            why = self._upload_room(staging, size)
+            if why:
+                refusals.append(why)
+            return why
+
         for chunk in msg.chunks:
             ref = staging.refs.get(chunk.sha256)
             if ref is None:
@@ -987,21 +1093,23 @@ class MigrationManager(Component):
             incoming = staging.partial.get(chunk.sha256)
             if incoming is None:
                 incoming = staging.partial[chunk.sha256] = store.receive(ref)
-            problem = incoming.add(chunk.offset, chunk.data)
+            problem = incoming.add(chunk.offset, chunk.data, room)
             if not problem and incoming.complete:
                 del staging.partial[chunk.sha256]
                 problem = incoming.finish()  # replaces a damaged file of that name, if any
                 if not problem:
                     staging.data[chunk.sha256] = incoming.data
+                    staging.stored.add(chunk.sha256)
                     complete.append(chunk.sha256)
             if problem:
-                problems.append(f"section {ref.component!r} of {msg.companion!r}: {problem}")
+                problems.append(problem if refusals else f"section {ref.component!r} of {msg.companion!r}: {problem}")
                 break
         if complete:
             store.sync()
         if problems:
-            request.reject("; ".join(problems), Code.INVALID)
+            request.reject("; ".join(problems), Code.BUSY if refusals and refusals[-1].startswith("busy") else Code.INVALID)
         else:
+            staging.last = time.monotonic()  # only chunks it takes keep an upload alive
             request.accept({"stored": sorted(complete)})
         log.debug("sections of attempt %s: %d stored", msg.attempt, len(complete))
 
@@ -1047,16 +1155,16 @@ class MigrationManager(Component):
                                         live_claims=holders, sections=self._sections_for(msg, carried), values=self._memo.values())
         if decision.record is None:
             if decision.outcome.code != Code.MISSING_SECTIONS:
-                self._unstage(msg.attempt)
+                self._unstage(msg.source, msg.attempt)
             request.answer(decision.outcome)
             return
         assert decision.key is not None and decision.identity is not None and decision.manifest is not None
         # The sections it carried were sent because they are missing here, or damaged: written anew.
-        incoming = self.records.put(decision.record, document=decision.document, sections=carried, key=decision.key,
-                                    replace=True)
+        incoming = self.records.put(msgspec.structs.replace(decision.record, since=time.time()), document=decision.document,
+                                    sections=carried, key=decision.key, replace=True)
         crash_point("target:incoming")
         self._step(incoming)
-        self._unstage()
+        self._unstage(msg.source, prepared=True)
         for ref in decision.manifest.refs:
             if decision.sections is not None:
                 self._memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
@@ -1067,6 +1175,7 @@ class MigrationManager(Component):
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
         # abort may be lost for good: once overdue, ask the source, as after a restart.
         self._spawn(f"resolve-{msg.companion}", self._resolve_incoming, incoming, self.retry[1])
+        self._expire_later(incoming)
 
     def _on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
         decision = handshake.on_commit(msg, self.records.get(msg.companion), me=self.sim.embodiment)
@@ -1116,13 +1225,36 @@ class MigrationManager(Component):
         if settled.state == "active":
             self._activate(settled)
         else:
-            self.records.put(settled)
-            self._prepared.pop(record.attempt, None)
-            self._unstage(record.attempt)
-            if self.identity is None:
-                self._withdraw_claim()
-            self.raise_event("MigrationDropped", {"companion": record.companion, "attempt": record.attempt,
-                                                  "source": record.peer})
+            self._drop_incoming(settled, f"{record.peer!r} aborted it")
+
+    def _expire_later(self, record: Record) -> None:
+        """Loop: drop ``record``'s attempt at its deadline if it is still undecided then."""
+        due = handshake.incoming_deadline(record, self.incoming_timeout)
+        self.sim.call_later(max(0.0, due - time.time()), functools.partial(self._expire_incoming, record))
+
+    def _expire_incoming(self, record: Record) -> None:
+        current = self.records.get(record.companion)
+        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+            return  # decided meanwhile
+        expired = handshake.expire_incoming(current, now=time.time(), bound=self.incoming_timeout)
+        if expired is None:  # the clock went back since the timer was set
+            self._expire_later(current)
+            return
+        reason = (f"{current.peer!r} neither committed nor aborted attempt {current.attempt} of {current.companion!r} "
+                  f"within {self.incoming_timeout:g} s of its prepare")
+        log.warning("dropping the incoming migration: %s", reason)
+        self._drop_incoming(expired, reason)
+
+    def _drop_incoming(self, dropped: Record, reason: str) -> None:
+        """Loop: the attempt ``dropped`` ends here, durably first (the source is told ``dropped`` from
+        this record on); the embodiment is free for the next migration."""
+        self.records.put(dropped)
+        self._prepared.pop(dropped.attempt, None)
+        self._unstage(dropped.peer, dropped.attempt)
+        if self.identity is None:
+            self._withdraw_claim()
+        self.raise_event("MigrationDropped", {"companion": dropped.companion, "attempt": dropped.attempt,
+                                              "source": dropped.peer, "reason": reason})
 
 
 class _AnswerFuture(Future[Outcome]):

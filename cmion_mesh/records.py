@@ -10,8 +10,10 @@ of the epoch held here is ``<companion>.key``.
 A SchemaVersion 2 document is a manifest; the bytes of its sections are in ``sections/``, each
 named by its SHA-256 (``SectionStore``), written before any document names them. Sections no
 record names any more stay there, a cache for the companion's next visit (only what is missing
-crosses the network then), up to ``MAX_CACHE`` bytes: beyond it, the least recently used of
-those nobody names go first.
+crosses the network then), up to ``MAX_CACHE`` bytes (``CMION_MESH_MAX_CACHE``): beyond it, the
+least recently used of those nobody names go first. The bound holds when the folder grows, not
+only when a record is written: a section received from a peer is written only if it fits
+(``SectionStore.make_room``), and its bytes count from the first chunk on.
 
 Every write is: temp file, fsync, rename, fsync the folder. The folder is 0700 and every file 0600
 (the documents are the companion's memory). A document is checked against the hash its record
@@ -51,12 +53,36 @@ MAX_RECORD = 4 * 1024 * 1024
 MAX_STRANGERS = 64
 _DOCUMENT = re.compile(r"^(?P<companion>.+)\.(?P<digest>[0-9a-f]{64})\.identity\.xml$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
-#: Most bytes of sections kept that no record names (the cache for return visits).
+#: Most bytes of sections kept that no record names (the cache for return visits, and sections
+#: received for a prepare still to come); ``CMION_MESH_MAX_CACHE`` changes it (``cache_bound``).
 MAX_CACHE = 1024 * 1024 * 1024
+MAX_CACHE_ENV = "CMION_MESH_MAX_CACHE"
 SECTIONS = "sections"
 #: Sections at least this large are read and checked on threads of their own (hashing frees the GIL).
 _PARALLEL_READ = 1024 * 1024
 T = TypeVar("T")
+
+
+def env_limit(name: str, default: float, *, low: float, high: float, unit: str = "seconds") -> float:
+    """The number in the environment variable ``name``, else ``default``; ``ConfigError`` naming
+    the variable and the range when it is not a number of ``unit`` between ``low`` and ``high``
+    (a whole number for bytes)."""
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        value = float(int(raw)) if unit == "bytes" else float(raw)
+    except ValueError:
+        value = float("nan")
+    if not low <= value <= high:  # NaN fails too
+        shown = [str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (low, high)]
+        raise ConfigError(f"{name}={raw[:40]!r}: not a number of {unit} between {shown[0]} and {shown[1]}")
+    return value
+
+
+def cache_bound() -> int:
+    """Most bytes of sections this process keeps that no record names: ``CMION_MESH_MAX_CACHE``, else ``MAX_CACHE``."""
+    return int(env_limit(MAX_CACHE_ENV, MAX_CACHE, low=1, high=2**50, unit="bytes"))
 
 
 def _fsync_folder(folder: Path) -> None:
@@ -116,14 +142,16 @@ class SectionStore:
 
     Each write is a temporary file, fsync, rename; a batch ends with one fsync of the folder, so
     what ``write`` returns from is on disk. ``pin`` keeps sections of a handshake in flight from
-    eviction before a record names them."""
+    eviction before a record names them. ``size`` counts the bytes of sections being received
+    (``IncomingSection``) as they are written, so that ``make_room`` bounds the folder while it grows."""
 
     def __init__(self, folder: Path, max_cache: int | None = None) -> None:
         self.dir = folder
-        self.max_cache = MAX_CACHE if max_cache is None else max_cache
+        self.max_cache = cache_bound() if max_cache is None else max_cache
         self._lock = threading.Lock()
         self._pins: dict[str, frozenset[str]] = {}
-        self._bytes = 0
+        self._bytes = 0  # sections stored under their name
+        self._receiving = 0  # bytes written so far of sections being received (temporary files)
         self._made = self.dir.is_dir()  # made at the first write: a state folder that never held a section has none
         for path in self.dir.iterdir() if self._made else ():
             if _SHA256.match(path.name) and path.is_file():
@@ -139,8 +167,8 @@ class SectionStore:
 
     @property
     def size(self) -> int:
-        """Bytes of all sections kept here."""
-        return self._bytes
+        """Bytes of all sections kept here, and of those being received."""
+        return self._bytes + self._receiving
 
     def holds(self, ref: SectionRef) -> bool:
         """Whether a file of the section's name and size is here (its bytes are checked when read)."""
@@ -246,9 +274,10 @@ class SectionStore:
             _fsync_folder(self.dir.parent)
             self._made = True
 
-    def _added(self, size: int) -> None:
+    def _added(self, size: int, receiving: int = 0) -> None:
         with self._lock:
             self._bytes += size
+            self._receiving += receiving
 
     def sync(self) -> None:
         """Make the names given to sections by ``IncomingSection.finish`` durable."""
@@ -262,9 +291,39 @@ class SectionStore:
         with self._lock:
             self._pins.pop(owner, None)
 
-    def evict(self, keep: Iterable[str]) -> list[str]:
-        """Beyond ``max_cache``, remove the least recently used sections not in ``keep`` nor pinned."""
-        if self._bytes <= self.max_cache:
+    def pinned(self) -> frozenset[str]:
+        with self._lock:
+            return frozenset().union(*self._pins.values())
+
+    def make_room(self, size: int, keep: Callable[[], Iterable[str]]) -> bool:
+        """Whether ``size`` more bytes fit within ``max_cache``, after removing as many of the least
+        recently used sections as needed that are neither in ``keep()`` (called only then) nor pinned."""
+        if self.size + size <= self.max_cache:
+            return True
+        self.evict(keep(), room=size)
+        return self.size + size <= self.max_cache
+
+    def discard(self, digests: Iterable[str], keep: Iterable[str]) -> int:
+        """Remove the sections ``digests`` but those in ``keep`` or pinned (received for a prepare that
+        never came); the bytes removed."""
+        spared = set(keep) | self.pinned()
+        removed = 0
+        for digest in set(digests) - spared:
+            path = self.path(digest)
+            try:
+                size = path.stat().st_size
+                path.unlink()
+            except FileNotFoundError:
+                continue
+            removed += size
+        if removed:
+            self._added(-removed)
+        return removed
+
+    def evict(self, keep: Iterable[str], room: int = 0) -> list[str]:
+        """Beyond ``max_cache`` (less ``room`` bytes about to be written), remove the least recently
+        used sections not in ``keep`` nor pinned."""
+        if self.size + room <= self.max_cache:
             return []
         with self._lock:
             kept = set(keep).union(*self._pins.values())
@@ -281,7 +340,7 @@ class SectionStore:
                     entries.append((st.st_mtime_ns, path.name, st.st_size))
         removed: list[str] = []
         for _mtime, name, size in sorted(entries):
-            if total <= self.max_cache:
+            if total + self._receiving + room <= self.max_cache:
                 break
             (self.dir / name).unlink(missing_ok=True)
             total -= size
@@ -289,7 +348,7 @@ class SectionStore:
         with self._lock:
             self._bytes = total
         if removed:
-            log.info("section cache over %d bytes: removed %d unused sections", self.max_cache, len(removed))
+            log.info("section cache over %d bytes: removed %d unused sections", self.max_cache - room, len(removed))
         return removed
 
 
@@ -312,14 +371,20 @@ class IncomingSection:
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._writer: ThreadPoolExecutor | None = None
+        self._written = 0  # bytes in the temporary file, counted in the store's size
+
+    @property
+    def written(self) -> int:
+        return self._written
 
     @property
     def complete(self) -> bool:
         return self._hashed == self.ref.size
 
-    def add(self, offset: int, data: Bytes) -> str:
+    def add(self, offset: int, data: Bytes, room: Callable[[int], str] | None = None) -> str:
         """Take a chunk; "" or why it does not fit. A chunk received before (sent again when its
-        answer was lost) is ignored: the hash of the whole says whether the bytes are right."""
+        answer was lost) is ignored: the hash of the whole says whether the bytes are right.
+        ``room(n)``: "" if ``n`` new bytes may be written, else why not (asked only for new bytes)."""
         end = offset + len(data)
         if end > self.ref.size:
             return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
@@ -327,8 +392,13 @@ class IncomingSection:
             return ""
         if offset < self._hashed or any(offset < o + len(c) and o < end for o, c in self._ahead.items()):
             return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
+        refused = room(len(data)) if room is not None else ""
+        if refused:
+            return refused
         fd = self._fd
         assert fd is not None
+        self._written += len(data)
+        self.store._added(0, receiving=len(data))
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="section-write")
         written = self._writer.submit(self._write_out, fd, offset, data)
@@ -367,7 +437,8 @@ class IncomingSection:
         except FileNotFoundError:
             replaced = 0
         os.replace(self._tmp, self._path)
-        self.store._added(self.ref.size - replaced)
+        written, self._written = self._written, 0
+        self.store._added(self.ref.size - replaced, receiving=-written)
         chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
         self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
         self._chunks.clear()
@@ -384,6 +455,8 @@ class IncomingSection:
         if fd is not None:
             os.close(fd)
             self._tmp.unlink(missing_ok=True)
+        written, self._written = self._written, 0
+        self.store._added(0, receiving=-written)
 
 
 class Record(msgspec.Struct, frozen=True):
@@ -405,6 +478,9 @@ class Record(msgspec.Struct, frozen=True):
     link: Link | None = None  # handed/released: the link this source signed for ``attempt``
     document: str = ""  # sha256 (hex) of the identity document held with this record
     seal: bytes = b""  # the custody key's signature over (companion, document hash)
+    #: incoming: when the prepare of ``attempt`` was recorded here (seconds since the epoch); the
+    #: bound after which this target drops an undecided attempt counts from it, across restarts.
+    since: float = 0.0
 
     @property
     def order(self) -> tuple[int, int]:
