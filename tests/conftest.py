@@ -86,9 +86,9 @@ from tests.browser import chromium_browser  # noqa: E402, F401  (the real-browse
 #           session. Guaranteed, not hoped for: while a unit test runs (its setup and call) starting
 #           a process or opening a zenoh session raises and fails the test, naming what it started.
 #   mesh    daemons and other child processes, real zenoh sessions (loopback only).
-#   system  what needs the machine's own facilities or is slow by nature: network namespaces
-#           (root), a browser (Chromium), the ROS 2 stand-in, espeak-ng, ruff and mypy over the tree,
-#           the bench's smoke runs and its 10,000-schedule handshake simulation.
+#   system  what needs the machine's own facilities, or long runs: network namespaces (root), a
+#           browser (Chromium), the ROS 2 stand-in, espeak-ng; ruff and mypy over the tree, the
+#           fuzzing (hypothesis), the bench's smoke runs and its 10,000-schedule handshake simulation.
 #
 # A test file's tier is TIERS[its stem]; a test of another tier than its file's is listed in
 # TIER_OF_TEST ("stem::function") or carries ``@pytest.mark.mesh`` / ``@pytest.mark.system`` /
@@ -117,7 +117,7 @@ TIERS: dict[str, str] = {
     "test_execution": "unit",
     "test_fatima": "mesh",
     "test_fatima_protocol": "unit",
-    "test_fuzz": "unit",
+    "test_fuzz": "system",  # hundreds of random inputs a test: ~20 s of CPU, as much as the whole unit tier
     "test_handshake": "unit",
     "test_handshake_simulation": "unit",
     "test_hostile_inputs": "unit",
@@ -179,6 +179,8 @@ TIER_OF_TEST: dict[str, str] = {
     "test_delta_migration::test_a_10_mib_section_migrates": "mesh",
     "test_delta_migration::test_a_section_over_the_targets_limit_is_refused_naming_it": "mesh",
     # the stand-in FAtiMA mind in a child process
+    # speech through espeak-ng, a program of the machine's, when it is installed
+    "test_embodiments::test_operator_command_appears_in_the_world_model": "system",
     "test_fatima_protocol::test_a_flooding_mind_is_held_back_and_the_body_keeps_working": "mesh",
     "test_fatima_protocol::test_a_mind_that_does_not_read_is_disconnected": "mesh",
     # the bench's handshake simulation at full length: tens of seconds of CPU (its short runs stay unit)
@@ -207,6 +209,7 @@ TIER_OF_TEST: dict[str, str] = {
     "test_speech::test_espeak_speaks_a_line_of_plausible_length": "system",
     "test_tap::test_keys_are_relative_to_the_mesh_unless_absolute": "unit",
     "test_webbody::test_up_refuses_a_web_address_in_use_naming_it": "mesh",
+    "test_webbody_protocol::test_the_page_senses_and_the_body_pushes": "system",  # espeak-ng, when installed
     "test_webbody::test_up_refuses_a_bad_web_address_as_a_usage_error": "mesh",
 }
 
@@ -255,7 +258,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 #: What a unit test tried to start (events of ``sys.audit``, and ``zenoh.open``) while it ran.
-_started: list[str] = []
+started_in_unit_test: list[str] = []
 _guarding = False
 #: The audit events of starting another program (``subprocess`` and everything below it, ``os.system``...).
 _SPAWNS = frozenset({"subprocess.Popen", "os.system", "os.posix_spawn", "os.spawn", "os.exec", "os.fork", "os.forkpty"})
@@ -266,7 +269,7 @@ class StartedInUnitTest(Exception):
 
 
 def _refuse(what: str) -> None:
-    _started.append(what)
+    started_in_unit_test.append(what)
     raise StartedInUnitTest(f"a unit test may not start {what}")
 
 
@@ -294,14 +297,14 @@ def _guarded(item: pytest.Item) -> Generator[None, Any, Any]:
     global _guarding
     if item.get_closest_marker("unit") is None:
         return (yield)
-    _started.clear()
+    started_in_unit_test.clear()
     _guarding = True
     try:
         return (yield)
     finally:
         _guarding = False
-        if _started:  # failed even if the code under test caught the exception
-            pytest.fail(f"{item.nodeid} is a unit test but started {_started[0]}; "
+        if started_in_unit_test:  # failed even if the code under test caught the exception
+            pytest.fail(f"{item.nodeid} is a unit test but started {started_in_unit_test[0]}; "
                         "a unit test stays in this process with no zenoh session: give it its tier in "
                         "tests/conftest.py (TIER_OF_TEST) or mark it @pytest.mark.mesh / @pytest.mark.system",
                         pytrace=False)

@@ -4,6 +4,7 @@ test has exactly one tier, and a unit test that starts a process or a zenoh sess
 from __future__ import annotations
 
 import ast
+import functools
 import os
 import subprocess
 import sys
@@ -19,6 +20,7 @@ TESTS = Path(__file__).parent
 ROOT = TESTS.parent
 
 
+@functools.cache
 def functions_in(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(), str(path))
     return {node.name for node in ast.walk(tree)
@@ -85,9 +87,9 @@ def test_a_unit_test_may_not_start_a_process_nor_open_a_zenoh_session() -> None:
             os.system("true")
         with pytest.raises(conftest.StartedInUnitTest, match=r"a zenoh session"):
             zenoh.open(zenoh.Config())
-        assert len(conftest._started) == 3
+        assert len(conftest.started_in_unit_test) == 3
     finally:
-        conftest._started.clear()  # refused, as this test wants: not a failure of this test
+        conftest.started_in_unit_test.clear()  # refused, as this test wants: not a failure of this test
 
 
 UNIT_FILE = '''
