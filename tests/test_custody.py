@@ -1,0 +1,137 @@
+"""The custody rules as pure functions: how two chains relate, what proves an equivocation, what
+backs a claim."""
+
+from __future__ import annotations
+
+import msgspec
+import pytest
+
+from cmion_mesh import custody, signing
+from cmion_mesh.custody import ClaimProof
+from cmion_mesh.signing import SignatureRefused
+
+DOC = custody.digest(b"<Identity/>")
+
+
+class Chain:
+    """A chain of custody grown link by link, with every custody key it used (as each holder kept it)."""
+
+    def __init__(self, first: str = "a", companion: str = "spirit") -> None:
+        self.companion = companion
+        self.keys = [signing.new_key()]
+        self.links = [custody.birth(companion, first, self.keys[0], b"<Identity/>")]
+
+    def copy(self) -> Chain:
+        other = Chain.__new__(Chain)
+        other.companion, other.keys, other.links = self.companion, list(self.keys), list(self.links)
+        return other
+
+    def to(self, holder: str, attempt: str = "", *, signer: bytes | None = None) -> Chain:
+        """Hand on to ``holder`` (signed by the current key, or ``signer``: a forger's)."""
+        key = signing.new_key()
+        link = custody.hand_on(signer or self.keys[-1], self.companion, self.links[-1].epoch + 1, holder,
+                               signing.public_of(key), attempt or f"{holder}{len(self.links)}", DOC)
+        self.keys.append(key)
+        self.links.append(link)
+        return self
+
+    def at(self, epoch: int) -> Chain:
+        """This chain cut back to ``epoch`` (what a former host kept)."""
+        cut = self.copy()
+        n = next(i for i, link in enumerate(self.links) if link.epoch == epoch) + 1
+        cut.links, cut.keys = cut.links[:n], cut.keys[:n]
+        return cut
+
+    @property
+    def identity(self) -> bytes:
+        return self.links[0].public_key
+
+def true_and_forged() -> tuple[Chain, Chain]:
+    """spirit goes a -> b -> a -> c; b, a former host that kept its key of epoch 2, forks from there to
+    itself and inflates the epochs to 503."""
+    true = Chain("a").to("b").to("a").to("c")
+    forged = true.at(2)
+    forged.to("b", "forged")
+    for _ in range(500):
+        forged.to("b")
+    return true, forged
+
+
+# --- compare and the proof of a fork -----------------------------------------------------------------
+
+
+def test_two_chains_relate_as_same_stale_behind_fork_or_foreign() -> None:
+    true, forged = true_and_forged()
+    assert custody.compare(true.links, list(true.links)) == ("same", None)
+    assert custody.compare(true.links, true.at(2).links) == ("stale", None)
+    assert custody.compare(true.at(2).links, true.links) == ("behind", None)
+    assert custody.compare(true.links, Chain("a").links) == ("foreign", None)
+    relation, fork = custody.compare(true.links, forged.links)
+    assert relation == "fork" and fork is not None
+    assert fork.epoch == 3 and fork.equivocator == "b"
+    assert (fork.first.holder, fork.second.holder) == ("a", "b") and fork.prefix == true.links[:2]
+    custody.verify_fork(fork, identity=true.identity)
+    assert "'b' signed two links for epoch 3 of 'spirit': to 'a'" in fork.describe()
+    # seen from the other side, the same equivocator: inflating epochs changes nothing
+    relation, back = custody.compare(forged.links, true.links)
+    assert relation == "fork" and back is not None and back.equivocator == "b" and back.epoch == 3
+
+
+def test_a_fork_is_proven_only_by_two_links_the_same_key_signed() -> None:
+    true, forged = true_and_forged()
+    _, fork = custody.compare(true.links, forged.links)
+    assert fork is not None
+    with pytest.raises(SignatureRefused, match="same link"):
+        custody.verify_fork(msgspec.structs.replace(fork, second=fork.first))
+    stranger = custody.hand_on(signing.new_key(), "spirit", 3, "x", signing.public_of(signing.new_key()), "x", DOC)
+    with pytest.raises(SignatureRefused, match="not signed by the key of the epoch before"):
+        custody.verify_fork(msgspec.structs.replace(fork, second=stranger))
+    with pytest.raises(SignatureRefused, match="signed by a key other than the one trusted"):
+        custody.verify_fork(fork, identity=Chain("z").identity)
+    late = forged.links[5]
+    with pytest.raises(SignatureRefused, match="at epoch 3"):
+        custody.verify_fork(msgspec.structs.replace(fork, second=late))
+
+
+def test_after_fork_names_the_holders_of_a_branch() -> None:
+    true, forged = true_and_forged()
+    _, fork = custody.compare(true.links, forged.links)
+    assert fork is not None
+    assert custody.after_fork(true.links, fork) == ["a", "c"]
+    assert set(custody.after_fork(forged.links, fork)) == {"b"}
+    assert custody.after_fork(true.at(2).links, fork) == []  # on neither branch
+    assert custody.after_fork(Chain("z").to("y").to("x").links, fork) == []
+
+
+def test_a_freeze_gives_the_proofs_again() -> None:
+    true, forged = true_and_forged()
+    forged.to("f")
+    freeze = custody.Freeze("spirit", {"c": list(true.links), "f": list(forged.links)})
+    decoded = msgspec.json.decode(msgspec.json.encode(freeze), type=custody.Freeze)
+    [(holder, fork)] = decoded.forks("c")
+    assert holder == "f" and fork.equivocator == "b" and fork.epoch == 3
+    [(holder, fork)] = decoded.forks("f")
+    assert holder == "c" and fork.equivocator == "b"
+
+
+# --- what backs a claim --------------------------------------------------------------------------------
+
+
+def test_a_claim_is_backed_by_its_chain_and_the_key_at_its_head() -> None:
+    true = Chain("a").to("b")
+    proof = ClaimProof("spirit", 2, "b", "c", b"n" * 16)
+    custody.verify_claim(true.links, proof, custody.sign_claim(true.keys[-1], proof), identity=true.identity)
+    with pytest.raises(SignatureRefused, match="did not sign its claim"):  # the chain alone is public
+        custody.verify_claim(true.links, proof, custody.sign_claim(true.keys[0], proof))
+    with pytest.raises(SignatureRefused, match="did not sign its claim"):  # another asker's, or another nonce
+        custody.verify_claim(true.links, proof, custody.sign_claim(true.keys[-1], msgspec.structs.replace(proof, nonce=b"x")))
+    inflated = msgspec.structs.replace(proof, epoch=1002)
+    with pytest.raises(SignatureRefused, match="at epoch 1002, but its chain of custody ends at epoch 2"):
+        custody.verify_claim(true.links, inflated, custody.sign_claim(true.keys[-1], inflated))
+    mallory = msgspec.structs.replace(proof, claimant="mallory")
+    with pytest.raises(SignatureRefused, match="ends with 'b'"):
+        custody.verify_claim(true.links, mallory, custody.sign_claim(true.keys[-1], mallory))
+    impostor = Chain("b")
+    own = ClaimProof("spirit", 1, "b", "c", b"n" * 16)
+    with pytest.raises(SignatureRefused, match="signed by a key other than the one trusted"):
+        custody.verify_claim(impostor.links, own, custody.sign_claim(impostor.keys[-1], own), identity=true.identity)
