@@ -29,6 +29,7 @@ import msgspec
 
 from cmion_mesh import custody, handshake, signing
 from cmion_mesh.custody import Link
+from cmion_mesh.handshake import Claim
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
@@ -142,10 +143,11 @@ class World:
         if waiting is not None:
             waiting.awaiting = message.mid
 
-    def claims(self, receiver: str) -> dict[str, int]:
-        """Custody tokens: seen at once by everyone (liveliness is not what this simulation faults)."""
-        return {n.name: n.record.epoch for n in self.nodes.values()
-                if n.name != receiver and n.record is not None and n.record.state in ("active", "prepared", "handed", "incoming")}
+    def claims(self, receiver: str) -> list[Claim]:
+        """Backed custody claims: every holder's, its record's chain (which it backs), seen at once by
+        everyone (liveliness is not what this simulation faults)."""
+        return [Claim(n.name, n.record.chain) for n in self.nodes.values()
+                if n.name != receiver and n.record is not None and n.record.state in ("active", "prepared", "handed")]
 
     # --- the source side, as MigrationManager._send / _commit_until_acked ----------------------------
 
@@ -224,7 +226,7 @@ class World:
                 return Outcome("rejected", "not on behalf of another")
             held = record if record is not None and record.state in ("active", "prepared", "handed", "incoming") else None
             decision = handshake.on_prepare(payload, record, me=node.name, held=held, admit=None,
-                                            live_claims=self.claims(node.name), new_key=self._new_key)
+                                            claims=self.claims(node.name), new_key=self._new_key)
             if decision.record is not None:
                 self._write(node, decision.record, decision.document, decision.key)
                 op = Op(self._id(), "resolve", "ask", decision.record)

@@ -14,14 +14,22 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
   link, signed by the same key). A former host kept a key of an older epoch: it can sign nothing
   that extends the chain past the link that took custody away from it, except a *fork*.
 * A fork (a second link for an epoch whose link already exists) needs the key of that epoch, so
-  only the embodiment that held custody then can make one. Receivers refuse forks they can see:
-  a prepare whose chain disagrees with the one they hold for the companion, one for a companion
-  they are running or hold at a newer epoch, and one whose source is not the live custody holder
-  that the mesh advertises (``migration`` declares a liveliness token per held companion and
-  every embodiment watches them). What remains, written down in docs/security.md: a receiver that
-  has never seen the companion and cannot see its live holder (a partition) can be shown a fork
-  by a hostile former host; when the partition heals, both holders advertise and the conflict is
-  reported loudly, and the documented rule decides who keeps running it.
+  only the embodiment that held custody then can make one. Two different links for one epoch,
+  both signed by the key the shared link before them names, are therefore a proof (``Fork``)
+  that this key's holder **equivocated**: anyone holding the shared prefix can check it, and
+  whoever shows it, the evidence names the signer (``Fork.equivocator``).
+* A claim is never taken on trust. A custody token in the mesh (``migration``) is a hint to go
+  and look: the claimant is asked for its chain and for a signature, by the custody key at the
+  chain's head, over the asker's fresh nonce (``ClaimProof``); a claim counts only once its
+  chain verifies from the identity key trusted for the companion and ends with the claimant at
+  the epoch claimed (``verify_claim``). Two verified chains relate in one way (``compare``): the
+  same; one a prefix of the other (its holder is stale: it handed the companion on); or a fork.
+* No branch of a fork wins by itself: epochs and names count for nothing, so inflating epochs
+  gains an equivocator nothing. Every holder of a branch freezes, durably, until an operator
+  keeps one branch and the others stand down (``cmion-mesh custody resolve``, docs/security.md).
+  Receivers refuse offers that a verified claim shows stale or forked, and forks they can see in
+  their own record; what remains is a receiver that cannot see any live holder (a partition):
+  it may accept a fork, which freezes both branches when they meet.
 * Nothing is trusted because it was merely offered: a companion's identity key is pinned when a
   chain that starts with it *commits* (or at birth, or by ``--admit NAME=KEY``), never by a
   prepare that was aborted, so a stranger cannot poison the pin.
@@ -30,7 +38,7 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Literal
 
 import msgspec
@@ -316,21 +324,3 @@ def after_fork(chain: Sequence[Link], fork: Fork) -> list[str]:
     if len(chain) <= at or chain[at] not in (fork.first, fork.second) or (at and chain[at - 1] != fork.prefix[-1]):
         return []
     return [link.holder for link in chain[at:]]
-
-
-def rivals(chain: Sequence[Link], claims: Mapping[str, int], holder: str) -> list[str]:
-    """The embodiments that claim the companion (``claims``: name -> epoch) although ``chain``, held
-    or offered by ``holder``, shows them handing it on at the epoch they claim."""
-    handed_on = {(link.holder, link.epoch) for link in chain[:-1]}
-    return sorted(h for h, epoch in claims.items() if h != holder and (h, epoch) not in handed_on)
-
-
-def forks(known: Sequence[Link], offered: Sequence[Link]) -> str:
-    """Why ``offered`` conflicts with the chain ``known`` here ("" if one extends the other)."""
-    for mine, theirs in zip(known, offered, strict=False):
-        if mine != theirs:
-            return (f"the chain of custody forks at epoch {mine.epoch}: the link offered (to {theirs.holder!r}) is not "
-                    f"the one known here (to {mine.holder!r})")
-    if len(known) > len(offered):
-        return f"stale: the chain of custody here reaches epoch {known[-1].epoch}, the offer only {offered[-1].epoch}"
-    return ""

@@ -29,8 +29,9 @@ and what a member sends to ``X`` (egress) is limited to what ``X`` may read. An 
 subscribe to the answers embodiments give (``cmion/<mesh>/*/@outcome/**``: ``cmion-mesh record``).
 
 Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<op>/<sender>``
-(``migration_key``). The access control lets ``S`` query only keys whose last chunk is ``S``, so
-a target knows the sender of a handshake message from the key it arrived on.
+(``migration_key``; ``chain``, asking a custody claimant to back its token, too). The access
+control lets ``S`` query only keys whose last chunk is ``S``, so a target knows the sender of a
+handshake message from the key it arrived on.
 
 Only ``zenoh_transport`` imports zenoh: this module produces settings (json5 key, value) that
 reach the session through ``TransportConfig.overrides``.
@@ -60,7 +61,7 @@ MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_qu
 #: The handshake operations whose keys carry their sender (``migrate`` is a command to a source,
 #: not a handshake message: it stays ``.../rq/migration/migrate``, reachable by the source's own
 #: identity and operators only).
-HANDSHAKE_OPS = ("prepare", "commit", "abort", "status")
+HANDSHAKE_OPS = ("prepare", "commit", "abort", "status", "chain")
 #: Listen endpoint when none is given: all interfaces, a port the system picks (zenoh's own
 #: default for a peer, over TLS instead of TCP).
 DEFAULT_LISTEN = "tls/[::]:0"

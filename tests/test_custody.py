@@ -1,13 +1,15 @@
 """The custody rules as pure functions: how two chains relate, what proves an equivocation, what
-backs a claim."""
+backs a claim, a holder's verdict, a target's objection."""
 
 from __future__ import annotations
 
 import msgspec
 import pytest
 
-from cmion_mesh import custody, signing
+from cmion_mesh import custody, handshake, signing
 from cmion_mesh.custody import ClaimProof
+from cmion_mesh.handshake import Claim
+from cmion_mesh.records import Record
 from cmion_mesh.signing import SignatureRefused
 
 DOC = custody.digest(b"<Identity/>")
@@ -45,6 +47,15 @@ class Chain:
     @property
     def identity(self) -> bytes:
         return self.links[0].public_key
+
+    def claim(self) -> Claim:
+        return Claim(self.links[-1].holder, list(self.links))
+
+    def record(self, state: str = "active", **fields: object) -> Record:
+        head = self.links[-1]
+        return Record(self.companion, state, head.epoch, chain=list(self.links), public_key=signing.encode_public(self.identity),
+                      **fields)  # type: ignore[arg-type]
+
 
 def true_and_forged() -> tuple[Chain, Chain]:
     """spirit goes a -> b -> a -> c; b, a former host that kept its key of epoch 2, forks from there to
@@ -135,3 +146,38 @@ def test_a_claim_is_backed_by_its_chain_and_the_key_at_its_head() -> None:
     own = ClaimProof("spirit", 1, "b", "c", b"n" * 16)
     with pytest.raises(SignatureRefused, match="signed by a key other than the one trusted"):
         custody.verify_claim(impostor.links, own, custody.sign_claim(impostor.keys[-1], own), identity=true.identity)
+
+
+# --- a target's objection, a holder's verdict ----------------------------------------------------------
+
+
+def test_a_target_refuses_an_offer_a_backed_claim_shows_stale_or_forked() -> None:
+    true, forged = true_and_forged()
+    assert handshake.check_claims(true.links, [true.claim()], source="c") == ("", None)
+    assert handshake.check_claims(true.links, [true.at(2).claim()], source="c") == ("", None)  # a former holder's token
+    why, fork = handshake.check_claims(true.at(2).links, [true.claim()], source="b")
+    assert "'c' holds 'spirit' at epoch 4, newer than the offer's epoch 2: 'b' handed it on" in why and fork is None
+    why, fork = handshake.check_claims(forged.links, [true.claim()], source="b")
+    assert fork is not None and fork.equivocator == "b" and "(equivocation)" in why and "'b' signed two links" in why
+    why, fork = handshake.check_claims(Chain("x").links, [true.claim()], source="x")
+    assert "another companion named 'spirit'" in why and fork is None
+    assert handshake.check_claims(forged.links, [], source="b") == ("", None), "no backed claim: nothing to object"
+
+
+def test_epochs_and_names_count_for_nothing_in_a_holders_verdict() -> None:
+    true, forged = true_and_forged()
+    forged.to("f")
+    record = true.record()
+    stale = handshake.judge(record, [true.at(2).claim(), true.at(3).claim()])
+    assert stale == handshake.Verdict()
+    verdict = handshake.judge(record, [forged.claim()])
+    assert verdict.superseded_by is None and [(c.holder, f.equivocator) for c, f in verdict.forks] == [("f", "b")]
+    # the branch with 500 epochs more is no better: the verdict on the other side is a fork as well
+    other = handshake.judge(forged.record(), [true.claim()])
+    assert [(c.holder, f.equivocator) for c, f in other.forks] == [("c", "b")]
+    # a rolled-back holder: its own key signed the link past its head
+    rolled_back = true.at(3).record()
+    verdict = handshake.judge(rolled_back, [true.claim()])
+    assert verdict.superseded_by is not None and verdict.superseded_by.holder == "c" and not verdict.forks
+    released = handshake.superseded(rolled_back, verdict.superseded_by)
+    assert (released.state, released.epoch, released.peer, released.link) == ("released", 3, "c", true.links[3])

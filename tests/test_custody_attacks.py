@@ -347,3 +347,36 @@ def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, No
         description = client.describe("a", timeout=2.0)
         assert description["inhabitant"] is None
         assert "altered at rest" in description["damaged"]["spirit"] and str(document) in description["damaged"]["spirit"]
+
+
+# --- claims must be backed, forks are proven and resolved, records agree with their chain ----------------
+
+
+def test_a_bare_custody_token_of_a_trusted_member_is_ignored_in_secure_mode(pki: Pki, tmp_path: Path, mesh: str) -> None:
+    ports = {n: free_port() for n in ("robot", "screen")}
+    daemons = []
+    try:
+        for name in ports:
+            daemons.append(_secure_daemon(pki, tmp_path, mesh, name, ports[name], [p for n, p in ports.items() if n != name],
+                                          *(["--companion", "spirit"] if name == "robot" else [])))
+        endpoints = [f"tls/127.0.0.1:{p}" for p in ports.values()]
+        names = ("robot", "screen")
+        with ZenohTransport(secure_config(pki, "admin", mesh, *endpoints)) as admin_t, \
+                ZenohTransport(secure_config(pki, "phone", mesh, *endpoints)) as phone_t:
+            admin = MeshClient(admin_t, mesh)
+            wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None}, 30, "two secure daemons")
+            # phone, a trusted member, under its own certificate (what the access control allows it)
+            token = phone_t.declare_token(keys.custody_key(mesh, "phone", "spirit", 1002))
+            try:
+                wait_for(lambda: any("ignored the custody claim of 'phone' on 'spirit' at epoch 1002" in line
+                                     for line in daemons[0].lines), 20, "robot logs the claim it ignored")
+                assert homes(admin, names) == {"robot": "spirit", "screen": None}
+                assert admin.request("robot", "mind", "message", MindMessage({"note": "met Ada"})).status == "accepted"
+                assert admin.migrate("spirit", "screen", timeout=30)["target"] == "screen"
+            finally:
+                token.close()
+            wait_for(lambda: homes(admin, names) == {"robot": None, "screen": "spirit"}, 20, "spirit on screen")
+            assert memory(admin, "screen") == ["met Ada"]
+    finally:
+        for daemon in daemons:
+            daemon.kill()

@@ -22,7 +22,7 @@ def test_a_broken_rule_is_caught_with_a_replayable_seed(monkeypatch: pytest.Monk
     real = simulation.handshake.on_prepare
 
     def careless(msg, record, **kwargs):  # type: ignore[no-untyped-def]
-        return real(msg, None, **{**kwargs, "held": None, "live_claims": {}})
+        return real(msg, None, **{**kwargs, "held": None, "claims": []})
 
     monkeypatch.setattr(simulation.handshake, "on_prepare", careless)
     with pytest.raises(InvariantBroken, match=r"seed \d+: .*\nreplay: python -m bench.simulation --seed \d+ --trace"):
