@@ -43,6 +43,9 @@ Claims of other holders count only once backed (``Claim``: a verified chain and 
 head's key): a target refuses an offer that a claim shows stale or forked (``check_claims``); a
 holder stands down for good when a claim extends its chain, and freezes on a proven fork
 (``judge``).
+The one step that moves an order back is an operator's: a holder of a branch of a proven fork that
+stands down (``retired``) records the kept branch's chain and order; the orders of the other
+branch mean nothing on this one, and its offers are refused as forks of the chain recorded.
 
 **Sections.** A SchemaVersion 2 document is a manifest naming its sections by hash (``identity``);
 T must hold every section before it records ``incoming``. Before the prepare of a large identity,
@@ -315,6 +318,15 @@ def superseded(record: Record, claim: Claim) -> Record:
     link = claim.chain[len(record.chain)]
     return msgspec.structs.replace(record, state="released", attempt=link.attempt, peer=link.holder, link=link,
                                    custody_key="")
+
+
+def retired(record: Record, kept: Sequence[Link]) -> Record:
+    """A holder of a branch of a proven fork, standing down for the branch an operator keeps
+    (``kept``, verified): ``dropped``, knowing the kept chain, so that offers of its own branch are
+    refused as forks and the keeper's next attempt is newer."""
+    head = kept[-1]
+    return msgspec.structs.replace(record, state="dropped", epoch=head.epoch, seq=0, attempt="", peer=head.holder,
+                                   chain=list(kept), link=None, custody_key="")
 
 
 def _activation(record: Record, link: Link, me: str) -> Record:

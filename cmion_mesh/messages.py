@@ -404,6 +404,24 @@ class MigrateChain(Message, frozen=True, tag="migrate_chain"):
     nonce: Annotated[bytes, msgspec.Meta(max_length=64)]
 
 
+class CustodyStandDown(Message, frozen=True, tag="custody_stand_down"):
+    """Operator -> a holder of a branch of a forked chain of custody (``.../rq/migration/stand_down``):
+    retire your copy, for the branch of ``keep`` (``chain``: its MessagePack custody links, which the
+    holder verifies and records). Answered once that is on disk."""
+
+    companion: str
+    keep: str
+    chain: bytes
+
+
+class CustodyResume(Message, frozen=True, tag="custody_resume"):
+    """Operator -> the holder kept (``.../rq/migration/resume``), once every other branch holder
+    (``retired``) stood down: forget the fork, run the companion again."""
+
+    companion: str
+    retired: list[str] = []
+
+
 # --- invitations -------------------------------------------------------------------------------------
 
 
@@ -428,7 +446,7 @@ AnyMessage = (
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
-    | MigrateHave | MigrateSections | RequestAnswered | MigrateChain
+    | MigrateHave | MigrateSections | RequestAnswered | MigrateChain | CustodyStandDown | CustodyResume
 )
 
 

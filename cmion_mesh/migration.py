@@ -35,7 +35,10 @@ is ignored, and logged naming the claimant. Backed claims decide two things (``h
 * a holder stands down for good when a backed claim extends its chain (its own key signed the link
   past its head: a rolled-back state folder), and on a proven fork it freezes: no branch wins by
   itself, epochs and names count for nothing. The evidence is kept in the state folder (a restart
-  does not unfreeze it), and the fork is reported (``CustodyFork`` event, the log).
+  does not unfreeze it), the fork is reported (``CustodyFork`` event, the log, the description)
+  with the command that resolves it: ``cmion-mesh custody resolve COMPANION --keep EMBODIMENT``
+  makes every other branch holder stand down (``stand_down``: the kept chain recorded, on disk
+  before the answer), then tells the keeper to run it again (``resume``).
 
 **Sections travel apart** (SchemaVersion 2, ``identity``): the source packs the identity into a
 manifest and section bytes off the loop; for a small identity it sends them all inside the
@@ -78,6 +81,8 @@ from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import (
     Code,
+    CustodyResume,
+    CustodyStandDown,
     Migrate,
     MigrateAbort,
     MigrateChain,
@@ -322,8 +327,9 @@ class MigrationManager(Component):
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
                 "status": MigrateStatus, "policy": SetPolicy, "have": MigrateHave, "sections": MigrateSections,
-                "chain": MigrateChain}
+                "chain": MigrateChain, "stand_down": CustodyStandDown, "resume": CustodyResume}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
+    # ``stand_down`` and ``resume`` are not: only this embodiment's own identity and operators may send them.
     sender_requests = frozenset({"prepare", "commit", "abort", "status", "have", "sections", "chain"})
     # Its constructor opens the state folder (creates it, sweeps what a crash left): never built
     # from a configuration, so that ``validate`` can build every component it names.
@@ -366,6 +372,7 @@ class MigrationManager(Component):
         self._alive: set[str] = set()  # embodiments whose liveliness token is present (transport worker)
         self._tokens: dict[str, set[tuple[str, int]]] = {}  # companion -> {(holder, epoch)}: hints (transport worker)
         self._backed: dict[str, dict[tuple[str, int], Claim]] = {}  # companion -> claims backed (claim checker)
+        self._stood_down: set[ClaimKey] = set()  # claims of branch holders an operator retired: ignored
         self._checker: ClaimChecker | None = None
         self._waiting: list[_Waiting] = []  # offers waiting for claims to be checked (loop)
         self._quiet = _Quiet()
@@ -405,7 +412,26 @@ class MigrationManager(Component):
         bare custody token is never one."""
         with self._watch_lock:
             backed = self._backed.get(companion, {})
-            return [claim for _, claim in sorted(backed.items())]
+            return [claim for (holder, epoch), claim in sorted(backed.items())
+                    if (holder, companion, epoch) not in self._stood_down]
+
+    def custody_report(self) -> dict[str, Any]:
+        """What ``describe`` says of custody here: for the companion held here, its state, epoch,
+        whether a fork freezes it and the evidence (plain data)."""
+        report: dict[str, Any] = {}
+        for record in self.records.all():
+            if record.state not in HOSTING:
+                continue
+            entry: dict[str, Any] = {"state": record.state, "epoch": record.epoch, "frozen": False}
+            freeze, superseded = self.frozen, self.superseded_by
+            if freeze is not None and freeze.companion == record.companion:
+                entry.update(fork_report(freeze, self.sim.embodiment))
+            if superseded is not None:
+                entry["superseded_by"] = {"holder": superseded.holder, "epoch": superseded.epoch}
+            if record.companion in self.damaged:
+                entry["damaged"] = True
+            report[record.companion] = entry
+        return report
 
     # --- life cycle (loop) ----------------------------------------------------------------------
 
@@ -538,6 +564,7 @@ class MigrationManager(Component):
             else:
                 tokens.discard((holder, epoch))
                 self._backed.get(companion, {}).pop((holder, epoch), None)  # the token went: its claim goes
+                self._stood_down.discard((holder, companion, epoch))
                 if not tokens:
                     del self._tokens[companion]
                     self._backed.pop(companion, None)
@@ -771,6 +798,82 @@ class MigrationManager(Component):
                 wait.request.reject(str(exc))
             if not wait.request.answered:
                 wait.request.reject(f"component {self.name!r} gave no answer", Code.UNANSWERED)
+
+    # --- an operator resolves a fork (loop) --------------------------------------------------------
+
+    def _on_stand_down(self, request: IncomingRequest, msg: CustodyStandDown) -> None:
+        """Retire this copy, for the branch of ``msg.keep``: only a copy whose chain forks from the kept
+        one, or that the kept one extends; answered once the retired record is on disk."""
+        me = self.sim.embodiment
+        record = self.records.get(msg.companion)
+        if record is None or record.state not in HOSTING:
+            request.accept({"state": record.state if record is not None else "none"})  # nothing here to retire
+            return
+        if record.state != "active":
+            request.reject(f"{me!r} is in a migration of {msg.companion!r} ({record.state}); try again when it ends", Code.BUSY)
+            return
+        if msg.keep == me:
+            request.reject(f"{me!r} is the embodiment to keep", Code.INVALID)
+            return
+        try:
+            kept = custody.decode_chain(msg.chain)
+            custody.verify_chain(kept, msg.companion, identity=self._trusted(msg.companion))
+        except SignatureRefused as exc:
+            request.reject(f"the chain of {msg.keep!r} does not verify here: {exc}", Code.INVALID)
+            return
+        if kept[-1].holder != msg.keep:
+            request.reject(f"the chain given ends with {kept[-1].holder!r}, not {msg.keep!r}", Code.INVALID)
+            return
+        relation, fork = custody.compare(record.chain, kept)
+        if relation not in ("fork", "behind"):
+            request.reject(f"keeping {msg.keep!r} would make two: the chain here ({me!r}, epoch {record.epoch}) is "
+                           f"{'the same as' if relation == 'same' else 'newer than' if relation == 'stale' else 'foreign to'} "
+                           f"the one kept", Code.CONFLICT)
+            return
+        retired = self.records.put(handshake.retired(record, kept))  # on disk before the answer
+        self.identity = None
+        self.frozen = None
+        self.superseded_by = None
+        self._minds_sleep()
+        self._withdraw_claim()
+        log.warning("custody of %s: this copy (epoch %d) stood down for the branch of %r (epoch %d), as an operator "
+                    "resolved the fork%s", msg.companion, record.epoch, msg.keep, retired.epoch,
+                    f" ({fork.describe()})" if fork is not None else "")
+        self.raise_event("CustodyStoodDown", {"companion": msg.companion, "keep": msg.keep, "epoch": record.epoch,
+                                              "kept_epoch": retired.epoch})
+        request.accept({"state": retired.state, "epoch": retired.epoch})
+
+    def _on_resume(self, request: IncomingRequest, msg: CustodyResume) -> None:
+        """The keeper of a resolved fork runs the companion again, once the others stood down."""
+        identity = self.identity
+        record = self.records.get(msg.companion)
+        if identity is None or identity.companion != msg.companion or record is None or record.state != "active":
+            request.reject(f"{self.sim.embodiment!r} does not hold {msg.companion!r}", Code.NOT_FOUND)
+            return
+        freeze = self.frozen
+        if freeze is None:
+            request.accept({"state": "running"})
+            return
+        with self._watch_lock:
+            for holder, epoch in self._tokens.get(msg.companion, ()):
+                if holder in msg.retired:
+                    self._stood_down.add((holder, msg.companion, epoch))
+        left = sorted(h for h in freeze.branches if h != self.sim.embodiment and h not in msg.retired)
+        if left:
+            request.reject(f"the branches of {', '.join(map(repr, left))} have not stood down: resuming would make two",
+                           Code.CONFLICT)
+            return
+        self.records.thaw(msg.companion)
+        self.frozen = None
+        log.warning("custody of %s: the fork is resolved (%s stood down); it runs here again", msg.companion,
+                    ", ".join(map(repr, msg.retired)) or "nobody else")
+        self.raise_event("CustodyResolved", {"companion": msg.companion, "retired": list(msg.retired)})
+        self._check_conflict()
+        if self.frozen is not None:
+            request.reject(f"another branch of {msg.companion!r} is claimed still: frozen again", Code.CONFLICT)
+            return
+        self._wake_minds()
+        request.accept({"state": "running"})
 
     # --- minds and sections (loop) --------------------------------------------------------------
 
@@ -1257,6 +1360,10 @@ class MigrationManager(Component):
                     self._on_sections(request, payload)
             case MigrateChain() as payload:
                 self._on_chain(request, payload)
+            case CustodyStandDown() as payload:
+                self._on_stand_down(request, payload)
+            case CustodyResume() as payload:
+                self._on_resume(request, payload)
             case SetPolicy() as payload:
                 self._on_policy(request, payload.accepts)
             case other:

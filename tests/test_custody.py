@@ -1,5 +1,5 @@
 """The custody rules as pure functions: how two chains relate, what proves an equivocation, what
-backs a claim, a holder's verdict, a target's objection."""
+backs a claim, a holder's verdict, a target's objection, a branch retired."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 from cmion_mesh import custody, handshake, signing
 from cmion_mesh.custody import ClaimProof
 from cmion_mesh.handshake import Claim
+from cmion_mesh.messages import MigratePrepare
 from cmion_mesh.records import Record
 from cmion_mesh.signing import SignatureRefused
 
@@ -181,3 +182,22 @@ def test_epochs_and_names_count_for_nothing_in_a_holders_verdict() -> None:
     assert verdict.superseded_by is not None and verdict.superseded_by.holder == "c" and not verdict.forks
     released = handshake.superseded(rolled_back, verdict.superseded_by)
     assert (released.state, released.epoch, released.peer, released.link) == ("released", 3, "c", true.links[3])
+
+
+def test_a_retired_branch_refuses_its_own_offers_and_takes_the_kept_ones() -> None:
+    true, forged = true_and_forged()
+    forged.to("f")
+    retired = handshake.retired(forged.record(), true.links)
+    assert (retired.state, retired.epoch, retired.seq, retired.chain) == ("dropped", 4, 0, true.links)
+    # the kept holder's next offer is newer; the retired branch's is a fork of what is known now
+    assert handshake.precheck(_prepare(true, "f", seq=1), retired, me="f", held=None, admit=None) is None
+    refused = handshake.on_prepare(_prepare(forged, "x", seq=1, target="f"), retired, me="f", held=None, admit=None, claims=[])
+    assert refused.outcome.status == "rejected" and "forks from the one known here" in refused.outcome.reason
+    assert refused.fork is not None and refused.fork.equivocator == "b"
+
+
+def _prepare(chain: Chain, source_target: str, *, seq: int, target: str | None = None) -> MigratePrepare:
+    record = chain.record(seq=seq - 1)
+    _, message = handshake.offer(record, attempt=f"t{seq}", me=chain.links[-1].holder, target=target or source_target,
+                                 document=b"<Identity/>", private=chain.keys[-1])
+    return message
