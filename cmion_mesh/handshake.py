@@ -42,7 +42,7 @@ Custody (``custody``) makes the same decisions unforgeable by a former host: see
 Claims of other holders count only once backed (``Claim``: a verified chain and a signature by its
 head's key): a target refuses an offer that a claim shows stale or forked (``check_claims``); a
 holder stands down for good when a claim extends its chain, and freezes on a proven fork
-(``judge``).
+(``judge``). A record's state, epoch and holder must agree with its chain at rest (``at_rest``).
 The one step that moves an order back is an operator's: a holder of a branch of a proven fork that
 stands down (``retired``) records the kept branch's chain and order; the orders of the other
 branch mean nothing on this one, and its offers are refused as forks of the chain recorded.
@@ -67,7 +67,7 @@ import msgspec
 
 from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link, Offer
-from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
@@ -327,6 +327,51 @@ def retired(record: Record, kept: Sequence[Link]) -> Record:
     head = kept[-1]
     return msgspec.structs.replace(record, state="dropped", epoch=head.epoch, seq=0, attempt="", peer=head.holder,
                                    chain=list(kept), link=None, custody_key="")
+
+
+def at_rest(record: Record, *, me: str, key: bytes | None) -> str:
+    """Why ``record``, as stored, is not backed by its chain of custody ("" if it is). ``key``: the
+    custody private key stored beside it. Active, prepared, handed: the chain ends with ``me`` at the
+    record's epoch and ``key`` is that link's key; handed and released: the link it signed extends
+    the chain by one, to the record's peer and attempt; incoming: the chain ends with the source at
+    the record's epoch and ``key`` is the one made for the attempt; dropped: the epoch is the chain's."""
+    if not record.chain:
+        return "" if record.state in ("released", "dropped") else f"its {record.state} record holds no chain of custody"
+    try:
+        identity = signing.decode_public(record.public_key) if record.public_key else None
+        custody.verify_chain(record.chain, record.companion, identity=identity)
+    except MeshError as exc:
+        return f"its chain of custody does not verify: {exc}"
+    head = record.chain[-1]
+    if head.epoch != record.epoch:
+        return f"the record says epoch {record.epoch}, its chain of custody ends at epoch {head.epoch}"
+    if record.state in ("active", "prepared", "handed", "released") and head.holder != me:
+        return f"its chain of custody says {head.holder!r} held it at epoch {head.epoch}, not {me!r}"
+    if record.state == "incoming" and head.holder != record.peer:
+        return f"its chain of custody ends with {head.holder!r}, not with the source {record.peer!r}"
+    if record.state in ("active", "prepared", "handed", "incoming"):
+        expected = head.public_key if record.state != "incoming" else None
+        try:
+            public = signing.public_of(key) if key is not None else None
+            if record.state == "incoming":
+                expected = signing.decode_public(record.custody_key)
+        except (ValueError, MeshError):
+            return "its custody key is unusable"
+        if public is None:
+            return "its custody key is missing"
+        if public != expected:
+            return f"its custody key is not the one its chain of custody names for epoch {head.epoch}" \
+                if record.state != "incoming" else "its custody key is not the one it gave for the attempt"
+    if record.state in ("handed", "released"):
+        link = record.link
+        if link is None:
+            return f"a {record.state} record without the link it signed"
+        try:
+            custody.check_link(head, link, companion=record.companion, attempt=record.attempt, holder=record.peer,
+                               public_key=link.public_key, document_sha256=link.document_sha256)
+        except MeshError as exc:
+            return f"the link it signed does not extend its chain of custody: {exc}"
+    return ""
 
 
 def _activation(record: Record, link: Link, me: str) -> Record:

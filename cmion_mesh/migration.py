@@ -40,6 +40,9 @@ is ignored, and logged naming the claimant. Backed claims decide two things (``h
   makes every other branch holder stand down (``stand_down``: the kept chain recorded, on disk
   before the answer), then tells the keeper to run it again (``resume``).
 
+A record whose state, epoch or holder its chain of custody does not back (``handshake.at_rest``)
+is reported damaged at start and never run.
+
 **Sections travel apart** (SchemaVersion 2, ``identity``): the source packs the identity into a
 manifest and section bytes off the loop; for a small identity it sends them all inside the
 prepare; for a larger one it first sends ``have`` and the target answers which sections it holds
@@ -744,6 +747,11 @@ class MigrationManager(Component):
     def _unbacked(self, record: Record) -> str:
         """Why ``record``, as stored here, must not run ("" if it may); loads a fork's evidence that
         still freezes it."""
+        key = self.records.key(record.companion) if record.state in HOSTING else None
+        problem = handshake.at_rest(record, me=self.sim.embodiment, key=key)
+        if problem:
+            return f"its migration record is not backed by its chain of custody: {problem} " \
+                   f"({self.records.dir / (record.companion + '.record.json')})"
         if record.state in ("active", "prepared"):
             try:
                 freeze = self.records.freeze(record.companion)

@@ -1,5 +1,5 @@
 """The custody rules as pure functions: how two chains relate, what proves an equivocation, what
-backs a claim, a holder's verdict, a target's objection, a branch retired."""
+backs a claim, a holder's verdict, a target's objection, a branch retired, a record checked at rest."""
 
 from __future__ import annotations
 
@@ -182,6 +182,7 @@ def test_epochs_and_names_count_for_nothing_in_a_holders_verdict() -> None:
     assert verdict.superseded_by is not None and verdict.superseded_by.holder == "c" and not verdict.forks
     released = handshake.superseded(rolled_back, verdict.superseded_by)
     assert (released.state, released.epoch, released.peer, released.link) == ("released", 3, "c", true.links[3])
+    assert handshake.at_rest(released, me="a", key=None) == ""
 
 
 def test_a_retired_branch_refuses_its_own_offers_and_takes_the_kept_ones() -> None:
@@ -189,6 +190,7 @@ def test_a_retired_branch_refuses_its_own_offers_and_takes_the_kept_ones() -> No
     forged.to("f")
     retired = handshake.retired(forged.record(), true.links)
     assert (retired.state, retired.epoch, retired.seq, retired.chain) == ("dropped", 4, 0, true.links)
+    assert handshake.at_rest(retired, me="f", key=None) == ""
     # the kept holder's next offer is newer; the retired branch's is a fork of what is known now
     assert handshake.precheck(_prepare(true, "f", seq=1), retired, me="f", held=None, admit=None) is None
     refused = handshake.on_prepare(_prepare(forged, "x", seq=1, target="f"), retired, me="f", held=None, admit=None, claims=[])
@@ -201,3 +203,39 @@ def _prepare(chain: Chain, source_target: str, *, seq: int, target: str | None =
     _, message = handshake.offer(record, attempt=f"t{seq}", me=chain.links[-1].holder, target=target or source_target,
                                  document=b"<Identity/>", private=chain.keys[-1])
     return message
+
+
+# --- a record at rest --------------------------------------------------------------------------------
+
+
+def test_a_record_whose_epoch_or_holder_its_chain_does_not_back_is_refused() -> None:
+    true = Chain("a").to("b")
+    key = true.keys[-1]
+    active = true.record()
+    assert handshake.at_rest(active, me="b", key=key) == ""
+    assert "says epoch 3, its chain of custody ends at epoch 2" in handshake.at_rest(
+        msgspec.structs.replace(active, epoch=3), me="b", key=key)
+    assert "says 'b' held it at epoch 2, not 'robot2'" in handshake.at_rest(active, me="robot2", key=key)
+    assert "custody key is not the one" in handshake.at_rest(active, me="b", key=true.keys[0])
+    assert "custody key is missing" in handshake.at_rest(active, me="b", key=None)
+    assert "no chain of custody" in handshake.at_rest(msgspec.structs.replace(active, chain=[]), me="b", key=key)
+    tampered = [*true.links[:-1], msgspec.structs.replace(true.links[-1], holder="mallory")]
+    assert "does not verify" in handshake.at_rest(msgspec.structs.replace(active, chain=tampered), me="mallory", key=key)
+    # handed and released: the link it signed extends the chain, to its peer
+    target_key = signing.new_key()
+    link = custody.hand_on(key, "spirit", 3, "c", signing.public_of(target_key), "t1", DOC)
+    handed = msgspec.structs.replace(active, state="handed", attempt="t1", peer="c", link=link)
+    assert handshake.at_rest(handed, me="b", key=key) == ""
+    released = msgspec.structs.replace(handed, state="released")
+    assert handshake.at_rest(released, me="b", key=None) == ""
+    assert "does not extend" in handshake.at_rest(msgspec.structs.replace(released, peer="d"), me="b", key=None)
+    assert "without the link" in handshake.at_rest(msgspec.structs.replace(released, link=None), me="b", key=None)
+    # incoming: the chain ends with the source, the key is the one made for the attempt
+    incoming = msgspec.structs.replace(active, state="incoming", attempt="t1", peer="b",
+                                       custody_key=signing.encode_public(signing.public_of(target_key)))
+    assert handshake.at_rest(incoming, me="c", key=target_key) == ""
+    assert "not with the source" in handshake.at_rest(msgspec.structs.replace(incoming, peer="x"), me="c", key=target_key)
+    assert "not the one it gave" in handshake.at_rest(incoming, me="c", key=key)
+    dropped = msgspec.structs.replace(incoming, state="dropped", custody_key="")
+    assert handshake.at_rest(dropped, me="c", key=None) == ""
+    assert "epoch" in handshake.at_rest(msgspec.structs.replace(dropped, epoch=9), me="c", key=None)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import queue
+import shutil
 import threading
 import time
 from collections.abc import Iterator
@@ -540,3 +541,49 @@ def test_a_bare_custody_token_of_a_trusted_member_is_ignored_in_secure_mode(pki:
     finally:
         for daemon in daemons:
             daemon.kill()
+
+
+def test_a_record_its_chain_does_not_back_never_runs(trio: tuple[Node, Node, Node], mesh: str, tmp_path: Path) -> None:
+    """A former host rolled back to a backup with its epoch raised is damaged (and the true holder keeps
+    running); rolled back as it was, it stands down for good (its key signed the link the holder has);
+    the holder's own record with its epoch raised is damaged, never run."""
+    a, b, _ = trio
+    with pair(trio, mesh) as (_, client):
+        client.request("a", "mind", "message", MindMessage({"note": "met Ada"}))
+        backup = tmp_path / "backup-a"
+        shutil.copytree(a.state, backup, ignore=shutil.ignore_patterns("daemon.lock"))
+        client.migrate("spirit", "b", timeout=30)
+
+        def restore(epoch_raise: int) -> None:
+            assert a.daemon is not None
+            a.daemon.stop()
+            shutil.rmtree(a.state)
+            shutil.copytree(backup, a.state)
+            _raise_epoch(a.state, epoch_raise)
+            a.start()
+
+        restore(4)
+        wait_for(lambda: "spirit" in client.describe("a", timeout=1.0).get("damaged", {}), 30, "a reports spirit damaged")
+        damaged = client.describe("a", timeout=2.0)["damaged"]["spirit"]
+        assert "record says epoch 5, its chain of custody ends at epoch 1" in damaged and "spirit.record.json" in damaged
+        assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
+        assert client.request("b", "mind", "message", MindMessage({"note": "on b"})).status == "accepted", "b keeps running"
+        restore(0)
+        wait_for(lambda: _stored(a.state).state == "released", 30, "a stands down for good")
+        assert _logged(a, "custody of spirit moved on without this copy: 'b' holds it at epoch 2")
+        assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
+        assert memory(client, "b") == ["met Ada", "on b"]
+        assert b.daemon is not None
+        b.daemon.stop()
+        _raise_epoch(b.state, 1)
+        b.start()
+        wait_for(lambda: "spirit" in client.describe("b", timeout=1.0).get("damaged", {}), 30, "b reports spirit damaged")
+        assert "record says epoch 3, its chain of custody ends at epoch 2" in client.describe("b", timeout=2.0)["damaged"]["spirit"]
+        assert homes(client, ("a", "b")) == {"a": None, "b": None}
+
+
+def _raise_epoch(state: Path, by: int) -> None:
+    path = state / "spirit.record.json"
+    record = json.loads(path.read_bytes())
+    record["epoch"] += by
+    path.write_text(json.dumps(record))
