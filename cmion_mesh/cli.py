@@ -977,7 +977,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
         print(f"next: cmion-mesh certs issue {directory} <embodiment>")
     elif command == "issue":
         cert, key = certs.issue(directory, args.name, sans=args.san, role=args.role, trust=not args.no_trust,
-                                days=args.days, force=args.force)
+                                days=args.days, force=args.force, unrevoke=args.unrevoke)
         trusted = "not in the trust list" if args.no_trust else f"trusted as {args.role}"
         print(f"issued {cert} and {key} for {args.name!r} ({trusted})")
         print(f"give the member {directory / certs.CA_CERT}, {directory / certs.TRUST_FILE}, {cert.name} and {key.name}; "
@@ -989,15 +989,19 @@ def cmd_certs(args: argparse.Namespace) -> int:
             return ExitCode.OK
         rows = [("NAME", "ROLE", "SIGNED BY CA", "EXPIRES", "KEY", "SANS")]
         for i in infos:
-            rows.append((i.name, i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
+            rows.append((i.name, "(REVOKED)" if i.revoked else i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
                          i.not_after + (" (EXPIRED)" if i.expired else ""), "yes" if i.key_present else "-", ",".join(i.sans)))
         _table(rows)
         missing = sorted(set(certs.Trust.load(directory).names) - {i.name for i in infos})
         if missing:
             print(f"trusted but without a certificate here: {', '.join(missing)}")
     elif command == "trust":
-        certs.trust_name(directory, args.name, args.role)
+        certs.trust_name(directory, args.name, args.role, unrevoke=args.unrevoke)
         print(f"{args.name!r} trusted as {args.role}")
+    elif command == "revoke":
+        certs.revoke_name(directory, args.name, args.reason)
+        print(f"{args.name!r} revoked: out of the trust list, and `certs trust` will not add it back unless told "
+              f"(--unrevoke); give the members the new {certs.TRUST_FILE} and restart them for it to take effect")
     elif command == "untrust":
         certs.untrust_name(directory, args.name)
         print(f"{args.name!r} removed from the trust list: restart the mesh's members for it to take effect")
@@ -1060,6 +1064,7 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--role", choices=ROLES, default="embodiment",
                    help="embodiment: its own keys only; operator: the whole mesh (tools of an administrator)")
     p.add_argument("--no-trust", action="store_true", help="do not add NAME to the trust list")
+    p.add_argument("--unrevoke", action="store_true", help="trust NAME although it was revoked")
     p.add_argument("--days", type=int, default=CERT_DAYS, help="validity (default: %(default)s days)")
     p.add_argument("--force", action="store_true", help="replace an existing certificate of NAME")
 
@@ -1071,6 +1076,13 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="the certificate's name")
     p.add_argument("--role", choices=ROLES, default="embodiment", help="what NAME may do (default: %(default)s)")
+    p.add_argument("--unrevoke", action="store_true", help="trust NAME although it was revoked (certs revoke)")
+
+    p = sub.add_parser("revoke", help="revoke NAME: out of the trust list, recorded as revoked so that trust and issue do "
+                                      "not add it back; the access control never admits it (restart the members)")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="the certificate's name")
+    p.add_argument("--reason", default="", help="why (kept in the trust list), e.g. 'equivocated custody of spirit'")
 
     p = sub.add_parser("untrust", help="remove NAME from the trust list (revocation: restart the members afterwards)")
     p.add_argument("dir", metavar="DIR", help=folder)

@@ -31,7 +31,7 @@ subscribe to the answers embodiments give (``cmion/<mesh>/*/@outcome/**``: ``cmi
 Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<op>/<sender>``
 (``migration_key``; ``chain``, asking a custody claimant to back its token, too). The access
 control lets ``S`` query only keys whose last chunk is ``S``, so a target knows the sender of a
-handshake message from the key it arrived on.
+handshake message from the key it arrived on. A name revoked (``certs revoke``) is never admitted.
 
 Only ``zenoh_transport`` imports zenoh: this module produces settings (json5 key, value) that
 reach the session through ``TransportConfig.overrides``.
@@ -117,7 +117,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
     everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**", keys.outcome_pattern(mesh)]
     if mode == "client":
-        names = sorted(trust.names)
+        names = sorted(trust.admitted())
         for name in names:
             certs.check_cert_name(name)
         return {"enabled": True, "default_permission": "deny",
@@ -142,7 +142,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     operators: list[str] = []
-    for name, role in sorted(trust.names.items()):
+    for name, role in sorted(trust.admitted().items()):  # a name revoked is never admitted
         certs.check_cert_name(name)
         subject = f"{role}:{name}"
         subjects.append({"id": subject, "cert_common_names": [name], "link_protocols": ["tls"]})
@@ -349,4 +349,4 @@ def describe(*, certs_dir: str | os.PathLike[str] | None, identity: str | None =
     cred = load_credentials(certs_dir, who)
     trust = certs.Trust.load(certs_dir)
     return (f"secure mode: mutual TLS only, as {who!r} ({cred.role}) under authority {cred.authority!r}; "
-            f"access control admits {len(trust.names)} name(s): {', '.join(sorted(trust.names))}")
+            f"access control admits {len(trust.admitted())} name(s): {', '.join(sorted(trust.admitted()))}")

@@ -1,13 +1,16 @@
 """The custody rules as pure functions: how two chains relate, what proves an equivocation, what
-backs a claim, a holder's verdict, a target's objection, a branch retired, a record checked at rest."""
+backs a claim, a holder's verdict, a target's objection, and a record checked at rest."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import msgspec
 import pytest
 
-from cmion_mesh import custody, handshake, signing
+from cmion_mesh import certs, custody, handshake, security, signing
 from cmion_mesh.custody import ClaimProof
+from cmion_mesh.errors import ConfigError
 from cmion_mesh.handshake import Claim
 from cmion_mesh.messages import MigratePrepare
 from cmion_mesh.records import Record
@@ -239,3 +242,30 @@ def test_a_record_whose_epoch_or_holder_its_chain_does_not_back_is_refused() -> 
     dropped = msgspec.structs.replace(incoming, state="dropped", custody_key="")
     assert handshake.at_rest(dropped, me="c", key=None) == ""
     assert "epoch" in handshake.at_rest(msgspec.structs.replace(dropped, epoch=9), me="c", key=None)
+
+
+# --- revocation ----------------------------------------------------------------------------------------
+
+
+def test_a_revoked_name_is_never_admitted_nor_trusted_again_silently(tmp_path: Path) -> None:
+    folder = tmp_path / "pki"
+    certs.init(folder)
+    for name in ("robot", "screen"):
+        certs.issue(folder, name)
+    certs.revoke_name(folder, "screen", "equivocated custody of spirit")
+    trust = certs.Trust.load(folder)
+    assert "screen" not in trust.names and trust.role("screen") is None
+    assert trust.revoked["screen"]["reason"] == "equivocated custody of spirit"
+    subjects = {n for s in security.access_control("m", trust)["subjects"] for n in s["cert_common_names"]}
+    assert subjects == {"robot"}
+    with pytest.raises(ConfigError, match=r"'screen' was revoked on .* trust it again only on purpose"):
+        certs.trust_name(folder, "screen")
+    with pytest.raises(ConfigError, match="was revoked"):
+        certs.issue(folder, "screen", force=True)
+    # a copy of the list that still names it never admits it either
+    trust.names["screen"] = "embodiment"
+    assert {n for s in security.access_control("m", trust)["subjects"] for n in s["cert_common_names"]} == {"robot"}
+    assert {n for s in security.access_control("m", trust, mode="client")["subjects"] for n in s["cert_common_names"]} == {"robot"}
+    certs.trust_name(folder, "screen", unrevoke=True)
+    again = certs.Trust.load(folder)
+    assert again.role("screen") == "embodiment" and "screen" not in again.revoked
