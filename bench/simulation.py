@@ -5,12 +5,24 @@ Three embodiments run the real decisions of ``cmion_mesh.handshake`` (the same f
 message ever sent may be delivered late, lost, duplicated, reordered or **replayed later**; any
 embodiment may crash (losing everything but its durable record, document and key) and restart at
 any step; a waiting request may time out while its message is still in flight; a target may give
-up an incoming attempt at any point (its bound passed: ``handshake.expire_incoming``); and one embodiment
-turns hostile once it has held the companion: it keeps every custody key it had and forges
-prepares (forks of the chain) and commits with them. After every step: never two embodiments that
-may run the companion (``active`` or ``prepared``), and no record ever moves to an attempt that is
-not newer than every one it held. After the faults stop and everything is delivered: exactly one
-host, its identity byte-identical to the one born.
+up an incoming attempt at any point (its bound passed: ``handshake.expire_incoming``); the mesh may split
+in two and join again (who sees whose custody claims); and one embodiment turns hostile once it has
+held the companion: it keeps every custody key it had, declares bare custody tokens (at any epoch,
+or with a chain that does not back them), signs forks of the chain offline (to itself, epochs
+inflated), claims them, and offers them (prepares and commits) to the others.
+
+Claims count only when backed (``handshake.Claim``: here, ``custody.verify_claim`` on what the
+claimant can show), as in ``MigrationManager``: a target decides with the backed claims it sees, and
+after every step each holder judges the backed claims it sees (``handshake.judge``: it stands
+down when one extends its chain, freezes on a proven fork). After every step: no two embodiments
+run the companion (``active`` or ``prepared``, not frozen) unless they cannot see each other and one
+of them runs a forged branch (accepted across the split); a forged branch never runs where a
+holder of another branch is seen; every frozen embodiment holds a proof of equivocation that
+verifies, names the hostile one, and includes a forged link (a bare token freezes nobody); and no
+record ever moves to an attempt that is not newer than every one it held. When the faults stop,
+the split heals and the hostile one is revoked (its tokens gone), everything is delivered, then an
+operator keeps the true branch (``handshake.retired`` for the others): exactly one host, not
+frozen, its chain free of forged links, its identity byte-identical to the one born.
 
 ``python -m bench sim --schedules 1000000`` (or ``python -m bench.simulation``) runs many; a
 failing seed prints the trace that replays it (``--seed N --trace``).
@@ -29,7 +41,8 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import custody, handshake, signing
-from cmion_mesh.custody import Link
+from cmion_mesh.custody import Fork, Link
+from cmion_mesh.handshake import Claim
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
@@ -80,6 +93,14 @@ class Node:
     ops: dict[int, Op] = field(default_factory=dict)
     orders: tuple[int, int] = (0, 0)  # the newest attempt order any of its records has held
     kept: list[tuple[list[Link], bytes]] = field(default_factory=list)  # a hostile one keeps its custody keys
+    frozen: Fork | None = None  # the proof of a fork that freezes it
+    backups: list[tuple[Record, dict[str, bytes], bytes | None]] = field(default_factory=list)  # its state folder, as it was
+    rolled: bool = False  # runs from a backup of its state folder, restored (until it takes part in a handshake again)
+    stale: bool = False  # prepared, and a claim extends its chain: it stands down once its handshake ends
+
+    @property
+    def running(self) -> bool:
+        return self.record is not None and self.record.state in ("active", "prepared") and self.frozen is None and not self.stale
 
 
 class World:
@@ -94,6 +115,12 @@ class World:
         self.history: list[Message] = []
         self.next_id = 1
         self.expired = 0  # incoming attempts dropped at their bound
+        self.sides: dict[str, int] | None = None  # a split mesh: who sees whose custody claims
+        self.tokens: list[tuple[int, list[Link] | None, bytes | None]] = []  # the hostile one's (epoch, chain, key)
+        self.forged: set[bytes] = set()  # signatures of the links it signed off the protocol
+        self.revoked = False
+        self.equivocators = {HOSTILE}
+        self._backed: dict[tuple[int, tuple[bytes, ...]], bool] = {}
         home = self.nodes["a"]
         document = Identity(COMPANION, 1, SECTIONS).pack()
         home.key = self._new_key()
@@ -132,8 +159,16 @@ class World:
             raise InvariantBroken(f"{node.name} resurrected attempt {record.attempt} {record.order} <= {node.orders}")
         node.orders = max(node.orders, record.order)
         node.record = record
+        node.stale = False
         if record.state in ("active", "prepared", "handed") and node.key is not None and node.name == HOSTILE:
             node.kept.append((list(record.chain), node.key))
+        if record.state == "active":
+            node.backups = [*node.backups[-2:], (record, dict(node.documents), node.key)]
+        if node.rolled and record.state == "handed" and record.link is not None:
+            self.forged.add(record.link.signature)  # a copy from a backup hands on again: a second link of its epoch
+            self.equivocators.add(node.name)
+        if entering or record.state == "released":
+            node.rolled = False
         self.note(f"  {node.name}: {record.state}({record.epoch}.{record.seq} {record.attempt[:6]})")
         return record
 
@@ -145,16 +180,40 @@ class World:
         if waiting is not None:
             waiting.awaiting = message.mid
 
-    def claims(self, receiver: str) -> dict[str, int]:
-        """Custody tokens: seen at once by everyone (liveliness is not what this simulation faults)."""
-        return {n.name: n.record.epoch for n in self.nodes.values()
-                if n.name != receiver and n.record is not None and n.record.state in ("active", "prepared", "handed", "incoming")}
+    def sees(self, a: str, b: str) -> bool:
+        return self.sides is None or self.sides[a] == self.sides[b]
+
+    def claims(self, receiver: str) -> list[Claim]:
+        """The backed claims ``receiver`` sees: every holder's (its record's chain, which it backs), and
+        the hostile one's tokens that it can back (``custody.verify_claim``); bare ones never count."""
+        found = [Claim(n.name, n.record.chain) for n in self.nodes.values()
+                 if n.name != receiver and self.sees(receiver, n.name) and n.record is not None
+                 and n.record.state in ("active", "prepared", "handed")]
+        if not self.revoked and receiver != HOSTILE and self.sees(receiver, HOSTILE):
+            found.extend(Claim(HOSTILE, chain) for epoch, chain, key in self.tokens
+                         if chain is not None and self._backs(epoch, chain, key))
+        return found
+
+    def _backs(self, epoch: int, chain: list[Link], key: bytes | None) -> bool:
+        """Whether the hostile one can back its token at ``epoch`` with ``chain`` (checked once)."""
+        memo = (epoch, tuple(link.signature for link in chain))
+        backed = self._backed.get(memo)
+        if backed is None:
+            proof = custody.ClaimProof(COMPANION, epoch, HOSTILE, "asker", b"nonce")
+            try:
+                custody.verify_claim(chain, proof, custody.sign_claim(key, proof) if key else b"")
+                backed = True
+            except signing.SignatureRefused:
+                backed = False
+            self._backed[memo] = backed
+        return backed
 
     # --- the source side, as MigrationManager._send / _commit_until_acked ----------------------------
 
     def start(self, node: Node, target: str) -> None:
         record = node.record
-        if record is None or record.state != "active" or node.key is None or any(o.kind == "source" for o in node.ops.values()):
+        if record is None or record.state != "active" or node.key is None or node.frozen is not None \
+                or any(o.kind == "source" for o in node.ops.values()):
             return
         document = Identity(COMPANION, record.epoch, SECTIONS).pack()
         attempt = f"{self._id():06d}"
@@ -227,7 +286,7 @@ class World:
                 return Outcome("rejected", "not on behalf of another")
             held = record if record is not None and record.state in ("active", "prepared", "handed", "incoming") else None
             decision = handshake.on_prepare(payload, record, me=node.name, held=held, admit=None,
-                                            live_claims=self.claims(node.name), new_key=self._new_key)
+                                            claims=self.claims(node.name), new_key=self._new_key)
             if decision.record is not None:
                 self._write(node, decision.record, decision.document, decision.key)
                 op = Op(self._id(), "resolve", "ask", decision.record)
@@ -308,17 +367,31 @@ class World:
     # --- a hostile former host ------------------------------------------------------------------------
 
     def forge(self) -> None:
+        rng = self.rng
         hostile = self.nodes[HOSTILE]
+        if self.revoked:
+            return
+        roll = rng.random()
+        if roll < 0.15:  # a bare token, at any epoch: a hint nobody can back
+            self.declare(rng.randint(1, 1000), None, None)
+            return
         if not hostile.kept or (hostile.record is not None and hostile.record.state in ("active", "prepared", "handed")):
             return
-        chain, key = self.rng.choice(hostile.kept)
-        target = self.rng.choice([n for n in NAMES if n != HOSTILE])
+        chain, key = rng.choice(hostile.kept)
+        if roll < 0.25:  # a chain it held, claimed at an inflated epoch: its head does not back it
+            self.declare(chain[-1].epoch + rng.randint(1, 500), chain, key)
+            return
         epoch = chain[-1].epoch
-        if self.rng.random() < 0.5:  # a fork: hand custody to a key of its own, then offer from there
-            own = self._new_key()
-            chain = [*chain, custody.hand_on(key, COMPANION, epoch + 1, HOSTILE, signing.public_of(own), "forged",
-                                             custody.digest(b""))]
-            key, epoch = own, epoch + 1
+        if roll < 0.4 or rng.random() < 0.6:  # a fork: links to itself, fresh keys, epochs inflated
+            for _ in range(rng.choice((1, 1, 2, 3, 12))):
+                own = self._new_key()
+                link = custody.hand_on(key, COMPANION, epoch + 1, HOSTILE, signing.public_of(own), "forged", custody.digest(b""))
+                self.forged.add(link.signature)
+                chain, key, epoch = [*chain, link], own, epoch + 1
+        if roll < 0.4:  # claims the branch it forged: backed (it holds the key at its head)
+            self.declare(epoch, chain, key)
+            return
+        target = rng.choice([n for n in NAMES if n != HOSTILE])
         document = Identity(COMPANION, epoch, {"mind": {"memory": ["HACKED"]}}).pack()
         record = Record(COMPANION, "active", epoch, seq=self.rng.randint(0, 1000), chain=chain)
         _, prepare = handshake.offer(record, attempt=f"forged{self._id()}", me=HOSTILE, target=target, document=document, private=key)
@@ -327,9 +400,59 @@ class World:
         if outcome.status == "accepted":
             link = custody.hand_on(key, COMPANION, epoch + 1, target, signing.decode_public(outcome.value["custody_key"]),
                                    prepare.attempt, custody.digest(document))
+            self.forged.add(link.signature)
             commit = MigrateCommit(COMPANION, epoch, prepare.attempt, HOSTILE, target, custody.encode_link(link))
             self.note(f"{HOSTILE} (hostile): {target} accepted the forged prepare; forging its commit")
             self.handle(self.nodes[target], Message(0, HOSTILE, target, "commit", commit))
+
+    def declare(self, epoch: int, chain: list[Link] | None, key: bytes | None) -> None:
+        self.note(f"{HOSTILE} (hostile) declares a custody token at epoch {epoch}"
+                  + (" (bare)" if chain is None else f" with a chain to epoch {chain[-1].epoch}"))
+        self.tokens = [*self.tokens[-2:], (epoch, chain, key)]  # a few at a time; older ones withdrawn
+
+    # --- every holder judges the claims it sees, as MigrationManager._check_conflict ----------------------
+
+    def settle(self) -> None:
+        for node in self.nodes.values():
+            record = node.record
+            if record is None or record.state not in ("active", "prepared"):
+                if record is None or record.state not in ("handed", "incoming"):
+                    node.frozen = None  # no copy left to freeze: Records.put drops the evidence
+                continue
+            verdict = handshake.judge(record, self.claims(node.name))
+            if verdict.superseded_by is not None and record.state == "active":
+                self.note(f"{node.name}: superseded by {verdict.superseded_by.holder}")
+                node.frozen = None
+                self._write(node, handshake.superseded(record, verdict.superseded_by))
+            elif verdict.superseded_by is not None:
+                node.stale = True
+            elif verdict.forks and node.frozen is None:
+                node.frozen = verdict.forks[0][1]
+                self.note(f"{node.name}: FROZEN, {node.frozen.describe()}")
+
+    def roll_back(self) -> None:
+        """An embodiment that holds no copy now is restored from a backup of its state folder, taken when
+        it held the companion: it starts with that active record (attack 5 of the custody review)."""
+        candidates = [n for n in self.nodes.values() if n.backups and n.name != HOSTILE
+                      and (n.record is None or n.record.state in ("released", "dropped"))]
+        if not candidates or self.revoked:
+            return
+        node = self.rng.choice(candidates)
+        record, documents, key = self.rng.choice(node.backups)
+        self.note(f"{node.name} is restored from a backup: active at epoch {record.epoch}")
+        node.ops.clear()
+        node.record, node.documents, node.key = record, documents, key
+        node.orders = record.order  # the fault itself moves its durable state back
+        node.rolled = True
+        node.frozen = None
+
+    def split(self) -> None:
+        if self.sides is None:
+            self.sides = {name: self.rng.randint(0, 1) for name in NAMES}
+            self.note(f"the mesh splits: {self.sides}")
+        else:
+            self.sides = None
+            self.note("the mesh joins again")
 
     # --- the scheduler --------------------------------------------------------------------------------
 
@@ -338,14 +461,15 @@ class World:
         if message.is_reply:
             op = node.ops.get(message.reply_to)
             if op is not None and op.awaiting == message.request:
-                self._answer(node, op, message.payload)
+                self.answer(node, op, message.payload)
             return
         outcome = self.handle(node, message)
         self.note(f"{message.src}->{message.dst} {message.op}: {outcome.status} {outcome.reason[:60]}")
         if message.reply_to:
             self.flight.append(Message(self._id(), message.dst, message.src, message.op, outcome, message.reply_to, True, message.mid))
 
-    def _answer(self, node: Node, op: Op, outcome: Outcome | None) -> None:
+    def answer(self, node: Node, op: Op, outcome: Outcome | None) -> None:
+        """``op`` of ``node`` ends with ``outcome`` (None: unknown), or fires (a timer)."""
         if op.kind == "source":
             self._source_answer(node, op, outcome)
         elif op.kind == "expire":
@@ -360,12 +484,30 @@ class World:
         if waiting:
             node, op = self.rng.choice(waiting)
             self.note(f"{node.name}: {op.kind} {op.stage} times out")
-            self._answer(node, op, None)
+            self.answer(node, op, None)
 
     def check(self) -> None:
-        hosts = [n.name for n in self.nodes.values() if n.record is not None and n.record.state in ("active", "prepared")]
-        if len(hosts) > 1:
-            raise InvariantBroken(f"two hosts: {hosts}")
+        running = [n for n in self.nodes.values() if n.running]
+        for i, one in enumerate(running):
+            for other in running[i + 1:]:
+                if self.sees(one.name, other.name) or not any(self._forged(n) or n.rolled for n in (one, other)):
+                    raise InvariantBroken(f"two hosts: {[one.name, other.name]}")
+        for node in running:
+            if self._forged(node):
+                assert node.record is not None
+                for claim in self.claims(node.name):
+                    if custody.compare(node.record.chain, claim.chain)[0] == "fork":
+                        raise InvariantBroken(f"{node.name} runs a forged branch while it sees {claim.holder}'s")
+        for node in self.nodes.values():
+            fork = node.frozen
+            if fork is None:
+                continue
+            custody.verify_fork(fork)
+            if fork.equivocator not in self.equivocators or not {fork.first.signature, fork.second.signature} & self.forged:
+                raise InvariantBroken(f"{node.name} frozen without a proof of an equivocation: {fork.describe()}")
+
+    def _forged(self, node: Node) -> bool:
+        return node.record is not None and any(link.signature in self.forged for link in node.record.chain)
 
     def step(self) -> None:
         rng = self.rng
@@ -386,16 +528,51 @@ class World:
             self.time_out()
         elif roll < 0.78:
             self.crash(self.nodes[rng.choice(NAMES)])
-        elif roll < 0.93:
+        elif roll < 0.8:
+            self.split()
+        elif roll < 0.805:
+            self.roll_back()
+        elif roll < 0.91:
             holder = [n for n in self.nodes.values() if n.record is not None and n.record.state == "active"]
             if holder:
                 self.start(holder[0], rng.choice([n for n in NAMES if n != holder[0].name]))
         else:
             self.forge()
+        self.settle()
         self.check()
 
     def heal(self, limit: int = 5000) -> None:
-        """No more faults: deliver everything in order, time out what waits on a lost message."""
+        """No more faults: the mesh joins, the hostile one is revoked; deliver everything in order, time
+        out what waits on a lost message; then an operator resolves a fork, and the rest is delivered."""
+        self.sides = None
+        self.revoked = True
+        self.settle()
+        self.check()
+        self.deliver_all(limit)
+        if any(n.frozen is not None for n in self.nodes.values()):
+            self.resolve()
+            self.deliver_all(limit)
+        self._final()
+
+    def resolve(self) -> None:
+        """The operator keeps the true branch (no forged link) and retires every other copy first."""
+        keep = [n for n in self.nodes.values() if n.record is not None and n.record.state == "active" and not self._forged(n)]
+        if len(keep) != 1:
+            raise InvariantBroken(f"no single true branch to keep: {[n.name for n in keep]}")
+        kept = keep[0]
+        assert kept.record is not None
+        for node in self.nodes.values():
+            record = node.record
+            if node is not kept and record is not None and record.state == "active":
+                retired = self._write(node, handshake.retired(record, kept.record.chain))
+                node.orders = retired.order  # the operator's step back: another branch's orders mean nothing here
+                node.frozen = None
+        self.note(f"the operator keeps {kept.name}")
+        kept.frozen = None
+        self.settle()
+        self.check()
+
+    def deliver_all(self, limit: int) -> None:
         for _ in range(limit):
             awaited = {m.reply_to for m in self.flight}
             # A bound is long beside a delivery: healing settles by messages (expiry is tried while faulty).
@@ -403,21 +580,26 @@ class World:
                        if op.oid not in awaited and op.kind != "expire"]
             if stalled:  # waiting for an answer that was lost: its timeout fires
                 node, op = stalled[0]
-                self._answer(node, op, None)
+                self.answer(node, op, None)
             elif self.flight:
                 self.deliver(self.flight.pop(0))
             else:
                 break
+            self.settle()
             self.check()
         else:
             raise InvariantBroken(f"not quiescent after {limit} steps of healing")
+
+    def _final(self) -> None:
         settled = {n.name: n.record.state for n in self.nodes.values() if n.record is not None}
         hosts = [n for n in self.nodes.values() if n.record is not None and n.record.state == "active"]
         undecided = [name for name, state in settled.items() if state in ("prepared", "handed", "incoming")]
-        if len(hosts) != 1 or undecided:
-            raise InvariantBroken(f"after healing: {settled}")
+        if len(hosts) != 1 or undecided or not hosts[0].running:
+            raise InvariantBroken(f"after healing: {settled}, frozen: {[n.name for n in hosts if n.frozen]}")
         host = hosts[0]
         assert host.record is not None
+        if self._forged(host):
+            raise InvariantBroken(f"{host.name} runs a forged branch after healing")
         document = host.documents.get(host.record.document, b"")
         if unpack(document).sections != SECTIONS or custody.digest(document).hex() != host.record.document:
             raise InvariantBroken(f"the identity on {host.name} is not the one born")

@@ -6,15 +6,17 @@ A certificates folder holds::
     DIR/ca.key          the authority's private key, 0600 (keep it with the administrator only)
     DIR/<name>.pem      the certificate of one embodiment or operator (CN = the name)
     DIR/<name>.key      its private key, 0600 (give it to that member only)
-    DIR/trust.json      the trust list: the names the mesh admits, each with its role
+    DIR/trust.json      the trust list: the names the mesh admits, each with its role, and the names revoked
 
 Keys are ECDSA P-256 (what rustls, zenoh's TLS stack, accepts everywhere); certificates carry both
 server and client authentication usages, since a zenoh peer both listens and connects. The
 common name is the identity that zenoh's access control matches (``cert_common_names``), so a
 certificate the authority signed is not enough to join: its name must also be in ``trust.json``
 (roles: ``embodiment``, limited to its own keys; ``operator``, the whole mesh). Removing a name
-from the trust list (``certs untrust``) and restarting the members is how a certificate is
-revoked: zenoh 1.10 checks no revocation list.
+from the trust list and restarting the members is how a certificate is revoked: zenoh 1.10 checks
+no revocation list. ``certs revoke`` also records the name as revoked (when, why), so that
+``certs trust`` and ``certs issue`` do not trust it again unless told (``--unrevoke``), and the
+access control never admits it, even if a copy of the list still names it.
 
 Names follow the key-space rules (``keys.check_name``) and may not contain a dot: zenoh's TLS
 connector trusts the public Web PKI roots as well as ``ca.pem`` (see docs/security.md), so a
@@ -263,9 +265,11 @@ def check_private_file(path: Path) -> None:
 
 @dataclass
 class Trust:
-    """The names a mesh admits, with their role (``embodiment`` or ``operator``)."""
+    """The names a mesh admits, with their role (``embodiment`` or ``operator``), and the names
+    revoked (name -> ``{"at": ISO date, "reason": text}``): never admitted, whatever ``names`` says."""
 
     names: dict[str, str] = field(default_factory=dict)
+    revoked: dict[str, dict[str, str]] = field(default_factory=dict)
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str]) -> Trust:
@@ -277,28 +281,61 @@ class Trust:
         except (ValueError, UnicodeDecodeError) as exc:
             raise ConfigError(f"unreadable trust list: {exc}", path=str(path)) from None
         names = raw.get("names") if isinstance(raw, dict) else None
-        if not isinstance(names, dict):
-            raise ConfigError('trust list must be {"names": {"<name>": "embodiment" | "operator", ...}}', path=str(path))
+        revoked = raw.get("revoked", {}) if isinstance(raw, dict) else None
+        if not isinstance(names, dict) or not isinstance(revoked, dict):
+            raise ConfigError('trust list must be {"names": {"<name>": "embodiment" | "operator", ...}, '
+                              '"revoked": {"<name>": {"at": ..., "reason": ...}, ...}}', path=str(path))
         trust = cls()
+        for name, entry in revoked.items():
+            try:
+                check_cert_name(name)
+            except MeshError as exc:
+                raise ConfigError(str(exc), path=str(path)) from None
+            trust.revoked[name] = {str(k): str(v) for k, v in entry.items()} if isinstance(entry, dict) else {}
         for name, role in names.items():
             try:
-                trust.add(name, role)
+                trust._set(name, role)  # a hand-edited list may name a revoked one too: it is never admitted
             except MeshError as exc:
                 raise ConfigError(str(exc), path=str(path)) from None
         return trust
 
-    def add(self, name: str, role: str = "embodiment") -> None:
+    def _set(self, name: str, role: str) -> None:
         check_cert_name(name)
         if role not in ROLES:
             raise ConfigError(f"role of {name!r} must be one of {', '.join(ROLES)}, not {role!r}")
         self.names[name] = role
 
+    def add(self, name: str, role: str = "embodiment", *, unrevoke: bool = False) -> None:
+        """Trust ``name`` with ``role``; a name revoked is refused unless ``unrevoke`` (then it is no
+        longer revoked)."""
+        if name in self.revoked and not unrevoke:
+            entry = self.revoked[name]
+            why = f" ({entry['reason']})" if entry.get("reason") else ""
+            raise ConfigError(f"{name!r} was revoked on {entry.get('at', '?')}{why}: trust it again only on purpose "
+                              "(--unrevoke)")
+        self._set(name, role)
+        self.revoked.pop(name, None)
+
+    def revoke(self, name: str, reason: str = "") -> None:
+        """Remove ``name`` from the names trusted and record it as revoked."""
+        check_cert_name(name)
+        self.names.pop(name, None)
+        self.revoked[name] = {"at": _now().strftime("%Y-%m-%dT%H:%M:%SZ"), "reason": reason}
+
     def save(self, directory: str | os.PathLike[str]) -> None:
-        data = json.dumps({"names": dict(sorted(self.names.items()))}, indent=2) + "\n"
+        doc: dict[str, object] = {"names": dict(sorted(self.names.items()))}
+        if self.revoked:
+            doc["revoked"] = dict(sorted(self.revoked.items()))
+        data = json.dumps(doc, indent=2) + "\n"
         write_file(Path(directory) / TRUST_FILE, data.encode(), overwrite=True)
 
     def role(self, name: str) -> str | None:
-        return self.names.get(name)
+        """``name``'s role; None when it is not trusted, or revoked."""
+        return None if name in self.revoked else self.names.get(name)
+
+    def admitted(self) -> dict[str, str]:
+        """The names the mesh admits (name -> role): those trusted and not revoked."""
+        return {name: role for name, role in self.names.items() if name not in self.revoked}
 
 
 # --- the operations behind the commands ----------------------------------------------------------
@@ -325,19 +362,20 @@ def load_ca(directory: str | os.PathLike[str]) -> tuple[PrivateKey, x509.Certifi
 
 
 def issue(directory: str | os.PathLike[str], name: str, *, sans: Sequence[str] = (), role: str = "embodiment",
-          trust: bool = True, days: int = CERT_DAYS, force: bool = False) -> tuple[Path, Path]:
+          trust: bool = True, days: int = CERT_DAYS, force: bool = False, unrevoke: bool = False) -> tuple[Path, Path]:
     """Issue ``name``'s certificate and key with the folder's authority; add it to the trust list
-    unless ``trust`` is false. Returns the certificate and key paths."""
+    unless ``trust`` is false (a name revoked only with ``unrevoke``). Returns the certificate and key paths."""
     check_cert_name(name)
     if role not in ROLES:
         raise ConfigError(f"role must be one of {', '.join(ROLES)}, not {role!r}")
     path = Path(directory)
     ca = load_ca(path)
+    trusted = Trust.load(path) if trust else None
+    if trusted is not None:
+        trusted.add(name, role, unrevoke=unrevoke)  # refused before anything is written, for a name revoked
     key, cert = make_cert(name, ca, sans=default_sans(name, sans), days=days)
     paths = write_pair(path, name, key, cert, overwrite=force)
-    if trust:
-        trusted = Trust.load(path)
-        trusted.add(name, role)
+    if trusted is not None:
         trusted.save(path)
     return paths
 
@@ -352,6 +390,7 @@ class CertInfo:
     sans: tuple[str, ...]
     role: str | None
     key_present: bool
+    revoked: bool = False
 
 
 def inventory(directory: str | os.PathLike[str]) -> list[CertInfo]:
@@ -373,20 +412,30 @@ def inventory(directory: str | os.PathLike[str]) -> list[CertInfo]:
         name = common_name(cert)
         after = cert.not_valid_after_utc
         out.append(CertInfo(name, pem.name, issued_by(cert, ca), after.strftime("%Y-%m-%d"), after < _now(),
-                            tuple(cert_sans(cert)), trust.role(name), pem.with_suffix(".key").exists()))
+                            tuple(cert_sans(cert)), trust.role(name), pem.with_suffix(".key").exists(), name in trust.revoked))
     return out
 
 
-def trust_name(directory: str | os.PathLike[str], name: str, role: str = "embodiment") -> None:
-    """Add ``name`` to the trust list; its certificate, signed by this authority, must already be in the folder."""
+def trust_name(directory: str | os.PathLike[str], name: str, role: str = "embodiment", *, unrevoke: bool = False) -> None:
+    """Add ``name`` to the trust list; its certificate, signed by this authority, must already be in the
+    folder. A name revoked is refused unless ``unrevoke``."""
     path = Path(directory)
     check_cert_name(name)
     certificate = load_cert(path / f"{name}.pem")
     if not issued_by(certificate, load_cert(path / CA_CERT)) or common_name(certificate) != name:
         raise ConfigError(f"{name}.pem is not a certificate of {name!r} signed by this authority")
     trusted = Trust.load(path)
-    trusted.add(name, role)
+    trusted.add(name, role, unrevoke=unrevoke)
     trusted.save(path)
+
+
+def revoke_name(directory: str | os.PathLike[str], name: str, reason: str = "") -> None:
+    """Revoke ``name``: out of the trust list, and recorded as revoked, so that neither ``trust`` nor
+    ``issue`` trusts it again unless told, and the access control never admits it (the members
+    take it when they restart, with the new trust list)."""
+    trusted = Trust.load(directory)
+    trusted.revoke(name, reason)
+    trusted.save(directory)
 
 
 def untrust_name(directory: str | os.PathLike[str], name: str) -> None:

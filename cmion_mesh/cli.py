@@ -469,7 +469,8 @@ def cmd_peers(args: argparse.Namespace) -> int:
         if p.get("error"):
             rows.append((p["name"], "?", f"({p['error']})", "", "", ""))
             continue
-        rows.append((p["name"], p.get("inhabitant") or "-", ",".join(p.get("competency_types", [])) or "-",
+        frozen = [f"{c} (FROZEN: custody fork)" for c, r in (p.get("custody") or {}).items() if isinstance(r, dict) and r.get("frozen")]
+        rows.append((p["name"], p.get("inhabitant") or ", ".join(frozen) or "-", ",".join(p.get("competency_types", [])) or "-",
                      "; ".join(p.get("actions", [])) or "-", p.get("version", "?"), since))
     _table(rows)
     return ExitCode.OK
@@ -806,6 +807,67 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def cmd_custody(args: argparse.Namespace) -> int:
+    companion = keys.check_name(args.companion, "companion")
+    if args.custody_command == "resolve":
+        keep = keys.check_name(args.keep, "embodiment")
+        gone = [keys.check_name(name, "embodiment") for name in args.gone or ()]
+        sender = "cmion-mesh"
+        if args.certs:
+            from cmion_mesh import security
+
+            sender = security.choose_identity(args.certs, args.identity)
+        with session(args) as client, Spinner(f"resolving the fork of {companion}", enabled=not args.json):
+            result = client.resolve_fork(companion, keep, force=args.force, gone=gone, sender=sender, timeout=args.timeout)
+        if args.json:
+            print(json.dumps(result))
+        else:
+            down = ", ".join(result["retired"]) or "nobody"
+            print(f"{companion}: {down} stood down{' (gone: ' + ', '.join(result['gone']) + ')' if result['gone'] else ''}; "
+                  f"it runs on {keep} again")
+        return ExitCode.OK
+    with session(args) as client, Spinner(f"asking the mesh about {companion}", enabled=not args.json):
+        reports = client.custody(companion, timeout=args.timeout)
+    forks = {f["description"]: f for report in reports.values() for f in report.get("forks") or ()}
+    equivocators = sorted({str(e) for report in reports.values() for e in report.get("equivocators") or ()})
+    branches: dict[str, dict[str, Any]] = {}
+    for report in reports.values():
+        branches.update(report.get("branches") or {})
+    unreachable = sorted(h for h in branches if "error" in reports.get(h, {"error": "not alive"}))
+    if args.json:
+        print(json.dumps({"companion": companion, "reports": reports, "forks": list(forks.values()),
+                          "equivocators": equivocators, "branches": branches, "unreachable": unreachable}))
+        return ExitCode.OK
+    rows: list[tuple[str, ...]] = [("EMBODIMENT", "STATE", "EPOCH", "CUSTODY")]
+    for name, report in sorted(reports.items()):
+        if "error" in report:
+            rows.append((name, "?", "", f"({report['error']})"))
+        elif report:
+            held = "FROZEN: fork" if report.get("frozen") else "runs it" if report.get("state") == "active" else "in a migration"
+            rows.append((name, str(report.get("state")), str(report.get("epoch")), held))
+        else:
+            rows.append((name, "-", "", ""))
+    for name in unreachable:
+        rows.append((name, "?", str(branches[name].get("epoch", "")), "holds a branch: NOT REACHABLE"))
+    _table(rows)
+    if not forks:
+        print(f"no fork of {companion}'s chain of custody is reported")
+        return ExitCode.OK
+    for fork in forks.values():
+        print(f"fork at epoch {fork['epoch']}: {fork['description']}")
+    for name, info in sorted(branches.items()):
+        held = f"; the equivocator {', '.join(map(repr, info.get('equivocators') or ()))} holds it" if info.get("equivocators") else ""
+        print(f"  branch of {name}: epoch {info.get('epoch')}{held}")
+    if equivocators:
+        print(f"equivocated: {', '.join(map(repr, equivocators))}: revoke with `cmion-mesh certs revoke PKI NAME` "
+              "(then give the members the new trust.json and restart them)")
+    keepable = sorted(h for h, info in branches.items() if not info.get("equivocators"))
+    print(f"resolve: cmion-mesh custody resolve {companion} --keep EMBODIMENT "
+          f"({'e.g. ' + ', '.join(keepable) if keepable else 'every branch holds an equivocator: --force'}); "
+          "every other branch holder stands down first")
+    return ExitCode.OK
+
+
 def cmd_invite(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"{args.embodiment} invites the companion", enabled=not args.json):
         result = client.invite(args.embodiment, args.to or (), timeout=args.timeout)
@@ -915,7 +977,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
         print(f"next: cmion-mesh certs issue {directory} <embodiment>")
     elif command == "issue":
         cert, key = certs.issue(directory, args.name, sans=args.san, role=args.role, trust=not args.no_trust,
-                                days=args.days, force=args.force)
+                                days=args.days, force=args.force, unrevoke=args.unrevoke)
         trusted = "not in the trust list" if args.no_trust else f"trusted as {args.role}"
         print(f"issued {cert} and {key} for {args.name!r} ({trusted})")
         print(f"give the member {directory / certs.CA_CERT}, {directory / certs.TRUST_FILE}, {cert.name} and {key.name}; "
@@ -927,15 +989,19 @@ def cmd_certs(args: argparse.Namespace) -> int:
             return ExitCode.OK
         rows = [("NAME", "ROLE", "SIGNED BY CA", "EXPIRES", "KEY", "SANS")]
         for i in infos:
-            rows.append((i.name, i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
+            rows.append((i.name, "(REVOKED)" if i.revoked else i.role or "(not trusted)", "yes" if i.issued_by_ca else "NO",
                          i.not_after + (" (EXPIRED)" if i.expired else ""), "yes" if i.key_present else "-", ",".join(i.sans)))
         _table(rows)
         missing = sorted(set(certs.Trust.load(directory).names) - {i.name for i in infos})
         if missing:
             print(f"trusted but without a certificate here: {', '.join(missing)}")
     elif command == "trust":
-        certs.trust_name(directory, args.name, args.role)
+        certs.trust_name(directory, args.name, args.role, unrevoke=args.unrevoke)
         print(f"{args.name!r} trusted as {args.role}")
+    elif command == "revoke":
+        certs.revoke_name(directory, args.name, args.reason)
+        print(f"{args.name!r} revoked: out of the trust list, and `certs trust` will not add it back unless told "
+              f"(--unrevoke); give the members the new {certs.TRUST_FILE} and restart them for it to take effect")
     elif command == "untrust":
         certs.untrust_name(directory, args.name)
         print(f"{args.name!r} removed from the trust list: restart the mesh's members for it to take effect")
@@ -998,6 +1064,7 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--role", choices=ROLES, default="embodiment",
                    help="embodiment: its own keys only; operator: the whole mesh (tools of an administrator)")
     p.add_argument("--no-trust", action="store_true", help="do not add NAME to the trust list")
+    p.add_argument("--unrevoke", action="store_true", help="trust NAME although it was revoked")
     p.add_argument("--days", type=int, default=CERT_DAYS, help="validity (default: %(default)s days)")
     p.add_argument("--force", action="store_true", help="replace an existing certificate of NAME")
 
@@ -1009,6 +1076,13 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="the certificate's name")
     p.add_argument("--role", choices=ROLES, default="embodiment", help="what NAME may do (default: %(default)s)")
+    p.add_argument("--unrevoke", action="store_true", help="trust NAME although it was revoked (certs revoke)")
+
+    p = sub.add_parser("revoke", help="revoke NAME: out of the trust list, recorded as revoked so that trust and issue do "
+                                      "not add it back; the access control never admits it (restart the members)")
+    p.add_argument("dir", metavar="DIR", help=folder)
+    p.add_argument("name", metavar="NAME", help="the certificate's name")
+    p.add_argument("--reason", default="", help="why (kept in the trust list), e.g. 'equivocated custody of spirit'")
 
     p = sub.add_parser("untrust", help="remove NAME from the trust list (revocation: restart the members afterwards)")
     p.add_argument("dir", metavar="DIR", help=folder)
@@ -1244,6 +1318,30 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _timeout(p, 60.0, "seconds to wait for the handshake's end")
     _common(p)
     p.set_defaults(func=cmd_migrate)
+
+    p = sub.add_parser("custody", help="a companion's custody across the mesh: who holds it, forks of its chain and "
+                                       "how to resolve them",
+                       description="`custody show COMPANION`: what every live embodiment reports of the companion's "
+                                   "custody, the evidence of a fork (who equivocated) and the command that resolves it. "
+                                   "`custody resolve COMPANION --keep EMBODIMENT`: keep one branch of a fork; every other "
+                                   "branch holder stands down first (its copy retired on its disk), then the kept one "
+                                   "runs again. Refused when a holder of another branch cannot be reached (it would make "
+                                   "two), or when the evidence shows an equivocator holding the branch kept (--force).")
+    actions = p.add_subparsers(dest="custody_command", required=True, metavar="ACTION")
+    cp = actions.add_parser("show", help="what every embodiment reports of a companion's custody, forks and their evidence")
+    cp.add_argument("companion", help="the companion")
+    _timeout(cp, 3.0, "longest wait for the whole mesh to answer")
+    _common(cp)
+    cp.set_defaults(func=cmd_custody)
+    cp = actions.add_parser("resolve", help="keep one branch of a fork of a companion's chain of custody; the others stand down")
+    cp.add_argument("companion", help="the companion")
+    cp.add_argument("--keep", required=True, metavar="EMBODIMENT", help="the embodiment whose branch runs the companion")
+    cp.add_argument("--force", action="store_true", help="keep it even though the evidence shows an equivocator holding it")
+    cp.add_argument("--gone", action="append", metavar="EMBODIMENT",
+                    help="a branch holder that is gone for good (wiped, revoked): not waited for; repeatable")
+    _timeout(cp, 10.0, "seconds to wait for each answer")
+    _common(cp)
+    cp.set_defaults(func=cmd_custody)
 
     p = sub.add_parser("invite", help="have an empty embodiment invite the companion (CMION's migration invitation)",
                        description="EMBODIMENT (which must host no companion) invites the companion: every embodiment of "

@@ -10,8 +10,10 @@ that any live daemon sees: a daemon has been in the mesh long enough to know all
 
 from __future__ import annotations
 
+import base64
 import difflib
 import queue
+import secrets
 import threading
 import time
 import uuid
@@ -40,10 +42,13 @@ from cmion_mesh.messages import (
     CancelAction,
     Code,
     Container,
+    CustodyResume,
+    CustodyStandDown,
     Describe,
     Event,
     Message,
     Migrate,
+    MigrateChain,
     Outcome,
     Property,
     SendInvitations,
@@ -595,6 +600,79 @@ class MeshClient:
                 out.append({"name": name, "error": "alive (so say the other daemons) but not reachable from this session"})
         return out
 
+    def custody(self, companion: str, *, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+        """What every live embodiment says of ``companion``'s custody (``describe``'s ``custody``):
+        name -> its report ({} when it holds no copy; ``{"error": ...}`` when it did not answer)."""
+        reports: dict[str, dict[str, Any]] = {}
+        for d in self.describe_all(timeout=timeout):
+            name = str(d.get("name"))
+            if d.get("error"):
+                reports[name] = {"error": str(d["error"])}
+            else:
+                held = (d.get("custody") or {}).get(companion)
+                reports[name] = dict(held) if isinstance(held, dict) else {}
+        return reports
+
+    def resolve_fork(self, companion: str, keep: str, *, force: bool = False, gone: Sequence[str] = (),
+                     sender: str = "cmion-mesh", timeout: float = 10.0) -> dict[str, Any]:
+        """Resolve a fork of ``companion``'s chain of custody by keeping ``keep``'s branch: every
+        other branch holder stands down first (its copy retired on its disk before it answers), and
+        only once all of them did is ``keep`` told to run it again. Refused (``RequestRejected``,
+        nothing retired) when a holder of another branch cannot be reached (unless named ``gone``:
+        wiped or revoked for good), or when the evidence shows an equivocator holding ``keep``'s
+        branch (unless ``force``). Returns ``{"kept", "retired", "gone"}``."""
+        reports = self.custody(companion, timeout=min(timeout, 5.0))
+        key = keys.request_key(self.mesh, keep, "migration", "resume")
+        alive = {name for name, report in reports.items() if "error" not in report}
+        if keep not in reports:
+            raise self.not_alive(keep, 0.0)
+        kept = reports[keep]
+        if "error" in kept or kept.get("state") != "active":
+            raise RequestRejected(f"{keep!r} holds no running copy of {companion!r} to keep "
+                                  f"({kept.get('error') or kept.get('state') or 'no copy'})", key=key)
+        if not any(report.get("frozen") for report in reports.values()):
+            raise RequestRejected(f"no embodiment reports a fork of {companion!r}'s chain of custody: nothing to resolve",
+                                  key=key)
+        branches: dict[str, int] = {}
+        tainted: dict[str, set[str]] = {}
+        for name, report in reports.items():
+            if report.get("state") is not None:
+                branches[name] = int(report.get("epoch", 0))
+            for holder, info in (report.get("branches") or {}).items():
+                branches.setdefault(str(holder), int(info.get("epoch", 0)))
+                tainted.setdefault(str(holder), set()).update(map(str, info.get("equivocators") or ()))
+        if tainted.get(keep) and not force:
+            raise RequestRejected(f"the evidence shows {', '.join(map(repr, sorted(tainted[keep])))} (who equivocated) "
+                                  f"holding the branch of {keep!r}: keeping it would reward the equivocation "
+                                  "(--force keeps it anyway)", key=key)
+        others = sorted(h for h in branches if h != keep)
+        unreachable = [h for h in others if h not in alive and h not in gone]
+        if unreachable:
+            raise RequestRejected(
+                f"keeping {keep!r} would make two: {', '.join(f'{h!r} (epoch {branches[h]})' for h in unreachable)} "
+                f"{'holds' if len(unreachable) == 1 else 'hold'} a branch of {companion!r} and cannot be reached to stand "
+                "down; bring it back, or, if it is gone for good (wiped, or revoked), say so with --gone NAME", key=key)
+        chain_key = keys.request_key(self.mesh, keep, "migration", "chain", sender)
+        answer = require_accepted(self.request(keep, "migration", "chain",
+                                               MigrateChain(companion, int(kept.get("epoch", 0)), secrets.token_bytes(16)),
+                                               sender=sender, timeout=timeout), chain_key)
+        chain = base64.b64decode(str(answer.get("chain", "")) if isinstance(answer, dict) else "")
+        retired: list[str] = []
+        for holder in others:
+            if holder not in alive:
+                continue  # gone for good, the operator says
+            down_key = keys.request_key(self.mesh, holder, "migration", "stand_down")
+            outcome = self.request(holder, "migration", "stand_down", CustodyStandDown(companion, keep, chain), timeout=timeout)
+            if outcome.status != "accepted":
+                raise RequestRejected(f"{holder!r} did not stand down: {outcome.reason}; "
+                                      f"{'; '.join(f'{h!r} stood down' for h in retired) or 'nothing changed'}, "
+                                      f"{keep!r} stays frozen", key=down_key, reason=outcome.reason, code=outcome.code)
+            retired.append(holder)
+        gone_ones = sorted(h for h in others if h not in alive)
+        require_accepted(self.request(keep, "migration", "resume", CustodyResume(companion, [*retired, *gone_ones]),
+                                      timeout=timeout), key)
+        return {"kept": keep, "retired": retired, "gone": gone_ones}
+
     def embodiments(self, *, timeout: float = 2.0) -> list[str]:
         """Names of the embodiments whose liveliness token is present (one liveliness query)."""
         names = []
@@ -623,6 +701,14 @@ def mesh_problems(described: Sequence[dict[str, Any]]) -> list[str]:
     for companion, embodiments in sorted(hosts.items()):
         if len(embodiments) > 1:
             problems.append(f"DUPLICATE COMPANION: {companion!r} is hosted by {' and '.join(sorted(embodiments))}")
+    frozen: dict[str, list[str]] = {}
+    for d in described:
+        for companion, report in (d.get("custody") or {}).items():
+            if isinstance(report, dict) and report.get("frozen"):
+                frozen.setdefault(str(companion), []).append(f"{d.get('name')} (epoch {report.get('epoch')})")
+    for companion, holders in sorted(frozen.items()):
+        problems.append(f"CUSTODY FORK: {companion!r} is frozen on {', '.join(sorted(holders))}: see "
+                        f"`cmion-mesh custody show {companion}`")
     return list(dict.fromkeys(problems))
 
 

@@ -14,14 +14,22 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
   link, signed by the same key). A former host kept a key of an older epoch: it can sign nothing
   that extends the chain past the link that took custody away from it, except a *fork*.
 * A fork (a second link for an epoch whose link already exists) needs the key of that epoch, so
-  only the embodiment that held custody then can make one. Receivers refuse forks they can see:
-  a prepare whose chain disagrees with the one they hold for the companion, one for a companion
-  they are running or hold at a newer epoch, and one whose source is not the live custody holder
-  that the mesh advertises (``migration`` declares a liveliness token per held companion and
-  every embodiment watches them). What remains, written down in docs/security.md: a receiver that
-  has never seen the companion and cannot see its live holder (a partition) can be shown a fork
-  by a hostile former host; when the partition heals, both holders advertise and the conflict is
-  reported loudly, and the documented rule decides who keeps running it.
+  only the embodiment that held custody then can make one. Two different links for one epoch,
+  both signed by the key the shared link before them names, are therefore a proof (``Fork``)
+  that this key's holder **equivocated**: anyone holding the shared prefix can check it, and
+  whoever shows it, the evidence names the signer (``Fork.equivocator``).
+* A claim is never taken on trust. A custody token in the mesh (``migration``) is a hint to go
+  and look: the claimant is asked for its chain and for a signature, by the custody key at the
+  chain's head, over the asker's fresh nonce (``ClaimProof``); a claim counts only once its
+  chain verifies from the identity key trusted for the companion and ends with the claimant at
+  the epoch claimed (``verify_claim``). Two verified chains relate in one way (``compare``): the
+  same; one a prefix of the other (its holder is stale: it handed the companion on); or a fork.
+* No branch of a fork wins by itself: epochs and names count for nothing, so inflating epochs
+  gains an equivocator nothing. Every holder of a branch freezes, durably, until an operator
+  keeps one branch and the others stand down (``cmion-mesh custody resolve``, docs/security.md).
+  Receivers refuse offers that a verified claim shows stale or forked, and forks they can see in
+  their own record; what remains is a receiver that cannot see any live holder (a partition):
+  it may accept a fork, which freezes both branches when they meet.
 * Nothing is trusted because it was merely offered: a companion's identity key is pinned when a
   chain that starts with it *commits* (or at birth, or by ``--admit NAME=KEY``), never by a
   prepare that was aborted, so a stranger cannot poison the pin.
@@ -30,7 +38,8 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from typing import Literal
 
 import msgspec
 
@@ -187,19 +196,131 @@ def check_link(head: Link, link: Link, *, companion: str, attempt: str, holder: 
         raise SignatureRefused(f"bad signature on the custody link of {companion!r}: not by its holder's custody key")
 
 
-def rivals(chain: Sequence[Link], claims: Mapping[str, int], holder: str) -> list[str]:
-    """The embodiments that claim the companion (``claims``: name -> epoch) although ``chain``, held
-    or offered by ``holder``, shows them handing it on at the epoch they claim."""
-    handed_on = {(link.holder, link.epoch) for link in chain[:-1]}
-    return sorted(h for h, epoch in claims.items() if h != holder and (h, epoch) not in handed_on)
+class ClaimProof(msgspec.Struct, frozen=True, array_like=True):
+    """What a claimant signs, with the custody key at its chain's head, to back its claim to one asker."""
+
+    companion: str
+    epoch: int
+    claimant: str
+    asker: str
+    nonce: bytes
 
 
-def forks(known: Sequence[Link], offered: Sequence[Link]) -> str:
-    """Why ``offered`` conflicts with the chain ``known`` here ("" if one extends the other)."""
-    for mine, theirs in zip(known, offered, strict=False):
-        if mine != theirs:
-            return (f"the chain of custody forks at epoch {mine.epoch}: the link offered (to {theirs.holder!r}) is not "
-                    f"the one known here (to {mine.holder!r})")
-    if len(known) > len(offered):
-        return f"stale: the chain of custody here reaches epoch {known[-1].epoch}, the offer only {offered[-1].epoch}"
-    return ""
+def sign_claim(private: bytes, proof: ClaimProof) -> bytes:
+    return signing.sign(private, _encoder.encode(proof))
+
+
+def verify_claim(chain: Sequence[Link], proof: ClaimProof, signature: bytes, *, identity: bytes | None = None) -> None:
+    """A claim counts only if ``chain`` verifies (from ``identity``, when given), ends with the
+    claimant at the epoch it claims, and the claimant signed the asker's nonce with that link's key:
+    a chain alone is public (every prepare carries one), the key at its head is not."""
+    verify_chain(chain, proof.companion, identity=identity)
+    head = chain[-1]
+    if head.holder != proof.claimant:
+        raise SignatureRefused(f"{proof.claimant!r} claims {proof.companion!r}, but its chain of custody ends with "
+                               f"{head.holder!r}")
+    if head.epoch != proof.epoch:
+        raise SignatureRefused(f"{proof.claimant!r} claims {proof.companion!r} at epoch {proof.epoch}, but its chain of "
+                               f"custody ends at epoch {head.epoch}")
+    if not signing.valid(head.public_key, _encoder.encode(proof), signature):
+        raise SignatureRefused(f"{proof.claimant!r} did not sign its claim on {proof.companion!r} with the custody key "
+                               f"of epoch {head.epoch}")
+
+
+class Fork(msgspec.Struct, frozen=True):
+    """Proof of equivocation: ``first`` and ``second``, two different links for one epoch, both
+    signed by the custody key that the last link of ``prefix`` (the chain both branches share)
+    names. Its holder, ``equivocator``, signed both. Checked by ``verify_fork``."""
+
+    companion: str
+    prefix: list[Link]
+    first: Link
+    second: Link
+
+    @property
+    def epoch(self) -> int:
+        return self.first.epoch
+
+    @property
+    def equivocator(self) -> str:
+        """The embodiment that held the key which signed both links ("" for two births, which the
+        identity key itself signed: whoever held it)."""
+        return self.prefix[-1].holder if self.prefix else ""
+
+    def describe(self) -> str:
+        """One line for people: who signed what."""
+        who = repr(self.equivocator) if self.equivocator else "the holder of its identity key"
+        return (f"{who} signed two links for epoch {self.epoch} of {self.companion!r}: to {self.first.holder!r} "
+                f"(attempt {self.first.attempt[:12] or '-'}) and to {self.second.holder!r} "
+                f"(attempt {self.second.attempt[:12] or '-'})")
+
+
+Relation = Literal["same", "stale", "behind", "fork", "foreign"]
+
+
+def compare(mine: Sequence[Link], theirs: Sequence[Link]) -> tuple[Relation, Fork | None]:
+    """How two verified chains of one companion relate: ``same``; ``stale`` (theirs is a strict
+    prefix of mine: its holder handed the companion on); ``behind`` (mine is a strict prefix of
+    theirs: I did); ``fork`` (with the proof); ``foreign`` (another identity key: another
+    companion of the same name, nothing to compare)."""
+    if not mine or not theirs or mine[0].public_key != theirs[0].public_key:
+        return "foreign", None
+    for index, (a, b) in enumerate(zip(mine, theirs, strict=False)):
+        if a != b:
+            return "fork", Fork(a.companion, list(mine[:index]), a, b)
+    if len(mine) == len(theirs):
+        return "same", None
+    return ("stale", None) if len(theirs) < len(mine) else ("behind", None)
+
+
+def verify_fork(fork: Fork, *, identity: bytes | None = None) -> None:
+    """Check that ``fork`` proves an equivocation: its prefix verifies, and its two different links
+    for the next epoch are both signed by the key the prefix ends with. ``SignatureRefused`` if not."""
+    first, second = fork.first, fork.second
+    if first == second:
+        raise SignatureRefused("the two links of the fork are the same link")
+    if fork.prefix:
+        verify_chain(fork.prefix, fork.companion, identity=identity)
+        signer = fork.prefix[-1].public_key
+        epoch = fork.prefix[-1].epoch + 1
+    else:
+        signer = first.public_key
+        epoch = first.epoch
+        if identity is not None and signer != identity:
+            raise SignatureRefused(f"the births of {fork.companion!r} are not signed by the key trusted for it")
+    for link in (first, second):
+        if link.companion != fork.companion or link.epoch != epoch:
+            raise SignatureRefused(f"a link of the fork is not of {fork.companion!r} at epoch {epoch}")
+        if not signing.valid(signer, link.signed_bytes(), link.signature):
+            raise SignatureRefused(f"a link of the fork of {fork.companion!r} at epoch {epoch} is not signed by the key "
+                                   "of the epoch before")
+
+
+class Freeze(msgspec.Struct, frozen=True):
+    """What a holder keeps of a proven fork, so that it stays frozen across restarts and after the
+    other side has gone: the verified chain of each branch's holder (its own among them), from
+    which ``compare`` gives each proof again."""
+
+    companion: str
+    branches: dict[str, list[Link]]
+    found: float = 0.0
+
+    def forks(self, me: str) -> list[tuple[str, Fork]]:
+        """The proofs that the other branches fork from ``me``'s (holder, proof)."""
+        mine = self.branches.get(me, [])
+        found = []
+        for holder, chain in sorted(self.branches.items()):
+            if holder != me:
+                _, fork = compare(mine, chain)
+                if fork is not None:
+                    found.append((holder, fork))
+        return found
+
+
+def after_fork(chain: Sequence[Link], fork: Fork) -> list[str]:
+    """The holders of ``chain`` from the fork's epoch on (its branch), in order; [] if ``chain`` is on
+    neither branch of ``fork``."""
+    at = len(fork.prefix)
+    if len(chain) <= at or chain[at] not in (fork.first, fork.second) or (at and chain[at - 1] != fork.prefix[-1]):
+        return []
+    return [link.holder for link in chain[at:]]

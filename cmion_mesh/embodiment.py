@@ -249,6 +249,7 @@ class Embodiment:
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
             "damaged": dict(self.migration.damaged) if self.migration is not None else {},
+            "custody": self.migration.custody_report() if self.migration is not None else {},
             "migration_transfer": self.migration.last_transfer if self.migration is not None else None,
             "devices": self.devices.names if self.devices is not None else None,
             "version": self.version,

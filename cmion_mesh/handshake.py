@@ -51,6 +51,13 @@ commit, arriving after the drop, is refused (T holds no incoming attempt), it as
 that commit nor a replayed prepare of the attempt ever revives it.
 
 Custody (``custody``) makes the same decisions unforgeable by a former host: see its docstring.
+Claims of other holders count only once backed (``Claim``: a verified chain and a signature by its
+head's key): a target refuses an offer that a claim shows stale or forked (``check_claims``); a
+holder stands down for good when a claim extends its chain, and freezes on a proven fork
+(``judge``). A record's state, epoch and holder must agree with its chain at rest (``at_rest``).
+The one step that moves an order back is an operator's: a holder of a branch of a proven fork that
+stands down (``retired``) records the kept branch's chain and order; the orders of the other
+branch mean nothing on this one, and its offers are refused as forks of the chain recorded.
 
 **Sections.** A SchemaVersion 2 document is a manifest naming its sections by hash (``identity``);
 T must hold every section before it records ``incoming``. Before the prepare of a large identity,
@@ -72,7 +79,7 @@ import msgspec
 
 from cmion_mesh import custody, keys, signing
 from cmion_mesh.custody import Link, Offer
-from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus, Outcome
 from cmion_mesh.records import Record
@@ -94,14 +101,29 @@ class Decision:
     identity: Identity | None = None  # the parsed document of an accepted prepare
     manifest: Manifest | None = None  # the parsed document of an accepted prepare or have
     sections: Mapping[str, Bytes] | None = None  # an accepted prepare's section bytes (sha256 -> bytes)
+    fork: custody.Fork | None = None  # a refusal's proof of equivocation, for the log and the operator
+
+
+@dataclass(frozen=True)
+class Claim:
+    """Another embodiment's claim on a companion, backed: its chain verified and ends with ``holder``,
+    who signed the asker's nonce with that link's key (``custody.verify_claim``). A liveliness token
+    alone is never one."""
+
+    holder: str
+    chain: Sequence[Link]
+
+    @property
+    def epoch(self) -> int:
+        return self.chain[-1].epoch
 
 
 #: Finds the bytes of sections (sha256 -> bytes, each checked against its hash), those it can.
 SectionSource = Callable[[Sequence[SectionRef]], Mapping[str, Bytes]]
 
 
-def refused(reason: str) -> Decision:
-    return Decision(Outcome("rejected", reason))
+def refused(reason: str, fork: custody.Fork | None = None) -> Decision:
+    return Decision(Outcome("rejected", reason), fork=fork)
 
 
 def refuses(identity: Identity, embodiment: str) -> str:
@@ -132,14 +154,14 @@ def link_of_text(text: Any) -> Link:
 
 
 def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Record | None,
-               admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int],
+               admit: Mapping[str, bytes | None] | None, claims: Sequence[Claim],
                new_key: Callable[[], bytes] = signing.new_key, sections: SectionSource | None = None,
                values: Mapping[str, Any] | None = None) -> Decision:
-    """A prepare at T. ``held``: the record of a companion T holds, if any; ``live_claims``: the other
-    embodiments that say in the mesh they hold the companion, and at which epoch (custody tokens);
+    """A prepare at T. ``held``: the record of a companion T holds, if any; ``claims``: the other
+    embodiments' backed claims on the companion (never bare custody tokens);
     ``sections``: where T finds the bytes of the sections a version 2 document names; ``values``:
     immutable values T holds already decoded, by their bytes' hash (``identity.SectionMemo.values``)."""
-    checked = _check_offer(msg, msg.document, record, me=me, held=held, admit=admit, live_claims=live_claims)
+    checked = _check_offer(msg, msg.document, record, me=me, held=held, admit=admit, claims=claims)
     if isinstance(checked, Decision):
         return checked
     if _repeated(msg, record):
@@ -170,10 +192,10 @@ def on_prepare(msg: MigratePrepare, record: Record | None, *, me: str, held: Rec
 
 
 def on_have(msg: MigrateHave, record: Record | None, *, me: str, held: Record | None,
-            admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int]) -> Decision:
+            admit: Mapping[str, bytes | None] | None, claims: Sequence[Claim]) -> Decision:
     """A ``have`` at T: the checks of a prepare of the same offer, nothing recorded. Accepted, the
     decision carries the manifest; which sections T holds is for the caller to say (its disk)."""
-    checked = _check_offer(msg, msg.manifest, record, me=me, held=held, admit=admit, live_claims=live_claims)
+    checked = _check_offer(msg, msg.manifest, record, me=me, held=held, admit=admit, claims=claims)
     if isinstance(checked, Decision):
         return checked
     try:
@@ -226,7 +248,7 @@ def precheck(msg: MigratePrepare | MigrateHave, record: Record | None, *, me: st
 
 
 def _check_offer(msg: MigratePrepare | MigrateHave, document: bytes, record: Record | None, *, me: str, held: Record | None,
-                 admit: Mapping[str, bytes | None] | None, live_claims: Mapping[str, int]) -> list[Link] | Decision:
+                 admit: Mapping[str, bytes | None] | None, claims: Sequence[Claim]) -> list[Link] | Decision:
     """The checks of an offer that need no XML: ``precheck``, then custody. The verified chain, or the refusal."""
     early = precheck(msg, record, me=me, held=held, admit=admit)
     if early is not None:
@@ -240,24 +262,131 @@ def _check_offer(msg: MigratePrepare | MigrateHave, document: bytes, record: Rec
     try:
         chain = custody.decode_chain(msg.chain)
         custody.verify_chain(chain, msg.companion, identity=trusted)
-        fork = custody.forks(record.chain if record is not None else [], chain)
-        if fork:
-            return refused(f"custody: {fork}")
-        # Another live claim is a rival unless the chain shows that claimant handing the companion
-        # on at the epoch it claims (a former holder's token not yet withdrawn everywhere).
-        claimed = live_claims.get(msg.source)
-        if claimed is not None and claimed != msg.epoch and (msg.source, claimed) not in {(k.holder, k.epoch) for k in chain}:
-            return refused(f"custody: {msg.source!r} says in the mesh it holds {msg.companion!r} at epoch {claimed}, "
-                           f"and offers it at epoch {msg.epoch}")
-        rivals = custody.rivals(chain, live_claims, msg.source)
-        if rivals:
-            return refused(f"custody: {', '.join(map(repr, rivals))} holds {msg.companion!r} now (it says so in the mesh), "
-                           f"not {msg.source!r}")
+        if record is not None and record.chain:
+            relation, fork = custody.compare(record.chain, chain)
+            if fork is not None:
+                return refused(f"custody: the chain offered forks from the one known here: {fork.describe()}", fork)
+            if relation == "stale":
+                return refused(f"custody: stale: the chain of custody here reaches epoch {record.chain[-1].epoch}, "
+                               f"the offer only {chain[-1].epoch}")
+        why, fork = check_claims(chain, claims, source=msg.source)
+        if why:
+            return refused(why, fork)
         digest = custody.digest(document)
         custody.verify_offer(chain, Offer(msg.companion, msg.epoch, msg.seq, msg.attempt, msg.source, msg.target, digest), msg.proof)
     except signing.SignatureRefused as exc:
         return refused(f"refused: {exc}")
     return chain
+
+
+def check_claims(chain: Sequence[Link], claims: Sequence[Claim], *, source: str) -> tuple[str, custody.Fork | None]:
+    """Why a backed claim forbids taking ``chain`` (offered by ``source``): its holder holds a newer
+    chain that extends it (the source handed the companion on), a chain that forks from it (proof of
+    equivocation), or another companion of the same name; ("", None) if none does. A claim whose
+    chain the offer extends is a former holder's, not yet withdrawn: no objection."""
+    companion = chain[-1].companion
+    for claim in claims:
+        relation, fork = custody.compare(chain, claim.chain)
+        if fork is not None:
+            return (f"custody: {claim.holder!r} holds {companion!r} on a branch that forks from the chain offered by "
+                    f"{source!r}: {fork.describe()} (equivocation)"), fork
+        if relation == "behind":
+            return (f"custody: {claim.holder!r} holds {companion!r} at epoch {claim.epoch}, newer than the offer's "
+                    f"epoch {chain[-1].epoch}: {source!r} handed it on"), None
+        if relation == "foreign":
+            return (f"custody: {claim.holder!r} holds another companion named {companion!r} (another identity key): "
+                    "admit the one to trust here (--admit NAME=KEY)"), None
+    return "", None
+
+
+# --- a holder and the others' claims ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What backed claims mean for a holder: branches that fork from its chain (each claimant with
+    the proof), or a claim whose chain extends its own (its key signed the next link: it handed the
+    companion on, and runs it no more)."""
+
+    forks: tuple[tuple[Claim, custody.Fork], ...] = ()
+    superseded_by: Claim | None = None
+
+
+def judge(record: Record, claims: Sequence[Claim]) -> Verdict:
+    """A holder's verdict on the others' backed claims. Epochs and names count for nothing: a stale
+    claim (a prefix of this chain) is no conflict, a fork is one that no branch wins by itself."""
+    forks: list[tuple[Claim, custody.Fork]] = []
+    superseded: Claim | None = None
+    for claim in claims:
+        relation, fork = custody.compare(record.chain, claim.chain)
+        if fork is not None:
+            forks.append((claim, fork))
+        elif relation == "behind" and superseded is None:
+            superseded = claim
+    return Verdict(tuple(forks), superseded)
+
+
+def superseded(record: Record, claim: Claim) -> Record:
+    """The record of a holder whose key signed the link past its head that ``claim``'s chain holds (a
+    state folder rolled back, a target that said it dropped an attempt it kept): ``released`` by that
+    link, as if it had recorded the hand-over itself."""
+    link = claim.chain[len(record.chain)]
+    return msgspec.structs.replace(record, state="released", attempt=link.attempt, peer=link.holder, link=link,
+                                   custody_key="")
+
+
+def retired(record: Record, kept: Sequence[Link]) -> Record:
+    """A holder of a branch of a proven fork, standing down for the branch an operator keeps
+    (``kept``, verified): ``dropped``, knowing the kept chain, so that offers of its own branch are
+    refused as forks and the keeper's next attempt is newer."""
+    head = kept[-1]
+    return msgspec.structs.replace(record, state="dropped", epoch=head.epoch, seq=0, attempt="", peer=head.holder,
+                                   chain=list(kept), link=None, custody_key="")
+
+
+def at_rest(record: Record, *, me: str, key: bytes | None) -> str:
+    """Why ``record``, as stored, is not backed by its chain of custody ("" if it is). ``key``: the
+    custody private key stored beside it. Active, prepared, handed: the chain ends with ``me`` at the
+    record's epoch and ``key`` is that link's key; handed and released: the link it signed extends
+    the chain by one, to the record's peer and attempt; incoming: the chain ends with the source at
+    the record's epoch and ``key`` is the one made for the attempt; dropped: the epoch is the chain's."""
+    if not record.chain:
+        return "" if record.state in ("released", "dropped") else f"its {record.state} record holds no chain of custody"
+    try:
+        identity = signing.decode_public(record.public_key) if record.public_key else None
+        custody.verify_chain(record.chain, record.companion, identity=identity)
+    except MeshError as exc:
+        return f"its chain of custody does not verify: {exc}"
+    head = record.chain[-1]
+    if head.epoch != record.epoch:
+        return f"the record says epoch {record.epoch}, its chain of custody ends at epoch {head.epoch}"
+    if record.state in ("active", "prepared", "handed", "released") and head.holder != me:
+        return f"its chain of custody says {head.holder!r} held it at epoch {head.epoch}, not {me!r}"
+    if record.state == "incoming" and head.holder != record.peer:
+        return f"its chain of custody ends with {head.holder!r}, not with the source {record.peer!r}"
+    if record.state in ("active", "prepared", "handed", "incoming"):
+        expected = head.public_key if record.state != "incoming" else None
+        try:
+            public = signing.public_of(key) if key is not None else None
+            if record.state == "incoming":
+                expected = signing.decode_public(record.custody_key)
+        except (ValueError, MeshError):
+            return "its custody key is unusable"
+        if public is None:
+            return "its custody key is missing"
+        if public != expected:
+            return f"its custody key is not the one its chain of custody names for epoch {head.epoch}" \
+                if record.state != "incoming" else "its custody key is not the one it gave for the attempt"
+    if record.state in ("handed", "released"):
+        link = record.link
+        if link is None:
+            return f"a {record.state} record without the link it signed"
+        try:
+            custody.check_link(head, link, companion=record.companion, attempt=record.attempt, holder=record.peer,
+                               public_key=link.public_key, document_sha256=link.document_sha256)
+        except MeshError as exc:
+            return f"the link it signed does not extend its chain of custody: {exc}"
+    return ""
 
 
 def _activation(record: Record, link: Link, me: str) -> Record:

@@ -13,7 +13,8 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
   Requests raised while handling events are handled in the next update.
 * Every request gets a definite ``Outcome``: accepted, rejected with a reason, or conflict (lost
   to another request in the same update). A request a handler leaves unanswered is rejected, with
-  the handler's error as the reason if it raised. Each request name takes one ``Message`` Struct
+  the handler's error as the reason if it raised, unless the handler deferred it
+  (``IncomingRequest.defer``: it answers later, from the loop). Each request name takes one ``Message`` Struct
   (``Component.requests``); a payload that does not decode to it, ``{}`` or a map without its
   ``type`` included, is rejected (``Code.MALFORMED``) before the component sees it. A request the
   component does not have is rejected (``Code.UNKNOWN_REQUEST``) with the component's
@@ -73,7 +74,7 @@ MAX_TIMER_DELAY = 30 * 24 * 3600.0
 class IncomingRequest:
     """One request handed to a component; answer it with ``accept``, ``reject`` or ``conflict``."""
 
-    __slots__ = ("_answer", "component", "name", "outcome", "payload", "requester")
+    __slots__ = ("_answer", "component", "deferred", "name", "outcome", "payload", "requester")
 
     def __init__(
         self, component: str, name: str, payload: Any, requester: str, answer: Callable[[Outcome], None]
@@ -84,6 +85,7 @@ class IncomingRequest:
         self.requester = requester
         self._answer = answer
         self.outcome: Outcome | None = None
+        self.deferred = False
 
     @property
     def answered(self) -> bool:
@@ -97,6 +99,12 @@ class IncomingRequest:
             self._answer(outcome)
         except MeshError:  # the requester vanished, or we are closing: its outcome is its own to recover
             log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
+
+    def defer(self) -> None:
+        """The handler answers later, from the loop (it waits for something that must not block the
+        loop): the request is not refused as unanswered at the end of this update. The handler must
+        then answer it, within the requester's timeout."""
+        self.deferred = True
 
     def answer(self, outcome: Outcome) -> None:
         """Send a ready-made outcome (a decision taken elsewhere)."""
@@ -684,7 +692,7 @@ class Simulation:
                         request.reject(f"component {name!r} failed on {request.name!r}: {type(exc).__name__}: {exc}",
                                        Code.HANDLER_FAILED)
             for request in batch:
-                if not request.answered:
+                if not request.answered and not request.deferred:
                     request.reject(f"component {name!r} gave no answer to {request.name!r}", Code.UNANSWERED)
         dispatched = 0
         while events and dispatched < MAX_EVENTS_PER_UPDATE:

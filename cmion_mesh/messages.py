@@ -391,6 +391,37 @@ class MigrateStatus(Message, frozen=True, tag="migrate_status"):
     of: Literal["source", "target"] = "source"
 
 
+class MigrateChain(Message, frozen=True, tag="migrate_chain"):
+    """Asker -> claimant (``.../rq/migration/chain/<asker>`` on the claimant): back your custody token.
+    The claimant answers with the chain of custody it holds for ``companion`` and, when it holds
+    custody (active, prepared, handed), a signature by the key at the chain's head over
+    ``custody.ClaimProof(companion, epoch, claimant, asker, nonce)``: value ``{"state", "epoch",
+    "chain", "proof"}`` (chain and proof in base64; proof "" while ``incoming``). Refused when it
+    claims nothing of the companion. A token nobody backs so is ignored."""
+
+    companion: str
+    epoch: int
+    nonce: Annotated[bytes, msgspec.Meta(max_length=64)]
+
+
+class CustodyStandDown(Message, frozen=True, tag="custody_stand_down"):
+    """Operator -> a holder of a branch of a forked chain of custody (``.../rq/migration/stand_down``):
+    retire your copy, for the branch of ``keep`` (``chain``: its MessagePack custody links, which the
+    holder verifies and records). Answered once that is on disk."""
+
+    companion: str
+    keep: str
+    chain: bytes
+
+
+class CustodyResume(Message, frozen=True, tag="custody_resume"):
+    """Operator -> the holder kept (``.../rq/migration/resume``), once every other branch holder
+    (``retired``) stood down: forget the fork, run the companion again."""
+
+    companion: str
+    retired: list[str] = []
+
+
 # --- invitations -------------------------------------------------------------------------------------
 
 
@@ -415,7 +446,7 @@ AnyMessage = (
     | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
-    | MigrateHave | MigrateSections | RequestAnswered
+    | MigrateHave | MigrateSections | RequestAnswered | MigrateChain | CustodyStandDown | CustodyResume
 )
 
 

@@ -13,8 +13,12 @@ in ``custody``; the durable records in ``records``. This module moves messages a
   counts from the prepare's record, across restarts;
   while sending sections, ``_send`` has one short-lived thread write this side's copy of them, then
   the ``prepared`` record that names them, and two send chunks, all joined before it goes on;
-* the transport's worker keeps the set of live embodiments and custody claims (``_on_token``,
-  ``_on_custody``), under ``_watch_lock``.
+* the transport's worker keeps the set of live embodiments and the custody tokens seen
+  (``_on_token``, ``_on_custody``), under ``_watch_lock``; it only records a token and queues its
+  check;
+* one thread (``ClaimChecker``) checks custody claims: it asks each claimant for its chain of
+  custody and a signature by its head's key over a fresh nonce (``chain``), verifies them, keeps
+  the claims so backed (``claims``) and posts the verdict to the loop (``_check_conflict``).
 
 Before packing, the source raises ``MigrationStarting`` and gives every component one update to
 ``contribute`` its section (or ``wait`` and ``resolve`` later, within a deadline). Sections that
@@ -22,11 +26,24 @@ no component here understands are carried on unchanged. The target raises ``Migr
 after activation; each component takes its own section back with ``section(name)``.
 
 A holder says so in the mesh with a liveliness token ``@custody/<holder>/<companion>/<epoch>``.
-Targets refuse prepares from anyone but the live holder; and if two embodiments ever hold one
-companion (a fork across a partition, an old backup restored), both report it loudly
-(``CustodyConflict`` events, the log, the description) and the rule below decides which keeps
-running it: **the higher epoch; at equal epochs, the embodiment whose name sorts first**. The
-other freezes (its minds sleep) until the conflict is gone.
+A token is a hint to go and look, never evidence: a claim counts only once its claimant backs it
+(``chain``: its chain of custody, verified from the identity key trusted here, ending with it at
+the epoch claimed, and the asker's nonce signed by that link's key). A claim that cannot be backed
+is ignored, and logged naming the claimant. Backed claims decide two things (``handshake``):
+
+* a target refuses an offer that a backed claim shows stale (its chain extends the offer) or forked
+  (two links for one epoch signed by one key: the proof names who equivocated); while claims on
+  the companion are still being checked, the offer waits for them (``CLAIM_WAIT`` at most);
+* a holder stands down for good when a backed claim extends its chain (its own key signed the link
+  past its head: a rolled-back state folder), and on a proven fork it freezes: no branch wins by
+  itself, epochs and names count for nothing. The evidence is kept in the state folder (a restart
+  does not unfreeze it), the fork is reported (``CustodyFork`` event, the log, the description)
+  with the command that resolves it: ``cmion-mesh custody resolve COMPANION --keep EMBODIMENT``
+  makes every other branch holder stand down (``stand_down``: the kept chain recorded, on disk
+  before the answer), then tells the keeper to run it again (``resume``).
+
+A record whose state, epoch or holder its chain of custody does not back (``handshake.at_rest``)
+is reported damaged at start and never run.
 
 **Sections travel apart** (SchemaVersion 2, ``identity``): the source packs the identity into a
 manifest and section bytes off the loop; for a small identity it sends them all inside the
@@ -50,9 +67,13 @@ SIGKILL right after writing that record: the crash tests use it.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import functools
+import heapq
 import logging
 import os
+import secrets
 import signal
 import threading
 import time
@@ -67,13 +88,16 @@ import msgspec
 from cmion_mesh import custody, handshake, keys, signing
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
-from cmion_mesh.handshake import POLICY_SECTION, refuses
+from cmion_mesh.handshake import POLICY_SECTION, Claim, refuses
 from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer, send_request
 from cmion_mesh.messages import (
     Code,
+    CustodyResume,
+    CustodyStandDown,
     Migrate,
     MigrateAbort,
+    MigrateChain,
     MigrateCommit,
     MigrateHave,
     MigratePrepare,
@@ -85,6 +109,7 @@ from cmion_mesh.messages import (
 )
 from cmion_mesh.mind import Mind
 from cmion_mesh.records import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
+from cmion_mesh.signing import SignatureRefused
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import Closeable
 
@@ -119,6 +144,24 @@ MAX_UPLOADS = 8
 INCOMING_TIMEOUT_ENV = "CMION_MESH_INCOMING_TIMEOUT"
 #: Pins of the section store held by the uploads staged here (one owner per sender).
 _STAGING = "staging"
+#: Seconds a claimant has to back its custody token (``chain``).
+CHAIN_TIMEOUT = 2.0
+#: Longest wait of a prepare or a ``have`` for the claims on its companion to be checked.
+CLAIM_WAIT = 3.0
+#: Claims waiting to be checked (per claimant, in all) beyond which new ones are dropped, logged.
+CLAIMS_PER_CLAIMANT = 8
+MAX_CLAIMS = 256
+#: Requests waiting for claims to be checked, beyond which a new one is decided at once.
+MAX_WAITING = 32
+#: Tries to back a claim (the first pause between them, doubling): a refusal or a claim that does
+#: not verify is asked once more (the token may be on its way out), a claimant that does not
+#: answer a few times.
+CLAIM_TRIES = 4
+CLAIM_RETRY = 0.25
+#: Seconds between two log lines about claims of the same claimant ignored.
+QUIET = 60.0
+#: The command that resolves a fork, in logs and descriptions.
+RESOLVE = "cmion-mesh custody resolve {companion} --keep EMBODIMENT"
 
 
 class _Refused(MeshError):
@@ -180,6 +223,116 @@ class WaitToken:
     component: str
 
 
+ClaimKey = tuple[str, str, int]  # claimant, companion, epoch
+
+
+class ClaimChecker:
+    """One thread that checks custody claims, off the loop and off zenoh's callbacks.
+
+    ``submit`` queues a claim once while it is pending (bounded per claimant and in all);
+    ``check(key, tries)``, given, does the work and returns None when done or the seconds after
+    which to try again; ``done(key)`` is called once the claim is no longer pending. A context
+    manager; ``close`` is idempotent and joins the thread."""
+
+    def __init__(self, check: Callable[[ClaimKey, int], float | None], done: Callable[[ClaimKey], None]) -> None:
+        self._check = check
+        self._done = done
+        self._cond = threading.Condition()
+        self._queue: list[tuple[float, int, ClaimKey, int]] = []  # (due, order, key, tries): a heap
+        self._pending: set[ClaimKey] = set()
+        self._order = 0
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="migration-claims", daemon=True)
+
+    def start(self) -> ClaimChecker:
+        self._thread.start()
+        return self
+
+    def __enter__(self) -> ClaimChecker:
+        return self.start()
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def submit(self, key: ClaimKey) -> bool:
+        """Queue ``key`` (once while it is pending); False beyond the bounds: then it is not checked."""
+        with self._cond:
+            if self._closed or key in self._pending:
+                return True
+            if len(self._pending) >= MAX_CLAIMS or sum(k[0] == key[0] for k in self._pending) >= CLAIMS_PER_CLAIMANT:
+                return False
+            self._pending.add(key)
+            self._push(0.0, key, 0)
+            return True
+
+    def _push(self, due: float, key: ClaimKey, tries: int) -> None:
+        self._order += 1
+        heapq.heappush(self._queue, (due, self._order, key, tries))
+        self._cond.notify()
+
+    def pending(self, companion: str) -> bool:
+        with self._cond:
+            return any(k[1] == companion for k in self._pending)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(CHAIN_TIMEOUT + 5.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._closed and (not self._queue or self._queue[0][0] > time.monotonic()):
+                    self._cond.wait(self._queue[0][0] - time.monotonic() if self._queue else None)
+                if self._closed:
+                    return
+                _, _, key, tries = heapq.heappop(self._queue)
+            try:
+                again = self._check(key, tries)
+            except Exception:  # a bug in one check must not end the checking of all the others
+                log.exception("checking the custody claim of %s on %s at epoch %d failed", *key)
+                again = None
+            with self._cond:
+                if again is not None and not self._closed:
+                    self._push(time.monotonic() + again, key, tries + 1)
+                    continue
+                self._pending.discard(key)
+            self._done(key)
+
+
+@dataclass(eq=False)
+class _Waiting:
+    """A prepare or ``have`` waiting for the claims on its companion to be checked (loop)."""
+
+    request: IncomingRequest
+    message: MigratePrepare | MigrateHave
+    deadline: float
+
+
+class _Quiet:
+    """Says whether to log about ``key`` now: at most once per ``QUIET`` seconds each (any thread)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: dict[str, float] = {}
+        self._muted: dict[str, int] = {}
+
+    def allow(self, key: str) -> int | None:
+        """None to keep quiet, else how many lines about ``key`` were left out since the last."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._last.get(key)
+            if last is not None and now - last < QUIET:
+                self._muted[key] = self._muted.get(key, 0) + 1
+                return None
+            if len(self._last) > 1024:
+                self._last.clear()  # bounded: strangers are forgotten
+            self._last[key] = now
+            return self._muted.pop(key, 0)
+
+
 class TokenBucket:
     """A token bucket: ``take()`` is False once a sender has used its burst faster than the rate."""
 
@@ -203,9 +356,11 @@ class MigrationManager(Component):
     """The ``migration`` component: owns the records, runs both sides of the handshake."""
 
     requests = {"migrate": Migrate, "prepare": MigratePrepare, "commit": MigrateCommit, "abort": MigrateAbort,
-                "status": MigrateStatus, "policy": SetPolicy, "have": MigrateHave, "sections": MigrateSections}
+                "status": MigrateStatus, "policy": SetPolicy, "have": MigrateHave, "sections": MigrateSections,
+                "chain": MigrateChain, "stand_down": CustodyStandDown, "resume": CustodyResume}
     # The handshake travels on per-sender keys: in secure mode only S's certificate may send as S.
-    sender_requests = frozenset({"prepare", "commit", "abort", "status", "have", "sections"})
+    # ``stand_down`` and ``resume`` are not: only this embodiment's own identity and operators may send them.
+    sender_requests = frozenset({"prepare", "commit", "abort", "status", "have", "sections", "chain"})
     # Its constructor opens the state folder (creates it, sweeps what a crash left): never built
     # from a configuration, so that ``validate`` can build every component it names.
     built_by_embodiment = True
@@ -234,7 +389,12 @@ class MigrationManager(Component):
         self.request_timeout = request_timeout
         self.retry = retry
         self.identity: Identity | None = None  # the companion living here, when inhabited (loop)
-        self.contested_by: str | None = None  # the embodiment that keeps the companion by the conflict rule (loop)
+        #: The evidence of a fork of the inhabitant's chain of custody that freezes it here, until an
+        #: operator resolves it (loop; kept in the state folder too).
+        self.frozen: custody.Freeze | None = None
+        #: A backed claim extends the chain of the inhabitant, caught in its own handshake: it runs no
+        #: more, and stands down for good once the handshake ends here (loop).
+        self.superseded_by: Claim | None = None
         self._outgoing: _Outgoing | None = None  # loop
         self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
         self._buckets: dict[str, TokenBucket] = {}  # sender -> prepare budget (loop)
@@ -249,7 +409,13 @@ class MigrationManager(Component):
         self._threads: list[threading.Thread] = []
         self._watch_lock = threading.Lock()
         self._alive: set[str] = set()  # embodiments whose liveliness token is present (transport worker)
-        self._claims: dict[str, dict[str, int]] = {}  # companion -> {holder: epoch} (transport worker)
+        self._tokens: dict[str, set[tuple[str, int]]] = {}  # companion -> {(holder, epoch)}: hints (transport worker)
+        self._backed: dict[str, dict[tuple[str, int], Claim]] = {}  # companion -> claims backed (claim checker)
+        self._stood_down: set[ClaimKey] = set()  # claims of branch holders an operator retired: ignored
+        self._checker: ClaimChecker | None = None
+        self._waiting: list[_Waiting] = []  # offers waiting for claims to be checked (loop)
+        self._quiet = _Quiet()
+        self._chain_buckets: dict[str, TokenBucket] = {}  # asker -> chain requests budget (loop)
         self._watches: list[Closeable] = []
 
     # --- state seen from outside (any thread) --------------------------------------------------
@@ -259,7 +425,7 @@ class MigrationManager(Component):
         """The companion living here: active, or frozen in a handshake it may still abort. Read
         from the durable record, which the handshake thread moves past its commit point at once."""
         identity = self.identity
-        if identity is None or self.contested_by is not None:
+        if identity is None or self.frozen is not None or self.superseded_by is not None:
             return None
         record = self.records.get(identity.companion)
         return identity.companion if record is not None and record.state in ("active", "prepared") else None
@@ -280,14 +446,36 @@ class MigrationManager(Component):
         out = self._outgoing
         return out.target if out is not None else None
 
-    def holders(self, companion: str) -> dict[str, int]:
-        """The embodiments that say, in the mesh, that they hold ``companion`` (name -> epoch)."""
+    def claims(self, companion: str) -> list[Claim]:
+        """The other embodiments' claims on ``companion`` that their claimants backed (``chain``): a
+        bare custody token is never one."""
         with self._watch_lock:
-            return dict(self._claims.get(companion, {}))
+            backed = self._backed.get(companion, {})
+            return [claim for (holder, epoch), claim in sorted(backed.items())
+                    if (holder, companion, epoch) not in self._stood_down]
+
+    def custody_report(self) -> dict[str, Any]:
+        """What ``describe`` says of custody here: for the companion held here, its state, epoch,
+        whether a fork freezes it and the evidence (plain data)."""
+        report: dict[str, Any] = {}
+        for record in self.records.all():
+            if record.state not in HOSTING:
+                continue
+            entry: dict[str, Any] = {"state": record.state, "epoch": record.epoch, "frozen": False}
+            freeze, superseded = self.frozen, self.superseded_by
+            if freeze is not None and freeze.companion == record.companion:
+                entry.update(fork_report(freeze, self.sim.embodiment))
+            if superseded is not None:
+                entry["superseded_by"] = {"holder": superseded.holder, "epoch": superseded.epoch}
+            if record.companion in self.damaged:
+                entry["damaged"] = True
+            report[record.companion] = entry
+        return report
 
     # --- life cycle (loop) ----------------------------------------------------------------------
 
     def attach(self, sim: Simulation) -> None:
+        self._checker = ClaimChecker(self._check_claim, self._claim_checked).start()
         # Kept current by the transport's worker, so that choosing a target never blocks the loop.
         self._watches = [sim.transport.watch_liveliness(f"{keys.mesh_prefix(sim.mesh)}/{keys.ALIVE}/*", self._on_token),
                          sim.transport.watch_liveliness(keys.custody_pattern(sim.mesh), self._on_custody)]
@@ -301,6 +489,10 @@ class MigrationManager(Component):
                 continue
             if record.state in HOSTING and not record.chain:
                 record = self._adopt_legacy(record)
+            problem = self._unbacked(record)
+            if problem:
+                self._report_damaged(record.companion, problem)
+                continue
             if record.state == "prepared":
                 # Never handed: the target cannot have activated. Abort and resume here.
                 self.records.put(handshake.resume(record))
@@ -351,6 +543,11 @@ class MigrationManager(Component):
             watch.close()
         self._watches = []
         self._stop.set()
+        if self._checker is not None:
+            self._checker.close()
+        waiting, self._waiting = self._waiting, []
+        for wait in waiting:
+            wait.request.reject(f"embodiment {self.sim.embodiment!r} is shutting down", Code.SHUTTING_DOWN)
         for source in list(self._stagings):
             self._unstage(source)
         if self._upload_timer is not None:
@@ -397,6 +594,7 @@ class MigrationManager(Component):
                 self._alive.discard(name)
 
     def _on_custody(self, key: str, alive: bool) -> None:
+        """A custody token came or went: a hint, recorded; its claim is checked on the claim checker."""
         try:
             holder, companion, epoch_text = key.split("/")[-3:]
             epoch = int(epoch_text)
@@ -404,19 +602,89 @@ class MigrationManager(Component):
             log.warning("ignored custody token %s: not <holder>/<companion>/<epoch>", key)
             return
         with self._watch_lock:
-            claims = self._claims.setdefault(companion, {})
+            tokens = self._tokens.setdefault(companion, set())
             if alive:
-                claims[holder] = epoch
-            elif claims.get(holder) == epoch:
-                del claims[holder]
-        if holder != self.sim.embodiment:
-            self._post(self._check_conflict)
+                tokens.add((holder, epoch))
+            else:
+                tokens.discard((holder, epoch))
+                self._backed.get(companion, {}).pop((holder, epoch), None)  # the token went: its claim goes
+                self._stood_down.discard((holder, companion, epoch))
+                if not tokens:
+                    del self._tokens[companion]
+                    self._backed.pop(companion, None)
+        checker = self._checker
+        if alive and holder != self.sim.embodiment and checker is not None and not checker.submit((holder, companion, epoch)):
+            self._ignore(holder, companion, epoch, "too many claims are waiting to be checked")
 
     def _is_alive(self, name: str) -> bool:
         with self._watch_lock:
             return name in self._alive
 
-    # --- custody claims and conflicts (loop) --------------------------------------------------------
+    # --- claims checked (the claim checker's thread) ----------------------------------------------
+
+    def _trusted(self, companion: str) -> bytes | None:
+        """The identity key trusted here for ``companion``: admitted, or pinned (None: none yet)."""
+        trusted = self.admit.get(companion) if self.admit is not None else None
+        record = self.records.get(companion)
+        if trusted is None and record is not None and record.public_key:
+            trusted = signing.decode_public(record.public_key)
+        return trusted
+
+    def _token_present(self, holder: str, companion: str, epoch: int) -> bool:
+        with self._watch_lock:
+            return (holder, epoch) in self._tokens.get(companion, ())
+
+    def _check_claim(self, key: ClaimKey, tries: int) -> float | None:
+        """Ask the claimant to back its token, and keep the claim if it does; None when done, or the
+        seconds after which to try again."""
+        holder, companion, epoch = key
+        if not self._token_present(holder, companion, epoch) or self._stop.is_set():
+            return None  # gone meanwhile: nothing to check
+        me = self.sim.embodiment
+        nonce = secrets.token_bytes(16)
+        try:
+            reply = self._request(holder, "chain", MigrateChain(companion, epoch, nonce), timeout=CHAIN_TIMEOUT)
+        except OutcomeUnknown as exc:
+            return self._not_backed(key, tries, f"it does not answer ({exc})", CLAIM_TRIES)
+        if reply.status != "accepted":
+            return self._not_backed(key, tries, f"it does not back it: {reply.reason}")
+        value = reply.value if isinstance(reply.value, dict) else {}
+        if value.get("state") == "incoming" and value.get("epoch") == epoch:
+            return None  # receiving it: no custody yet, so neither a claim nor an objection to anyone
+        try:
+            chain = custody.decode_chain(base64.b64decode(str(value.get("chain", "")), validate=True))
+            proof = base64.b64decode(str(value.get("proof", "")), validate=True)
+            custody.verify_claim(chain, custody.ClaimProof(companion, epoch, holder, me, nonce), proof,
+                                 identity=self._trusted(companion))
+        except (SignatureRefused, binascii.Error, ValueError) as exc:
+            return self._not_backed(key, tries, str(exc))
+        with self._watch_lock:
+            if (holder, epoch) not in self._tokens.get(companion, ()):
+                return None
+            self._backed.setdefault(companion, {})[(holder, epoch)] = Claim(holder, chain)
+        self._post(self._check_conflict)
+        return None
+
+    def _not_backed(self, key: ClaimKey, tries: int, why: str, limit: int = 2) -> float | None:
+        """A claim not backed this time: asked again shortly (its token may be on its way out), and
+        ignored, and logged, if it still is not."""
+        if tries + 1 < limit and not self._stop.is_set():
+            return CLAIM_RETRY * (1 << tries)
+        if self._token_present(*key):
+            self._ignore(*key, why)
+        return None
+
+    def _ignore(self, holder: str, companion: str, epoch: int, why: str) -> None:
+        muted = self._quiet.allow(f"claim:{holder}")
+        if muted is not None:
+            more = f" ({muted} more of its claims ignored since the last report)" if muted else ""
+            log.warning("ignored the custody claim of %r on %r at epoch %d: %s. A custody token is a hint, not proof: "
+                        "only a claim backed by its chain of custody counts%s", holder, companion, epoch, why, more)
+
+    def _claim_checked(self, key: ClaimKey) -> None:
+        self._post(self._claims_settled, key[1])
+
+    # --- custody claims, forks and conflicts (loop) --------------------------------------------------
 
     def _claim(self, companion: str, epoch: int) -> None:
         self._withdraw_claim()
@@ -427,31 +695,234 @@ class MigrationManager(Component):
             self._token.close()
             self._token = None
 
+    def _on_chain(self, request: IncomingRequest, msg: MigrateChain) -> None:
+        """Back this embodiment's custody token: the chain held here and, when it holds custody, the
+        asker's nonce signed by the key at the chain's head."""
+        me = self.sim.embodiment
+        record = self.records.get(msg.companion)
+        if record is None or record.state not in HOSTING or msg.companion in self.damaged:
+            request.reject(f"{me!r} holds no custody of {msg.companion!r}", Code.NOT_FOUND)
+            return
+        if record.epoch != msg.epoch:
+            request.reject(f"{me!r} holds {msg.companion!r} at epoch {record.epoch}, not {msg.epoch}", Code.NOT_FOUND)
+            return
+        bucket = self._chain_buckets.setdefault(request.requester, TokenBucket())
+        if len(self._chain_buckets) > 1024:
+            self._chain_buckets = {request.requester: bucket}
+        if not bucket.take():
+            request.reject(f"busy: too many chain requests from {request.requester!r}; try again later", Code.BUSY)
+            return
+        proof = b""
+        private = self.records.key(msg.companion) if record.state != "incoming" else None
+        if private is not None:
+            proof = custody.sign_claim(private, custody.ClaimProof(msg.companion, record.epoch, me, request.requester,
+                                                                   msg.nonce))
+        request.accept({"state": record.state, "epoch": record.epoch, "proof": base64.b64encode(proof).decode(),
+                        "chain": base64.b64encode(custody.encode_chain(record.chain)).decode()})
+
     def _check_conflict(self) -> None:
+        """The inhabitant's verdict on the others' backed claims: stand down for good when one extends
+        its chain, freeze on a proven fork (no branch wins by itself)."""
         identity = self.identity
         if identity is None:
             return
-        me = self.sim.embodiment
         record = self.records.get(identity.companion)
-        claims = self.holders(identity.companion)
-        # Claims this embodiment's own chain explains (a former holder not yet withdrawn) or its own
-        # handshake makes (the target it is handing the companion to) are no conflict.
-        partner = record.peer if record is not None and record.state in ("prepared", "handed") else None
-        others = {h: claims[h] for h in custody.rivals(record.chain if record is not None else [], claims, me) if h != partner}
-        winner = min([(-e, h) for h, e in others.items()] + [(-identity.epoch, me)])[1]
-        keeper = None if winner == me else winner
-        if others:
-            log.error("custody conflict: %s is also held by %s; by the rule (higher epoch, then first name) %s keeps it",
-                      identity.companion, ", ".join(f"{h} at epoch {e}" for h, e in sorted(others.items())), winner)
-        if keeper == self.contested_by:
+        if record is None or record.state not in ("active", "prepared"):
             return
-        self.contested_by = keeper
-        self.raise_event("CustodyConflict", {"companion": identity.companion, "holders": {**others, me: identity.epoch},
-                                             "keeper": winner})
-        if keeper is not None:
-            self._minds_sleep()
-        else:
-            self._wake_minds()
+        verdict = handshake.judge(record, self.claims(identity.companion))
+        superseded = verdict.superseded_by
+        if superseded is None and self.superseded_by is not None \
+                and custody.compare(record.chain, self.superseded_by.chain)[0] == "behind":
+            superseded = self.superseded_by  # seen while in a handshake: the proof stands if its token went since
+        self.superseded_by = superseded
+        if superseded is not None and record.state == "active":
+            self._superseded(record, superseded)
+        elif verdict.forks:
+            self._freeze(record, verdict.forks)
+
+    def _superseded(self, record: Record, claim: Claim) -> None:
+        released = self.records.put(handshake.superseded(record, claim))
+        assert released.link is not None
+        self.identity = None
+        self.frozen = None
+        self.superseded_by = None
+        self._minds_sleep()
+        self._withdraw_claim()
+        log.error("custody of %s moved on without this copy: %r holds it at epoch %d, by a link that this embodiment's "
+                  "custody key of epoch %d signed to %r (a state folder rolled back?): this copy stands down for good",
+                  record.companion, claim.holder, claim.epoch, record.epoch, released.link.holder)
+        self.raise_event("CustodySuperseded", {"companion": record.companion, "holder": claim.holder, "epoch": claim.epoch,
+                                               "handed_to": released.link.holder, "handed_at": record.epoch + 1})
+
+    def _freeze(self, record: Record, forks: Sequence[tuple[Claim, custody.Fork]]) -> None:
+        me = self.sim.embodiment
+        held = self.frozen if self.frozen is not None and self.frozen.companion == record.companion else None
+        branches = dict(held.branches) if held is not None else {}
+        new = [(claim, fork) for claim, fork in forks if branches.get(claim.holder) != list(claim.chain)]
+        if not new:
+            return
+        branches[me] = list(record.chain)
+        for claim, _ in new:
+            branches[claim.holder] = list(claim.chain)
+        freeze = custody.Freeze(record.companion, branches, time.time())
+        self.records.put_freeze(freeze)  # on disk before anything acts on it: a restart stays frozen
+        self.frozen = freeze
+        self._minds_sleep()
+        for claim, fork in new:
+            log.error("CUSTODY FORK of %s: %s. This embodiment holds one branch (epoch %d), %r the other (epoch %d). No "
+                      "branch wins by itself: %s is frozen here until an operator resolves it (`cmion-mesh custody show %s`, "
+                      "then `%s`)%s", record.companion, fork.describe(), record.epoch, claim.holder, claim.epoch,
+                      record.companion, record.companion, RESOLVE.format(companion=record.companion),
+                      f"; revoke the equivocator: `cmion-mesh certs revoke PKI {fork.equivocator}`" if fork.equivocator else "")
+        self.raise_event("CustodyFork", {"companion": record.companion, "frozen": True, **fork_report(freeze, me)})
+
+    def _seen_fork(self, fork: custody.Fork, source: str) -> None:
+        """A target refused an offer because of a proven fork: logged (per equivocator, quietly) and raised."""
+        muted = self._quiet.allow(f"fork:{fork.companion}:{fork.equivocator}:{fork.epoch}")
+        if muted is not None:
+            log.error("CUSTODY FORK of %s: %s (the offer of %r refused here). Equivocation: revoke it "
+                      "(`cmion-mesh certs revoke PKI %s`)", fork.companion, fork.describe(), source, fork.equivocator)
+        self.raise_event("CustodyFork", {"companion": fork.companion, "frozen": False, "refused_from": source,
+                                         "forks": [fork_summary(fork)], "equivocators": [fork.equivocator]})
+
+    def _unbacked(self, record: Record) -> str:
+        """Why ``record``, as stored here, must not run ("" if it may); loads a fork's evidence that
+        still freezes it."""
+        key = self.records.key(record.companion) if record.state in HOSTING else None
+        problem = handshake.at_rest(record, me=self.sim.embodiment, key=key)
+        if problem:
+            return f"its migration record is not backed by its chain of custody: {problem} " \
+                   f"({self.records.dir / (record.companion + '.record.json')})"
+        if record.state in ("active", "prepared"):
+            try:
+                freeze = self.records.freeze(record.companion)
+            except ConfigError as exc:
+                return str(exc)
+            if freeze is not None and freeze.branches.get(self.sim.embodiment) == list(record.chain) \
+                    and freeze.forks(self.sim.embodiment):
+                self.frozen = freeze
+                log.error("custody of %s is frozen here by a fork of its chain (%s), until an operator resolves it: `%s`",
+                          record.companion, "; ".join(f.describe() for _, f in freeze.forks(self.sim.embodiment)),
+                          RESOLVE.format(companion=record.companion))
+            elif freeze is not None:
+                self.records.thaw(record.companion)  # evidence about a chain this record no longer holds
+        return ""
+
+    def _report_damaged(self, companion: str, error: str) -> None:
+        self.damaged[companion] = error
+        log.error("companion %s is damaged and will not run here: %s", companion, error)
+        self.raise_event("CompanionDamaged", {"companion": companion, "error": error})
+
+    # --- offers waiting for claims to be checked (loop) ----------------------------------------------
+
+    def _wait_for_claims(self, request: IncomingRequest, msg: MigratePrepare | MigrateHave) -> bool:
+        """Whether the offer waits (deferred) for the claims on its companion still being checked, so that
+        the true holder's token is never raced by a fork. Bounded: ``CLAIM_WAIT``, ``MAX_WAITING``."""
+        checker = self._checker
+        if checker is None or not checker.pending(msg.companion) or len(self._waiting) >= MAX_WAITING:
+            return False
+        request.defer()
+        self._waiting.append(_Waiting(request, msg, time.monotonic() + CLAIM_WAIT))
+        self.sim.call_later(CLAIM_WAIT, functools.partial(self._claims_settled, msg.companion))
+        return True
+
+    def _claims_settled(self, companion: str) -> None:
+        """Decide the offers that wait for claims on ``companion``: all once none is pending, else
+        those that waited ``CLAIM_WAIT`` (a claim still unchecked then counts as not backed)."""
+        checker = self._checker
+        pending = checker is not None and checker.pending(companion)
+        now = time.monotonic()
+        ready = [w for w in self._waiting if w.message.companion == companion and (not pending or w.deadline <= now)]
+        if not ready:
+            return
+        self._waiting = [w for w in self._waiting if w not in ready]
+        for wait in ready:
+            try:
+                match wait.message:
+                    case MigratePrepare() as prepare:
+                        self._on_prepare(wait.request, prepare, waited=True)
+                    case MigrateHave() as have:
+                        self._on_have(wait.request, have, waited=True)
+            except MeshError as exc:
+                wait.request.reject(str(exc))
+            if not wait.request.answered:
+                wait.request.reject(f"component {self.name!r} gave no answer", Code.UNANSWERED)
+
+    # --- an operator resolves a fork (loop) --------------------------------------------------------
+
+    def _on_stand_down(self, request: IncomingRequest, msg: CustodyStandDown) -> None:
+        """Retire this copy, for the branch of ``msg.keep``: only a copy whose chain forks from the kept
+        one, or that the kept one extends; answered once the retired record is on disk."""
+        me = self.sim.embodiment
+        record = self.records.get(msg.companion)
+        if record is None or record.state not in HOSTING:
+            request.accept({"state": record.state if record is not None else "none"})  # nothing here to retire
+            return
+        if record.state != "active":
+            request.reject(f"{me!r} is in a migration of {msg.companion!r} ({record.state}); try again when it ends", Code.BUSY)
+            return
+        if msg.keep == me:
+            request.reject(f"{me!r} is the embodiment to keep", Code.INVALID)
+            return
+        try:
+            kept = custody.decode_chain(msg.chain)
+            custody.verify_chain(kept, msg.companion, identity=self._trusted(msg.companion))
+        except SignatureRefused as exc:
+            request.reject(f"the chain of {msg.keep!r} does not verify here: {exc}", Code.INVALID)
+            return
+        if kept[-1].holder != msg.keep:
+            request.reject(f"the chain given ends with {kept[-1].holder!r}, not {msg.keep!r}", Code.INVALID)
+            return
+        relation, fork = custody.compare(record.chain, kept)
+        if relation not in ("fork", "behind"):
+            request.reject(f"keeping {msg.keep!r} would make two: the chain here ({me!r}, epoch {record.epoch}) is "
+                           f"{'the same as' if relation == 'same' else 'newer than' if relation == 'stale' else 'foreign to'} "
+                           f"the one kept", Code.CONFLICT)
+            return
+        retired = self.records.put(handshake.retired(record, kept))  # on disk before the answer
+        self.identity = None
+        self.frozen = None
+        self.superseded_by = None
+        self._minds_sleep()
+        self._withdraw_claim()
+        log.warning("custody of %s: this copy (epoch %d) stood down for the branch of %r (epoch %d), as an operator "
+                    "resolved the fork%s", msg.companion, record.epoch, msg.keep, retired.epoch,
+                    f" ({fork.describe()})" if fork is not None else "")
+        self.raise_event("CustodyStoodDown", {"companion": msg.companion, "keep": msg.keep, "epoch": record.epoch,
+                                              "kept_epoch": retired.epoch})
+        request.accept({"state": retired.state, "epoch": retired.epoch})
+
+    def _on_resume(self, request: IncomingRequest, msg: CustodyResume) -> None:
+        """The keeper of a resolved fork runs the companion again, once the others stood down."""
+        identity = self.identity
+        record = self.records.get(msg.companion)
+        if identity is None or identity.companion != msg.companion or record is None or record.state != "active":
+            request.reject(f"{self.sim.embodiment!r} does not hold {msg.companion!r}", Code.NOT_FOUND)
+            return
+        freeze = self.frozen
+        if freeze is None:
+            request.accept({"state": "running"})
+            return
+        with self._watch_lock:
+            for holder, epoch in self._tokens.get(msg.companion, ()):
+                if holder in msg.retired:
+                    self._stood_down.add((holder, msg.companion, epoch))
+        left = sorted(h for h in freeze.branches if h != self.sim.embodiment and h not in msg.retired)
+        if left:
+            request.reject(f"the branches of {', '.join(map(repr, left))} have not stood down: resuming would make two",
+                           Code.CONFLICT)
+            return
+        self.records.thaw(msg.companion)
+        self.frozen = None
+        log.warning("custody of %s: the fork is resolved (%s stood down); it runs here again", msg.companion,
+                    ", ".join(map(repr, msg.retired)) or "nobody else")
+        self.raise_event("CustodyResolved", {"companion": msg.companion, "retired": list(msg.retired)})
+        self._check_conflict()
+        if self.frozen is not None:
+            request.reject(f"another branch of {msg.companion!r} is claimed still: frozen again", Code.CONFLICT)
+            return
+        self._wake_minds()
+        request.accept({"state": "running"})
 
     # --- minds and sections (loop) --------------------------------------------------------------
 
@@ -478,9 +949,7 @@ class MigrationManager(Component):
             identity = self.records.identity(companion, self._memo) or Identity(companion, 1, {})
         except ConfigError as exc:  # its stored identity was altered at rest meanwhile: report, never run
             self.identity = None
-            self.damaged[companion] = str(exc)
-            log.error("companion %s is damaged and will not run here: %s", companion, exc)
-            self.raise_event("CompanionDamaged", {"companion": companion, "error": str(exc)})
+            self._report_damaged(companion, str(exc))
             self._minds_sleep()
             return
         record = self.records.get(companion)
@@ -497,7 +966,8 @@ class MigrationManager(Component):
                 mind.restore(state)
         self.raise_event(event, {"companion": identity.companion, "epoch": identity.epoch, "why": why,
                                  "sections": sorted(identity.sections)})
-        self._wake_minds()
+        if self.frozen is None and self.superseded_by is None:
+            self._wake_minds()
         self._check_conflict()
 
     # --- outgoing (source side) ---------------------------------------------------------------
@@ -525,8 +995,10 @@ class MigrationManager(Component):
             refuse(f"companion {request.companion!r} does not live on {self.sim.embodiment!r} "
                    f"(its inhabitant is {identity.companion!r})")
             return None
-        if self.contested_by is not None:
-            refuse(f"custody of {identity.companion!r} is contested: {self.contested_by!r} keeps it by the conflict rule")
+        if self.frozen is not None:
+            refuse(f"custody of {identity.companion!r} is frozen by a fork of its chain "
+                   f"({'; '.join(f.describe() for _, f in self.frozen.forks(self.sim.embodiment))}): "
+                   f"an operator resolves it with `{RESOLVE.format(companion=identity.companion)}`")
             return None
         if self._outgoing is not None:
             refuse(f"a migration of {identity.companion!r} to {self._outgoing.target!r} is already under way")
@@ -612,8 +1084,9 @@ class MigrationManager(Component):
         self._outgoing = None
         self.raise_event("MigrationFailed", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
                                              "reason": reason})
-        for mind in self._minds():
-            mind.wake()
+        if self.frozen is None and self.superseded_by is None:
+            for mind in self._minds():
+                mind.wake()
         if not out.future.done():
             out.future.set_result(Outcome("rejected", reason))
 
@@ -816,7 +1289,10 @@ class MigrationManager(Component):
     def _handed(self, out: _Outgoing) -> None:
         # The commit point: never run the companion here again. The custody claim stays until the
         # target has taken it, so no moment passes in which nobody in the mesh claims the companion.
+        # A fork found meanwhile goes with the branch: the target meets the other one itself.
         self.identity = None
+        self.frozen = None
+        self.superseded_by = None
 
     def _commit_until_acked(self, handed: Record) -> None:
         """Handshake thread: send the commit until the target answers; a refusal is settled by
@@ -931,6 +1407,12 @@ class MigrationManager(Component):
             case MigrateSections() as payload:
                 if _sent_by_source(request, payload.source, "sections"):
                     self._on_sections(request, payload)
+            case MigrateChain() as payload:
+                self._on_chain(request, payload)
+            case CustodyStandDown() as payload:
+                self._on_stand_down(request, payload)
+            case CustodyResume() as payload:
+                self._on_resume(request, payload)
             case SetPolicy() as payload:
                 self._on_policy(request, payload.accepts)
             case other:
@@ -1015,13 +1497,15 @@ class MigrationManager(Component):
         staging.received += size
         return ""
 
-    def _on_have(self, request: IncomingRequest, msg: MigrateHave) -> None:
+    def _on_have(self, request: IncomingRequest, msg: MigrateHave, waited: bool = False) -> None:
         """Target: which sections of the offered manifest are here already (each read and checked
         against its hash: a damaged one is missing, and fetched again)."""
         record = self.records.get(msg.companion)
         early = handshake.precheck(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit)
         if early is not None:
             request.answer(early.outcome)
+            return
+        if not waited and self._wait_for_claims(request, msg):
             return
         if self._staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
             request.reject(f"busy: too many prepares from {msg.source!r}; try again later", Code.BUSY)
@@ -1030,9 +1514,10 @@ class MigrationManager(Component):
             request.reject(f"busy: {len(self._stagings)} uploads to {self.sim.embodiment!r} are in progress, the most it "
                            f"takes at once; {msg.source!r} may try again later", Code.BUSY)
             return
-        holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
         decision = handshake.on_have(msg, record, me=self.sim.embodiment,
-                                     held=self.records.hosting(), admit=self.admit, live_claims=holders)
+                                     held=self.records.hosting(), admit=self.admit, claims=self.claims(msg.companion))
+        if decision.fork is not None:
+            self._seen_fork(decision.fork, msg.source)
         if decision.manifest is None:
             request.answer(decision.outcome)
             return
@@ -1138,7 +1623,7 @@ class MigrationManager(Component):
 
         return find
 
-    def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare) -> None:
+    def _on_prepare(self, request: IncomingRequest, msg: MigratePrepare, waited: bool = False) -> None:
         record = self.records.get(msg.companion)
         repeat = record is not None and record.state == "incoming" and record.attempt == msg.attempt
         # Only offers that would cost this embodiment custody checks, XML and disk take from the budget.
@@ -1146,13 +1631,17 @@ class MigrationManager(Component):
         if early is not None:
             request.answer(early.outcome)
             return
+        if not repeat and not waited and self._wait_for_claims(request, msg):
+            return
         if not repeat and self._staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
             request.reject(f"busy: too many prepares from {msg.source!r}; try again later")
             return
-        holders = {h: e for h, e in self.holders(msg.companion).items() if h != self.sim.embodiment}
         carried: dict[str, Bytes] = {}
         decision = handshake.on_prepare(msg, record, me=self.sim.embodiment, held=self.records.hosting(), admit=self.admit,
-                                        live_claims=holders, sections=self._sections_for(msg, carried), values=self._memo.values())
+                                        claims=self.claims(msg.companion), sections=self._sections_for(msg, carried),
+                                        values=self._memo.values())
+        if decision.fork is not None:
+            self._seen_fork(decision.fork, msg.source)
         if decision.record is None:
             if decision.outcome.code != Code.MISSING_SECTIONS:
                 self._unstage(msg.source, msg.attempt)
@@ -1187,6 +1676,8 @@ class MigrationManager(Component):
         active = self.records.put(active)
         crash_point("target:active")
         self._step(active)
+        self.frozen = None  # a frozen holder accepts no prepare: any evidence here was of a copy long gone
+        self.superseded_by = None
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
             identity = self.records.identity(active.companion, self._memo) or Identity(active.companion, active.epoch, {})
@@ -1255,6 +1746,32 @@ class MigrationManager(Component):
             self._withdraw_claim()
         self.raise_event("MigrationDropped", {"companion": dropped.companion, "attempt": dropped.attempt,
                                               "source": dropped.peer, "reason": reason})
+
+
+def fork_summary(fork: custody.Fork) -> dict[str, Any]:
+    """A proof of equivocation as plain data, for people and tools (its links are checked where it was found)."""
+
+    def link(item: custody.Link) -> dict[str, Any]:
+        return {"holder": item.holder, "epoch": item.epoch, "attempt": item.attempt,
+                "key": signing.encode_public(item.public_key)}
+
+    return {"epoch": fork.epoch, "equivocator": fork.equivocator, "description": fork.describe(),
+            "links": [link(fork.first), link(fork.second)], "after": link(fork.prefix[-1]) if fork.prefix else None}
+
+
+def fork_report(freeze: custody.Freeze, me: str) -> dict[str, Any]:
+    """What a frozen holder says of its fork (``describe``, ``CustodyFork``): the proofs, each branch's
+    holder with its epoch and the equivocators it includes (a branch an equivocator holds is kept
+    only when forced), and the command that resolves it."""
+    forks = freeze.forks(me)
+    equivocators = sorted({fork.equivocator for _, fork in forks if fork.equivocator})
+    branches: dict[str, Any] = {}
+    for holder, chain in sorted(freeze.branches.items()):
+        tainted = sorted({fork.equivocator for _, fork in forks if fork.equivocator in custody.after_fork(chain, fork)})
+        branches[holder] = {"epoch": chain[-1].epoch if chain else 0, "equivocators": tainted}
+    return {"frozen": True, "forks": [{"with": holder, **fork_summary(fork)} for holder, fork in forks],
+            "equivocators": equivocators, "branches": branches, "since": freeze.found,
+            "resolve": RESOLVE.format(companion=freeze.companion)}
 
 
 class _AnswerFuture(Future[Outcome]):

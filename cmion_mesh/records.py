@@ -5,7 +5,9 @@ state in the handshake, the attempt it is in, and the chain of custody it knows.
 document it holds is stored under its own hash (``<companion>.<sha256>.identity.xml``), so writing
 a new document never overwrites the one the current record names: a crash between the two writes
 leaves the old pair intact, and start-up removes whatever no record names. The custody private key
-of the epoch held here is ``<companion>.key``.
+of the epoch held here is ``<companion>.key``. A holder frozen by a proven fork of the chain of
+custody keeps the evidence in ``<companion>.fork.json`` (``custody.Freeze``) until an operator
+resolves it: a restart does not unfreeze it.
 
 A SchemaVersion 2 document is a manifest; the bytes of its sections are in ``sections/``, each
 named by its SHA-256 (``SectionStore``), written before any document names them. Sections no
@@ -584,6 +586,7 @@ class Records:
                 (self.dir / f"{companion}.{previous.document}.identity.xml").unlink(missing_ok=True)
             if record.state not in HOSTING:
                 (self.dir / f"{companion}.key").unlink(missing_ok=True)
+                (self.dir / f"{companion}.fork.json").unlink(missing_ok=True)  # no copy here to freeze any more
             if record.state == "dropped" and not record.chain:
                 self._forget_strangers()
         if self.sections.size > self.sections.max_cache:
@@ -685,6 +688,38 @@ class Records:
                 except ConfigError as exc:
                     found[record.companion] = str(exc)
         return found
+
+    def freeze(self, companion: str) -> custody.Freeze | None:
+        """The evidence of a fork that froze the companion here, if any; ``ConfigError`` naming the
+        file if it cannot be read (the companion is then reported damaged, never run)."""
+        path = self.dir / f"{keys.check_name(companion, 'companion')}.fork.json"
+        try:
+            with open(path, "rb") as f:
+                raw = f.read(MAX_RECORD * 8 + 1)
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise ConfigError(f"unreadable evidence of a custody fork: {exc.strerror or exc}", path=str(path)) from None
+        try:
+            freeze = msgspec.json.decode(raw, type=custody.Freeze)
+        except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
+            raise ConfigError(f"unreadable evidence of a custody fork: {exc}", path=str(path)) from None
+        if freeze.companion != companion:
+            raise ConfigError(f"the evidence is of companion {freeze.companion!r}, not {companion!r}", path=str(path))
+        return freeze
+
+    def put_freeze(self, freeze: custody.Freeze) -> None:
+        """Keep the evidence of a fork, durably, before the companion is frozen on it."""
+        with self._lock:
+            self._write(f"{keys.check_name(freeze.companion, 'companion')}.fork.json", msgspec.json.encode(freeze))
+
+    def thaw(self, companion: str) -> None:
+        """Forget the evidence of a fork (an operator resolved it), durably."""
+        with self._lock:
+            path = self.dir / f"{keys.check_name(companion, 'companion')}.fork.json"
+            if path.exists():
+                path.unlink()
+                _fsync_folder(self.dir)
 
     def put_key(self, companion: str, private: bytes) -> None:
         with self._lock:

@@ -29,8 +29,9 @@ and what a member sends to ``X`` (egress) is limited to what ``X`` may read. An 
 subscribe to the answers embodiments give (``cmion/<mesh>/*/@outcome/**``: ``cmion-mesh record``).
 
 Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<op>/<sender>``
-(``migration_key``). The access control lets ``S`` query only keys whose last chunk is ``S``, so
-a target knows the sender of a handshake message from the key it arrived on.
+(``migration_key``; ``chain``, asking a custody claimant to back its token, too). The access
+control lets ``S`` query only keys whose last chunk is ``S``, so a target knows the sender of a
+handshake message from the key it arrived on. A name revoked (``certs revoke``) is never admitted.
 
 Only ``zenoh_transport`` imports zenoh: this module produces settings (json5 key, value) that
 reach the session through ``TransportConfig.overrides``.
@@ -60,7 +61,7 @@ MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_qu
 #: The handshake operations whose keys carry their sender (``migrate`` is a command to a source,
 #: not a handshake message: it stays ``.../rq/migration/migrate``, reachable by the source's own
 #: identity and operators only).
-HANDSHAKE_OPS = ("prepare", "commit", "abort", "status")
+HANDSHAKE_OPS = ("prepare", "commit", "abort", "status", "chain")
 #: Listen endpoint when none is given: all interfaces, a port the system picks (zenoh's own
 #: default for a peer, over TLS instead of TCP).
 DEFAULT_LISTEN = "tls/[::]:0"
@@ -116,7 +117,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     custody, claim = f"{m}/{keys.CUSTODY}", f"{m}/{keys.CLAIM}"
     everything = [f"{m}/**", f"{alive}/**", f"{competency}/**", f"{custody}/**", f"{claim}/**", keys.outcome_pattern(mesh)]
     if mode == "client":
-        names = sorted(trust.names)
+        names = sorted(trust.admitted())
         for name in names:
             certs.check_cert_name(name)
         return {"enabled": True, "default_permission": "deny",
@@ -141,7 +142,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     operators: list[str] = []
-    for name, role in sorted(trust.names.items()):
+    for name, role in sorted(trust.admitted().items()):  # a name revoked is never admitted
         certs.check_cert_name(name)
         subject = f"{role}:{name}"
         subjects.append({"id": subject, "cert_common_names": [name], "link_protocols": ["tls"]})
@@ -348,4 +349,4 @@ def describe(*, certs_dir: str | os.PathLike[str] | None, identity: str | None =
     cred = load_credentials(certs_dir, who)
     trust = certs.Trust.load(certs_dir)
     return (f"secure mode: mutual TLS only, as {who!r} ({cred.role}) under authority {cred.authority!r}; "
-            f"access control admits {len(trust.names)} name(s): {', '.join(sorted(trust.names))}")
+            f"access control admits {len(trust.admitted())} name(s): {', '.join(sorted(trust.admitted()))}")

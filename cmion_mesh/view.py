@@ -82,7 +82,8 @@ ACTIONS_IN_FLIGHT = 8
 #: Events after which an embodiment's description is asked again (what ``describe`` says changed).
 REDESCRIBE = frozenset({
     "MigrationOccurred", "MigrationSucceeded", "MigrationFailed", "MigrationDropped", "CompanionResumed", "CompanionBorn",
-    "CompanionDamaged", "CustodyConflict", "CompetencyAppeared", "CompetencyVanished", "MindConnected", "MindDisconnected",
+    "CompanionDamaged", "CustodyFork", "CustodySuperseded", "CustodyStoodDown", "CustodyResolved", "CompetencyAppeared",
+    "CompetencyVanished", "MindConnected", "MindDisconnected",
 })
 #: A handshake's steps in the order they happen (``MigrationStep`` names the durable records).
 STEP_ORDER = {step: i for i, step in enumerate(("starting", "prepared", "incoming", "handed", "active", "released"))}

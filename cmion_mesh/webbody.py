@@ -76,7 +76,8 @@ MAX_COMMAND = 200
 MOOD_THRESHOLD = 0.15
 LAYOUTS = ("auto", "screen", "phone")
 MIGRATION_EVENTS = frozenset({"MigrationOccurred", "CompanionResumed", "MigrationStarting", "MigrationSucceeded",
-                              "MigrationFailed", "CompanionDamaged", "CustodyConflict"})
+                              "MigrationFailed", "CompanionDamaged", "CustodyFork", "CustodySuperseded",
+                              "CustodyStoodDown", "CustodyResolved"})
 
 
 def static_dir() -> Any:

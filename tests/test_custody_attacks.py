@@ -11,16 +11,19 @@ from __future__ import annotations
 import contextlib
 import json
 import queue
+import shutil
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 
-from cmion_mesh import certs, custody, keys, signing
+from cmion_mesh import certs, cli, custody, keys, signing
 from cmion_mesh.client import MeshClient
+from cmion_mesh.custody import Link
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.identity import Identity
 from cmion_mesh.ion import send_request
@@ -347,3 +350,240 @@ def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, No
         description = client.describe("a", timeout=2.0)
         assert description["inhabitant"] is None
         assert "altered at rest" in description["damaged"]["spirit"] and str(document) in description["damaged"]["spirit"]
+
+
+# --- claims must be backed, forks are proven and resolved, records agree with their chain ----------------
+
+
+def _lines(node: Node) -> list[str]:
+    return [line for daemon in node.history for line in daemon.lines]
+
+
+def _logged(node: Node, text: str) -> bool:
+    return any(text in line for line in _lines(node))
+
+
+def _stored(state: Path) -> Record:
+    """A daemon's record as its file says (read without opening the folder, which a live daemon owns)."""
+    return msgspec.json.decode((state / "spirit.record.json").read_bytes(), type=Record)
+
+
+def _custody(client: MeshClient, name: str) -> dict[str, Any]:
+    try:
+        report = client.describe(name, timeout=1.0).get("custody", {}).get("spirit", {})
+    except OutcomeUnknown:
+        return {"error": "no answer"}
+    return report if isinstance(report, dict) else {}
+
+
+def _cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    capsys.readouterr()
+    code = cli.main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _forge(kept: list[Link], key: bytes, up_to: int) -> tuple[list[Link], bytes]:
+    """What a former host (b) signs offline with the custody key of the epoch it held: links to itself,
+    each to a fresh key of its own, up to epoch ``up_to``."""
+    chain = list(kept)
+    while chain[-1].epoch < up_to:
+        fresh = signing.new_key()
+        epoch = chain[-1].epoch + 1
+        chain.append(custody.hand_on(key, "spirit", epoch, "b", signing.public_of(fresh), f"forged-{epoch}", custody.digest(b"")))
+        key = fresh
+    return chain, key
+
+
+def test_bare_tokens_and_an_inflated_fork_never_win(tmp_path: Path, mesh: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bare custody token freezes nobody and refuses no migration. A former host (b) that kept its
+    state folder forks the chain offline, 500 epochs ahead: refused where the true holder (a) is
+    seen, naming b; accepted across a partition (c sees nobody), then, when c and a meet, both
+    freeze, durably; `custody show` gives the evidence; `custody resolve` refuses while c cannot be
+    reached and refuses to keep the equivocator's branch; then c stands down and a runs it again."""
+    ports = {name: free_port() for name in ("a", "b", "c")}
+
+    def node(name: str, peers: list[str], companion: str | None = None) -> Node:
+        return Node(name, mesh, diary_embodiment_config(tmp_path / name, name), tmp_path / f"state-{name}", ports[name], peers,
+                    companion=companion)
+
+    a = node("a", [f"tcp/127.0.0.1:{ports['b']}"], "spirit")
+    b = node("b", [f"tcp/127.0.0.1:{ports['a']}"])
+    c = node("c", [a.endpoint])
+    loopback = ("tcp/127.0.0.1:0",)
+    try:
+        a.start()
+        b.start()
+        with ZenohTransport(TransportConfig(connect=(a.endpoint, b.endpoint), listen=loopback, multicast=False)) as t:
+            client = MeshClient(t, mesh)
+            wait_for(lambda: homes(client, ("a", "b")) == {"a": "spirit", "b": None}, 30, "spirit born on a")
+            # A bare token, at an epoch far above the holder's: a hint nobody can back.
+            bare = t.declare_token(keys.custody_key(mesh, "mallory", "spirit", 1002))
+            wait_for(lambda: _logged(a, "ignored the custody claim of 'mallory' on 'spirit' at epoch 1002"), 20,
+                     "a logs the claim it ignored, naming the claimant")
+            assert homes(client, ("a", "b")) == {"a": "spirit", "b": None}
+            assert client.request("a", "mind", "message", MindMessage({"note": "met Ada"})).status == "accepted", "a's mind is awake"
+            client.migrate("spirit", "b", timeout=30)  # the token refuses no migration
+            kept = _stored(b.state)  # b's state folder as b keeps it: its chain and custody key of epoch 2
+            kept_key = (b.state / "spirit.key").read_bytes()
+            client.migrate("spirit", "a", timeout=30)
+            bare.close()
+            assert kept.state == "active" and kept.epoch == 2
+            assert b.daemon is not None
+            b.daemon.kill()
+        forged, forged_key = _forge(kept.chain, kept_key, 503)
+        assert len(forged) - len(kept.chain) == 501
+        former = Holder("spirit", "b", 503, private=forged_key, chain=forged)
+        hacked = Identity("spirit", 503, {"mind": {"entries": ["HACKED"], "arrivals": []}}).pack()
+
+        def offer_to_c(attempt: str) -> tuple[Outcome, MigratePrepare, ZenohTransport]:
+            tc = ZenohTransport(TransportConfig(mode="client", connect=(c.endpoint,), multicast=False))
+            joined = keys.alive_key(mesh, "c")
+            wait_for(lambda: tc.alive(joined, timeout=1.0), 20, "joined c")
+            prepare = former.prepare("c", hacked, attempt)
+            return send_request(tc, keys.request_key(mesh, "c", "migration", "prepare", "b"), prepare, timeout=10), prepare, tc
+
+        # 1. c sees the true holder: the fork is refused, and c names the equivocator.
+        c.start()
+        with ZenohTransport(TransportConfig(mode="client", connect=(c.endpoint,), multicast=False)) as watch:
+            wait_for(lambda: watch.alive(keys.custody_key(mesh, "a", "spirit", 3), timeout=1.0), 20, "c sees a's token")
+        refused, _, tc = offer_to_c("forged-1")
+        tc.close()
+        assert refused.status == "rejected", refused
+        assert "forks from the chain offered by 'b'" in refused.reason and "'b' signed two links for epoch 3" in refused.reason
+        assert _logged(c, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3")
+        assert not (c.state / "spirit.record.json").exists()
+        # 2. c cut off (a port nobody knows, no peers): the fork is accepted, and committed.
+        assert c.daemon is not None
+        c.daemon.stop()
+        c.port, c.peers = free_port(), []
+        c.start()
+        accepted, prepare, tc = offer_to_c("forged-2")
+        with tc:
+            assert accepted.status == "accepted", accepted
+            commit = former.commit(prepare, accepted)
+            assert send_request(tc, keys.request_key(mesh, "c", "migration", "commit", "b"), commit, timeout=10).status == "accepted"
+            wait_for(lambda: _stored(c.state).state == "active", 10, "c runs the forged branch")
+        assert _stored(c.state).epoch == 504
+        # 3. They meet: both freeze, each with the evidence on its disk.
+        c.daemon.stop()
+        c.peers = [a.endpoint]
+        c.start()
+        both = (a.endpoint, c.endpoint)
+        mesh_args = ("--mesh", mesh, "--no-multicast", "--connect", a.endpoint, "--connect", c.endpoint)
+        with ZenohTransport(TransportConfig(mode="client", connect=both, multicast=False)) as t:
+            client = MeshClient(t, mesh)
+            wait_for(lambda: _custody(client, "a").get("frozen") and _custody(client, "c").get("frozen"), 30, "both frozen")
+            assert homes(client, ("a", "c")) == {"a": None, "c": None}
+            report = _custody(client, "a")
+            assert report["equivocators"] == ["b"] and report["branches"]["c"]["equivocators"] == ["b"]
+            assert report["branches"]["a"] == {"epoch": 3, "equivocators": []} and report["branches"]["c"]["epoch"] == 504
+            assert (tmp_path / "state-a" / "spirit.fork.json").exists() and (c.state / "spirit.fork.json").exists()
+            assert _logged(a, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3")
+            assert client.request("a", "mind", "message", MindMessage({"note": "x"})).status == "rejected", "a's mind is asleep"
+            frozen = client.request("a", "migration", "migrate", Migrate("spirit", "c"))
+            assert frozen.status == "rejected" and "frozen by a fork" in frozen.reason
+            code, out, _ = _cli(capsys, "custody", "show", "spirit", *mesh_args)
+            assert code == 0
+            assert "fork at epoch 3: 'b' signed two links for epoch 3 of 'spirit'" in out
+            assert "certs revoke" in out and "cmion-mesh custody resolve spirit --keep EMBODIMENT (e.g. a)" in out
+            # 4. c cannot be reached: keeping a would make two.
+            c.daemon.kill()
+            code, _, err = _cli(capsys, "custody", "resolve", "spirit", "--keep", "a", "--mesh", mesh, "--no-multicast",
+                                "--connect", a.endpoint)
+            assert code == 1 and "keeping 'a' would make two: 'c' (epoch 504)" in err, err
+            assert _custody(client, "a").get("frozen"), "a restart of nothing: a is still frozen"
+        # 5. c back (frozen from its disk); the equivocator's branch is not kept; a's is.
+        c.start()
+        with ZenohTransport(TransportConfig(mode="client", connect=both, multicast=False)) as t:
+            client = MeshClient(t, mesh)
+            wait_for(lambda: _custody(client, "c").get("frozen"), 30, "c frozen again after its restart")
+            code, _, err = _cli(capsys, "custody", "resolve", "spirit", "--keep", "c", *mesh_args)
+            assert code == 1 and "'b' (who equivocated)" in err and "--force" in err, err
+            code, out, err = _cli(capsys, "custody", "resolve", "spirit", "--keep", "a", *mesh_args)
+            assert code == 0, err
+            assert "c stood down" in out
+            wait_for(lambda: homes(client, ("a", "c")) == {"a": "spirit", "c": None}, 20, "exactly one runs it: a")
+            assert memory(client, "a") == ["met Ada"]
+            retired = _stored(c.state)
+            assert retired.state == "dropped" and retired.chain[-1].holder == "a" and retired.epoch == 3
+            assert not (tmp_path / "state-a" / "spirit.fork.json").exists() and not (c.state / "spirit.fork.json").exists()
+    finally:
+        for each in (a, b, c):
+            each.stop()
+
+
+def test_a_bare_custody_token_of_a_trusted_member_is_ignored_in_secure_mode(pki: Pki, tmp_path: Path, mesh: str) -> None:
+    ports = {n: free_port() for n in ("robot", "screen")}
+    daemons = []
+    try:
+        for name in ports:
+            daemons.append(_secure_daemon(pki, tmp_path, mesh, name, ports[name], [p for n, p in ports.items() if n != name],
+                                          *(["--companion", "spirit"] if name == "robot" else [])))
+        endpoints = [f"tls/127.0.0.1:{p}" for p in ports.values()]
+        names = ("robot", "screen")
+        with ZenohTransport(secure_config(pki, "admin", mesh, *endpoints)) as admin_t, \
+                ZenohTransport(secure_config(pki, "phone", mesh, *endpoints)) as phone_t:
+            admin = MeshClient(admin_t, mesh)
+            wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None}, 30, "two secure daemons")
+            # phone, a trusted member, under its own certificate (what the access control allows it)
+            token = phone_t.declare_token(keys.custody_key(mesh, "phone", "spirit", 1002))
+            try:
+                wait_for(lambda: any("ignored the custody claim of 'phone' on 'spirit' at epoch 1002" in line
+                                     for line in daemons[0].lines), 20, "robot logs the claim it ignored")
+                assert homes(admin, names) == {"robot": "spirit", "screen": None}
+                assert admin.request("robot", "mind", "message", MindMessage({"note": "met Ada"})).status == "accepted"
+                assert admin.migrate("spirit", "screen", timeout=30)["target"] == "screen"
+            finally:
+                token.close()
+            wait_for(lambda: homes(admin, names) == {"robot": None, "screen": "spirit"}, 20, "spirit on screen")
+            assert memory(admin, "screen") == ["met Ada"]
+    finally:
+        for daemon in daemons:
+            daemon.kill()
+
+
+def test_a_record_its_chain_does_not_back_never_runs(trio: tuple[Node, Node, Node], mesh: str, tmp_path: Path) -> None:
+    """A former host rolled back to a backup with its epoch raised is damaged (and the true holder keeps
+    running); rolled back as it was, it stands down for good (its key signed the link the holder has);
+    the holder's own record with its epoch raised is damaged, never run."""
+    a, b, _ = trio
+    with pair(trio, mesh) as (_, client):
+        client.request("a", "mind", "message", MindMessage({"note": "met Ada"}))
+        backup = tmp_path / "backup-a"
+        shutil.copytree(a.state, backup, ignore=shutil.ignore_patterns("daemon.lock"))
+        client.migrate("spirit", "b", timeout=30)
+
+        def restore(epoch_raise: int) -> None:
+            assert a.daemon is not None
+            a.daemon.stop()
+            shutil.rmtree(a.state)
+            shutil.copytree(backup, a.state)
+            _raise_epoch(a.state, epoch_raise)
+            a.start()
+
+        restore(4)
+        wait_for(lambda: "spirit" in client.describe("a", timeout=1.0).get("damaged", {}), 30, "a reports spirit damaged")
+        damaged = client.describe("a", timeout=2.0)["damaged"]["spirit"]
+        assert "record says epoch 5, its chain of custody ends at epoch 1" in damaged and "spirit.record.json" in damaged
+        assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
+        assert client.request("b", "mind", "message", MindMessage({"note": "on b"})).status == "accepted", "b keeps running"
+        restore(0)
+        wait_for(lambda: _stored(a.state).state == "released", 30, "a stands down for good")
+        assert _logged(a, "custody of spirit moved on without this copy: 'b' holds it at epoch 2")
+        assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
+        assert memory(client, "b") == ["met Ada", "on b"]
+        assert b.daemon is not None
+        b.daemon.stop()
+        _raise_epoch(b.state, 1)
+        b.start()
+        wait_for(lambda: "spirit" in client.describe("b", timeout=1.0).get("damaged", {}), 30, "b reports spirit damaged")
+        assert "record says epoch 3, its chain of custody ends at epoch 2" in client.describe("b", timeout=2.0)["damaged"]["spirit"]
+        assert homes(client, ("a", "b")) == {"a": None, "b": None}
+
+
+def _raise_epoch(state: Path, by: int) -> None:
+    path = state / "spirit.record.json"
+    record = json.loads(path.read_bytes())
+    record["epoch"] += by
+    path.write_text(json.dumps(record))

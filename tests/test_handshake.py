@@ -27,9 +27,9 @@ def document(companion: str = COMPANION, epoch: int = 1, **sections: Any) -> byt
 
 
 def at_target(msg: MigratePrepare, record: Record | None = None, *, me: str = "screen", held: Record | None = None,
-              admit: dict[str, bytes | None] | None = None, live_claims: dict[str, int] | None = None,
+              admit: dict[str, bytes | None] | None = None, claims: list[handshake.Claim] | None = None,
               **kwargs: Any) -> handshake.Decision:
-    return handshake.on_prepare(msg, record, me=me, held=held, admit=admit, live_claims=live_claims or {}, **kwargs)
+    return handshake.on_prepare(msg, record, me=me, held=held, admit=admit, claims=claims or [], **kwargs)
 
 
 def written(decision: handshake.Decision) -> Record:
@@ -142,17 +142,42 @@ def test_a_prepare_is_refused_without_a_trace_when_custody_does_not_hold(robot: 
     assert at_target(prepare, admit={COMPANION: robot.identity_key}).outcome.status == "accepted"
 
 
+def fork_of(robot: Holder, doc: bytes, holder: str) -> Holder:
+    """``holder`` at epoch 2 on a link robot's key signed: two such holders are a proven equivocation."""
+    key = signing.new_key()
+    link = custody.hand_on(robot.private, COMPANION, 2, holder, signing.public_of(key), f"to-{holder}", custody.digest(doc))
+    return Holder(COMPANION, holder, 2, private=key, chain=[*robot.chain, link])
+
+
 def test_a_prepare_whose_chain_forks_from_the_one_known_here_is_refused(robot: Holder, doc: bytes) -> None:
-    known = Holder(COMPANION, "robot")  # another birth of a companion of the same name
-    record = Record(COMPANION, "dropped", 0, "a0", "robot", chain=known.chain)
-    assert "forks at epoch 1" in refused_without_a_trace(at_target(robot.prepare("screen", doc, "a1"), record))
+    phone, tablet = fork_of(robot, doc, "phone"), fork_of(robot, doc, "tablet")
+    known = Record(COMPANION, "dropped", 2, "a0", "phone", chain=phone.chain)
+    decision = at_target(tablet.prepare("screen", document(epoch=2), "a1"), known)
+    assert "forks from the one known here" in refused_without_a_trace(decision)
+    assert decision.fork is not None and decision.fork.epoch == 2
 
 
-def test_live_claims_in_the_mesh_decide_who_may_offer(robot: Holder, doc: bytes) -> None:
+def test_a_stranger_of_the_same_name_known_only_from_a_dropped_attempt_pins_nothing(robot: Holder, doc: bytes) -> None:
+    stranger = Holder(COMPANION, "robot")  # another birth: another identity key, never committed here
+    record = Record(COMPANION, "dropped", 0, "a0", "robot", chain=stranger.chain)
+    assert at_target(robot.prepare("screen", doc, "a1"), record).outcome.status == "accepted"
+
+
+def test_backed_claims_in_the_mesh_decide_who_may_offer(robot: Holder, doc: bytes) -> None:
     prepare = robot.prepare("screen", doc, "a1")
-    assert at_target(prepare, live_claims={"robot": 1}).outcome.status == "accepted", "the source's own claim"
-    assert "'phone' holds 'spirit' now" in refused_without_a_trace(at_target(prepare, live_claims={"phone": 1}))
-    assert "says in the mesh it holds 'spirit' at epoch 3" in refused_without_a_trace(at_target(prepare, live_claims={"robot": 3}))
+    assert at_target(prepare, claims=[handshake.Claim("robot", robot.chain)]).outcome.status == "accepted", \
+        "the source's own claim"
+    # robot handed the companion to phone: a claim whose chain extends the offer
+    handed = [*robot.chain, custody.hand_on(robot.private, COMPANION, 2, "phone", signing.public_of(signing.new_key()), "a0",
+                                            custody.digest(doc))]
+    assert "'phone' holds 'spirit' at epoch 2, newer than the offer's epoch 1" in refused_without_a_trace(
+        at_target(prepare, claims=[handshake.Claim("phone", handed)]))
+    # a branch that forks from the offer's: robot's key signed two links for epoch 2
+    phone, tablet = fork_of(robot, doc, "phone"), fork_of(robot, doc, "tablet")
+    decision = at_target(tablet.prepare("screen", document(epoch=2), "a2"), claims=[handshake.Claim("phone", phone.chain)])
+    assert "(equivocation)" in refused_without_a_trace(decision)
+    assert decision.fork is not None and decision.fork.equivocator == "robot"
+    assert at_target(prepare, claims=[]).outcome.status == "accepted", "a bare token is no claim at all"
 
 
 def test_a_prepare_whose_document_is_not_the_offers_is_refused(robot: Holder) -> None:
@@ -189,13 +214,15 @@ def test_a_version_2_prepare_is_refused_missing_sections_until_they_are_at_hand(
 def test_have_checks_the_offer_as_a_prepare_does_and_takes_only_a_manifest(robot: Holder, doc: bytes) -> None:
     packed = Identity(COMPANION, 1, {"memory": {"met": ["Ada"]}}).pack_sections()
     have = handshake.have(robot.prepare("screen", packed.manifest, "a1"))
-    decision = handshake.on_have(have, None, me="screen", held=None, admit=None, live_claims={})
+    decision = handshake.on_have(have, None, me="screen", held=None, admit=None, claims=[])
     assert decision.outcome.status == "accepted" and decision.record is None
     assert decision.manifest is not None and decision.manifest.refs == packed.refs
     version_1 = handshake.have(robot.prepare("screen", doc, "a2"))
     assert "takes a SchemaVersion 2 manifest" in reason(handshake.on_have(version_1, None, me="screen", held=None, admit=None,
-                                                                          live_claims={}))
-    assert "'phone' holds" in reason(handshake.on_have(have, None, me="screen", held=None, admit=None, live_claims={"phone": 1}))
+                                                                          claims=[]))
+    phone = fork_of(robot, doc, "phone")  # robot handed it to phone
+    claims = [handshake.Claim("phone", phone.chain)]
+    assert "'phone' holds" in reason(handshake.on_have(have, None, me="screen", held=None, admit=None, claims=claims))
 
 
 # --- on_commit: the target becomes the home ----------------------------------------------------

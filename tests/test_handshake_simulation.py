@@ -1,15 +1,17 @@
-"""The handshake's real decisions through 10,000 random schedules of faults, replays, crashes,
-targets giving up incoming attempts at their bound, and a hostile former host (``bench/simulation.py``);
-a million run with ``python -m bench.simulation``."""
+"""The handshake's real decisions through 10,000 random schedules of faults, replays, crashes, splits
+of the mesh, restored backups, targets giving up incoming attempts at their bound, and a hostile former
+host that declares bare tokens and forges, claims and offers forks (``bench/simulation.py``); a million
+run with ``python -m bench.simulation``."""
 
 from __future__ import annotations
 
 import pytest
 
 from bench import simulation
-from bench.simulation import InvariantBroken, World
-from cmion_mesh import handshake
-from cmion_mesh.messages import MigrateStatus
+from bench.simulation import HOSTILE, InvariantBroken, Message, World
+from cmion_mesh import custody, handshake, signing
+from cmion_mesh.identity import Identity
+from cmion_mesh.messages import MigrateCommit, MigrateStatus
 from cmion_mesh.records import Record
 
 SCHEDULES = 10_000
@@ -26,7 +28,7 @@ def test_a_broken_rule_is_caught_with_a_replayable_seed(monkeypatch: pytest.Monk
     real = simulation.handshake.on_prepare
 
     def careless(msg, record, **kwargs):  # type: ignore[no-untyped-def]
-        return real(msg, None, **{**kwargs, "held": None, "live_claims": {}})
+        return real(msg, None, **{**kwargs, "held": None, "claims": []})
 
     monkeypatch.setattr(simulation.handshake, "on_prepare", careless)
     with pytest.raises(InvariantBroken, match=r"seed \d+: .*\nreplay: python -m bench.simulation --seed \d+ --trace"):
@@ -70,7 +72,7 @@ def test_an_incoming_attempt_past_its_bound_is_dropped_and_its_source_resumes() 
     world.crash(b)  # a restart keeps the deadline: the timer is set again from the record
     assert record(b).state == "incoming"
     timer = next(op for op in b.ops.values() if op.kind == "expire")
-    world._answer(b, timer, None)
+    world.answer(b, timer, None)
     assert record(b).state == "dropped" and world.expired == 1
     status = handshake.on_status(MigrateStatus("spirit", record(b).attempt, record(b).epoch, "target"), record(b), requester="a")
     assert status.outcome.value == {"state": "dropped"}
@@ -89,3 +91,53 @@ def test_targets_give_up_incoming_attempts_across_the_schedules() -> None:
     """The timer fires at random points of the schedules (``time_out``), and the invariants hold."""
     expired = sum(simulation.run_schedule(seed).expired for seed in range(300))
     assert expired > 50, expired
+
+
+def test_a_bare_token_freezes_nobody_and_refuses_no_migration() -> None:
+    world = World(0, steps=0)
+    a, b = world.nodes["a"], world.nodes["b"]
+    assert a.record is not None and a.key is not None
+    world.declare(1002, None, None)  # bare
+    world.declare(1003, list(a.record.chain), a.key)  # a chain that ends at epoch 1: it backs no claim at 1003
+    world.settle()
+    assert a.running and a.frozen is None
+    world.start(a, "b")
+    world.deliver_all(1000)
+    assert b.running and b.record is not None and b.record.epoch == 2 and a.frozen is None and b.frozen is None
+
+
+def test_an_inflated_fork_across_a_split_freezes_both_and_the_operator_keeps_the_true_one() -> None:
+    world = World(0, steps=0)
+    a, b, c = (world.nodes[n] for n in "abc")
+    world.start(a, HOSTILE)
+    world.deliver_all(1000)
+    world.start(c, "a")
+    world.deliver_all(1000)
+    assert a.record is not None and a.record.epoch == 3 and a.running
+    chain, key = next((chain, key) for chain, key in c.kept if chain[-1].epoch == 2)
+    for _ in range(501):  # offline, to itself, fresh keys: up to epoch 503
+        own = signing.new_key()
+        link = custody.hand_on(key, "spirit", chain[-1].epoch + 1, HOSTILE, signing.public_of(own), "forged", custody.digest(b""))
+        world.forged.add(link.signature)
+        chain, key = [*chain, link], own
+    world.sides = {"a": 0, "b": 1, "c": 1}  # b cannot see a
+    document = Identity("spirit", 503, {"mind": {"memory": ["HACKED"]}}).pack()
+    _, prepare = handshake.offer(Record("spirit", "active", 503, chain=chain), attempt="forged", me=HOSTILE, target="b",
+                                 document=document, private=key)
+    answer = world.handle(b, Message(0, HOSTILE, "b", "prepare", prepare))
+    assert answer.status == "accepted", answer
+    link = custody.hand_on(key, "spirit", 504, "b", signing.decode_public(answer.value["custody_key"]), "forged",
+                           custody.digest(document))
+    world.forged.add(link.signature)
+    assert world.handle(b, Message(0, HOSTILE, "b", "commit", MigrateCommit("spirit", 503, "forged", HOSTILE, "b",
+                                                                            custody.encode_link(link)))).status == "accepted"
+    world.settle()
+    world.check()
+    assert a.running and b.running, "across the split, each runs its branch"
+    world.sides = None  # they meet: no branch wins by itself, 500 epochs ahead or not
+    world.settle()
+    world.check()
+    assert a.frozen is not None and b.frozen is not None and not a.running and not b.running
+    assert a.frozen.equivocator == b.frozen.equivocator == HOSTILE and a.frozen.epoch == 3
+    world.heal()  # the operator keeps a's branch; b stands down first
+    assert a.running and b.record is not None and b.record.state == "dropped" and b.record.chain == a.record.chain
