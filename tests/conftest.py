@@ -147,6 +147,7 @@ TIERS: dict[str, str] = {
     "test_speech": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
+    "test_class_aliases": "unit",
     "test_custody": "unit",
     "test_target_bounds": "mesh",
     "test_outbox": "unit",
