@@ -15,6 +15,22 @@ from cmion_mesh.errors import ConfigError, MeshError
 
 T = TypeVar("T")
 
+# Modules moved when the package was arranged in folders (issue 25): old name -> new name.
+# Configuration files written before name classes by the old module (ClassName="<old>:<Class>"),
+# and users keep them: import_class reads an old module name as its new one. Kept in step with
+# the moves; an old name is never given to another module.
+MOVED_MODULES: dict[str, str] = {}
+
+
+def current_name(spec: str) -> str:
+    """``spec`` (``package.module:Class`` or ``package.module.Class``) as named today: an old module
+    name (``MOVED_MODULES``) becomes its new one; anything else is returned as it is."""
+    module_name, sep, attr = spec.partition(":")
+    if not sep:
+        module_name, sep, attr = spec.rpartition(".")
+    new = MOVED_MODULES.get(module_name)
+    return spec if new is None else f"{new}{sep}{attr}"
+
 
 def import_class(spec: str, base: type[T] | None = None, *, path: str | None = None, line: int | None = None) -> type[T]:
     """Import ``package.module:Class`` (or ``package.module.Class``), a subclass of ``base`` if given;
@@ -24,6 +40,7 @@ def import_class(spec: str, base: type[T] | None = None, *, path: str | None = N
         module_name, _, attr = spec.rpartition(".")
     if not module_name or not attr:
         raise ConfigError(f"class name {spec!r} is not of the form package.module:Class", path=path, line=line)
+    module_name = MOVED_MODULES.get(module_name, module_name)  # a file written before a move
     try:
         module = importlib.import_module(module_name)
     except Exception as exc:  # ImportError; TypeError for a relative name; whatever the module raised

@@ -44,6 +44,7 @@ from pathlib import Path
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.architecture import Architecture
+from cmion_mesh.classes import current_name
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport import TransportConfig
@@ -196,7 +197,7 @@ def _invalid(value: str, what: str) -> str:
 
 
 def is_migration_class(class_name: str) -> bool:
-    return class_name.strip() in MIGRATION_CLASSES
+    return current_name(class_name.strip()) in MIGRATION_CLASSES
 
 
 def resolve_table(library: str | os.PathLike[str], parameter: str, class_name: str = "") -> Path:
