@@ -46,7 +46,7 @@ from cmion_mesh.ion import send_request
 from cmion_mesh.messages import Act, ActionReport, Event, MindMessage
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 EMBODIMENT = "bench-act"
 COMPANION = "bench"

@@ -59,14 +59,14 @@ from bench.harness import (
 )
 from bench.registry import Options, Row
 from bench.stats import summarize
-from cmion_mesh import zenoh_transport
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.ion import IncomingRequest, Simulation
 from cmion_mesh.messages import Event, SetProperty
 from cmion_mesh.storage import Store
-from cmion_mesh.transport import Sample
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport import zenoh as zenoh_transport
+from cmion_mesh.transport.base import Sample
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 ns = time.perf_counter_ns
 

@@ -32,7 +32,7 @@ from bench.harness import loopback_config, loopback_endpoint
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 
 @dataclass

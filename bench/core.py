@@ -54,8 +54,8 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event, SetProperty, encode
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport, build_config
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport, build_config
 
 PAYLOAD_BYTES = 64
 SEQ_DIGITS = 16

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from bench.harness import REPO_ROOT, loopback_endpoint
 from cmion_mesh.procs import Daemon, cli_argv
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 EMBODIMENT = Path(__file__).resolve().parent / "embodiment"
 RULES = EMBODIMENT / "rules.xml"

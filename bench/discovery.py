@@ -39,7 +39,7 @@ from bench.stats import summarize
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.zenoh_transport import ZenohTransport, settings
+from cmion_mesh.transport.zenoh import ZenohTransport, settings
 
 LABELS = {
     "raw_token_seen": "raw zenoh process: spawn -> token seen",
@@ -51,7 +51,7 @@ LABELS = {
     "import_zenoh": "python -c 'import zenoh' (wall)",
     "import_cmion": "python -c 'import <what up imports>' (wall)",
 }
-IMPORTS = "import cmion_mesh.cli, cmion_mesh.embodiment, cmion_mesh.zenoh_transport, bench.minds, bench.competencies"
+IMPORTS = "import cmion_mesh.cli, cmion_mesh.embodiment, cmion_mesh.transport.zenoh, bench.minds, bench.competencies"
 
 
 def log(text: str) -> None:

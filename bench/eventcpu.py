@@ -31,7 +31,7 @@ from cmion_mesh import keys
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 PUB, SUB, SOURCE, NAME = "cpu-pub", "cpu-sub", "src", "e"
 

@@ -38,7 +38,7 @@ from bench.stats import Summary, summarize
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
 from cmion_mesh.procs import Daemon
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 PUB = "fan-pub"
 SOURCE = "src"

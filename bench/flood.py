@@ -31,7 +31,7 @@ from cmion_mesh.errors import MeshError, OutcomeUnknown
 from cmion_mesh.ion import send_request
 from cmion_mesh.messages import Act
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 FLOOD = 20_000
 FLOODERS = 4

@@ -19,7 +19,7 @@ from types import FrameType
 from typing import Protocol, TypeVar
 
 from cmion_mesh.procs import Daemon, free_port
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 T = TypeVar("T")
 

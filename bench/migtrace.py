@@ -36,7 +36,7 @@ from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 TRACE = re.compile(r"^TRACE (.+) (\d+) (\d+) (\S+)$")
 _print_lock = threading.Lock()
@@ -83,7 +83,7 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
     """``ZenohTransport.get`` with the ``session.get()`` call and the wait for replies timed apart."""
     import zenoh
 
-    from cmion_mesh.transport import Reply
+    from cmion_mesh.transport.base import Reply
 
     what = request_of(selector)
     t0 = time.perf_counter_ns()
@@ -108,10 +108,11 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 
 
 def install() -> None:
-    from cmion_mesh import custody, handshake, identity, ion, migration, signing, zenoh_transport
+    from cmion_mesh import custody, handshake, identity, ion, migration, signing
     from cmion_mesh import records as records_module
     from cmion_mesh.migration import MigrationManager
     from cmion_mesh.records import IncomingSection, Records, SectionStore
+    from cmion_mesh.transport import zenoh as zenoh_transport
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
         kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \

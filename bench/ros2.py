@@ -41,7 +41,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.resources import embodiment_dir
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 EMBODIMENT = "ros_robot"
 ACTION = "nav2_msgs/action/NavigateToPose"

@@ -49,7 +49,7 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, MindMessage, MindState, Property, SetProperty
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 COMPANION = "soak"
 NAMES = ("soak-a", "soak-b", "soak-c")

@@ -38,7 +38,7 @@ from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 COMPANION = "spirit"
 WATCH = """() => {

@@ -35,7 +35,7 @@ from cmion_mesh.ion import Component, IncomingRequest
 from cmion_mesh.messages import Message, Property, SetProperty, encode
 from cmion_mesh.storage import Blackboard
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 STORE = "bb-store"
 

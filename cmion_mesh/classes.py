@@ -19,7 +19,14 @@ T = TypeVar("T")
 # Configuration files written before name classes by the old module (ClassName="<old>:<Class>"),
 # and users keep them: import_class reads an old module name as its new one. Kept in step with
 # the moves; an old name is never given to another module.
-MOVED_MODULES: dict[str, str] = {}
+MOVED_MODULES: dict[str, str] = {
+    "cmion_mesh.transport": "cmion_mesh.transport.base",
+    "cmion_mesh.zenoh_transport": "cmion_mesh.transport.zenoh",
+    "cmion_mesh.memory_transport": "cmion_mesh.transport.memory",
+    "cmion_mesh.security": "cmion_mesh.transport.security",
+    "cmion_mesh.certs": "cmion_mesh.transport.certs",
+    "cmion_mesh.outbox": "cmion_mesh.transport.outbox",
+}
 
 
 def current_name(spec: str) -> str:

@@ -29,7 +29,7 @@ from typing import Any
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, ExitCode, MeshError, exit_code
 from cmion_mesh.signals import Stopper
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 #: How long a daemon that can find others looks for the rest of the mesh before it claims its name.
 JOIN_WINDOW = 1.0
@@ -55,7 +55,7 @@ def transport_config(args: argparse.Namespace, name: str | None = None) -> Trans
     )
     if not args.certs:
         return config
-    from cmion_mesh import security  # only with --certs: cryptography costs start time
+    from cmion_mesh.transport import security  # only with --certs: cryptography costs start time
 
     return security.apply(config, certs_dir=args.certs, mesh=args.mesh, identity=args.identity, name=name,
                           verify_names=args.verify_names)
@@ -65,7 +65,7 @@ def transport_config(args: argparse.Namespace, name: str | None = None) -> Trans
 def session(args: argparse.Namespace, name: str | None = None) -> Iterator[Any]:
     """A zenoh session and a ``MeshClient`` on it, both closed on the way out."""
     from cmion_mesh.client import MeshClient
-    from cmion_mesh.zenoh_transport import ZenohTransport
+    from cmion_mesh.transport.zenoh import ZenohTransport
 
     config = transport_config(args, name)
     # zenoh's open would wait up to its scouting delay (0.5 s) for the peers it scouts; the client's
@@ -339,7 +339,7 @@ def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> A
     """The daemon's session, opened now, and its name claim under way on it (``presence.Joining``);
     ``stack`` closes both unless the embodiment takes them (``pop_all``)."""
     from cmion_mesh.presence import Joining
-    from cmion_mesh.zenoh_transport import ZenohTransport
+    from cmion_mesh.transport.zenoh import ZenohTransport
 
     transport = stack.enter_context(ZenohTransport(transport_config(args, name)))
     return stack.enter_context(Joining(transport, args.mesh, name, window=join_window(args)))
@@ -373,7 +373,7 @@ def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
 
 def _run_daemon(args: argparse.Namespace, embodiment: Any, table: Any, companion: str | None, state: str, stop: Stopper,
                 web: list[Any]) -> None:
-    from cmion_mesh import security
+    from cmion_mesh.transport import security
 
     name = embodiment.name
     with embodiment:
@@ -814,7 +814,7 @@ def cmd_custody(args: argparse.Namespace) -> int:
         gone = [keys.check_name(name, "embodiment") for name in args.gone or ()]
         sender = "cmion-mesh"
         if args.certs:
-            from cmion_mesh import security
+            from cmion_mesh.transport import security
 
             sender = security.choose_identity(args.certs, args.identity)
         with session(args) as client, Spinner(f"resolving the fork of {companion}", enabled=not args.json):
@@ -967,7 +967,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
-    from cmion_mesh import certs, security
+    from cmion_mesh.transport import certs, security
 
     directory = Path(args.dir)
     command = args.certs_command
@@ -1045,7 +1045,7 @@ def _store_parsers(sub: Any) -> None:
 
 
 def _certs_parsers(parser: argparse.ArgumentParser) -> None:
-    from cmion_mesh.certs import CA_DAYS, CERT_DAYS, DEFAULT_SANS, ROLES
+    from cmion_mesh.transport.certs import CA_DAYS, CERT_DAYS, DEFAULT_SANS, ROLES
 
     sub = parser.add_subparsers(dest="certs_command", required=True, metavar="COMMAND")
     folder = "the certificates folder"

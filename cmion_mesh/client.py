@@ -62,7 +62,7 @@ from cmion_mesh.messages import (
     tag,
 )
 from cmion_mesh.presence import Presence
-from cmion_mesh.transport import Closeable, Handle, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Handle, Sample, Transport
 
 Entry = Property | Container
 _decode_entry: Callable[[bytes, str], Entry] = decoder(Entry)

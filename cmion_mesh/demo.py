@@ -36,8 +36,8 @@ from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Event, MindState
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 if TYPE_CHECKING:
     from cmion_mesh.record import Recorder

@@ -47,7 +47,7 @@ from cmion_mesh.architecture import Architecture
 from cmion_mesh.classes import current_name
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 SCHEMA = "MigrationConfig.xsd"
 #: Competency classes whose first constructor parameter names a device table: CMION's Java

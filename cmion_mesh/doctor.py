@@ -21,7 +21,7 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient, mesh_problems
 from cmion_mesh.errors import ExitCode
 from cmion_mesh.ros2 import ADMIN_SPACE, parse_token
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 IFF_UP, IFF_LOOPBACK, IFF_MULTICAST = 0x1, 0x8, 0x1000
 
@@ -59,7 +59,7 @@ def _addresses() -> dict[str, list[str]]:
 
 
 def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, Any]:
-    from cmion_mesh.zenoh_transport import ZenohTransport
+    from cmion_mesh.transport.zenoh import ZenohTransport
 
     report: dict[str, Any] = {"mesh": mesh, "interfaces": interfaces(), "problems": [], "hints": []}
     report["zenoh"] = {

@@ -38,7 +38,7 @@ from cmion_mesh.standin import StandIn
 from cmion_mesh.standin import summary as standin_summary
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
-from cmion_mesh.transport import Closeable, Transport, TransportConfig
+from cmion_mesh.transport.base import Closeable, Transport, TransportConfig
 
 log = logging.getLogger(__name__)
 #: The file in the state folder keeping a store's persistent properties.
@@ -96,7 +96,7 @@ class Embodiment:
         if transport is None:
             # Imported here for start time: an embodiment on a given transport (the tests' memory
             # transport) never loads zenoh.
-            from cmion_mesh.zenoh_transport import ZenohTransport
+            from cmion_mesh.transport.zenoh import ZenohTransport
 
             transport = ZenohTransport(transport_config)
         self.transport: Transport = transport

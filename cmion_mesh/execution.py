@@ -32,7 +32,7 @@ from cmion_mesh.remote import RemoteCompetency
 from cmion_mesh.rules import MindAction, Plan, Step, substitute_step
 from cmion_mesh.standin import StandIn, unavailable_reason
 from cmion_mesh.storage import Store
-from cmion_mesh.transport import Closeable
+from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)
 

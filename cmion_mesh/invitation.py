@@ -46,7 +46,7 @@ from cmion_mesh.messages import Code, Event, Invite, Outcome, SendInvitations
 from cmion_mesh.migration import MigrationManager, TokenBucket
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import Presence
-from cmion_mesh.transport import Closeable
+from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)
 

@@ -48,7 +48,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Event, Message, Outcome, RequestAnswered, check_value, decode, decoder, encode, tag
-from cmion_mesh.transport import Closeable, Handle, IncomingQuery, Matching, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Handle, IncomingQuery, Matching, Sample, Transport
 
 log = logging.getLogger(__name__)
 

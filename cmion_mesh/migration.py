@@ -111,7 +111,7 @@ from cmion_mesh.mind import Mind
 from cmion_mesh.records import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
 from cmion_mesh.signing import SignatureRefused
 from cmion_mesh.storage import Store
-from cmion_mesh.transport import Closeable
+from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)
 

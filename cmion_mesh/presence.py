@@ -38,7 +38,7 @@ from collections.abc import Callable
 
 from cmion_mesh import keys
 from cmion_mesh.errors import Refused
-from cmion_mesh.transport import Closeable, Handle, Transport
+from cmion_mesh.transport.base import Closeable, Handle, Transport
 
 #: Longest wait for the peers linked to a joining daemon to answer its liveliness queries (they
 #: answer in a round trip: this bounds a peer that does not).

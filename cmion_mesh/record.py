@@ -65,7 +65,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, decoder
-from cmion_mesh.transport import Closeable, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Sample, Transport
 
 #: Uncompressed bytes of a chunk before it is compressed and written.
 CHUNK_SIZE = 256 * 1024

@@ -31,7 +31,7 @@ from cmion_mesh.competency import Competency, RunContext, RunResult
 from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
 from cmion_mesh.messages import CancelRun, Code, Event, RunEnded, RunStatus, StartRun, decode
-from cmion_mesh.transport import Closeable, Sample
+from cmion_mesh.transport.base import Closeable, Sample
 
 log = logging.getLogger(__name__)
 

@@ -48,7 +48,7 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError
-from cmion_mesh.transport import Closeable, QueryCancel, Sample, Transport
+from cmion_mesh.transport.base import Closeable, QueryCancel, Sample, Transport
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ and other routers. By default every interface of the host is a LAN of its own, w
 for a host with one interface per LAN; peers arriving by any other interface form one more.
 
 It goes through the transport layer (``ZenohTransport`` in router mode, the regions as config
-overrides) like every other process, so ``zenoh_transport`` stays the only module that imports
+overrides) like every other process, so ``transport.zenoh`` stays the only module that imports
 zenoh. Run it as ``cmion-mesh router ...``.
 """
 
@@ -31,7 +31,7 @@ from typing import Any
 
 from cmion_mesh.errors import ExitCode, MeshError, exit_code
 from cmion_mesh.signals import Stopper
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 READY = "router up"
@@ -92,7 +92,7 @@ def transport_config(options: RouterOptions) -> TransportConfig:
 
 def run(options: RouterOptions, stop: threading.Event | None = None) -> int:
     """Run until SIGINT/SIGTERM (or ``stop`` is set): 0 after a clean close, 1 if it cannot start."""
-    from cmion_mesh.zenoh_transport import ZenohTransport  # lazy: the CLI builds its parser without zenoh
+    from cmion_mesh.transport.zenoh import ZenohTransport  # lazy: the CLI builds its parser without zenoh
 
     # Signals are blocked before the session's threads start, then collected by the main thread.
     stopper = Stopper() if stop is None else None

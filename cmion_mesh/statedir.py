@@ -14,7 +14,7 @@ from pathlib import Path
 
 from cmion_mesh import keys
 from cmion_mesh.errors import Refused
-from cmion_mesh.transport import Handle
+from cmion_mesh.transport.base import Handle
 
 LOCK_FILE = "daemon.lock"
 

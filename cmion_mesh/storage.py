@@ -61,7 +61,7 @@ from cmion_mesh.messages import (
     tag,
 )
 from cmion_mesh.statedir import write_atomic
-from cmion_mesh.transport import IncomingQuery
+from cmion_mesh.transport.base import IncomingQuery
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,7 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.errors import InvalidName, ProtocolError
 from cmion_mesh.messages import decode
-from cmion_mesh.transport import Closeable, Handle, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Handle, Sample, Transport
 
 #: ``ros2 topic hz``'s default window.
 DEFAULT_WINDOW = 10_000

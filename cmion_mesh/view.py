@@ -52,7 +52,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
 from cmion_mesh.procs import Daemon, cli_argv
-from cmion_mesh.transport import Closeable, Sample
+from cmion_mesh.transport.base import Closeable, Sample
 from cmion_mesh.webserver import host_allowed, same_origin
 
 log = logging.getLogger(__name__)

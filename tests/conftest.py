@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 import zenoh
 
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.procs import unique_mesh
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 DATA = Path(__file__).parent / "data"
 CMION_2011 = DATA / "cmion2011"

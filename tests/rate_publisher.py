@@ -14,8 +14,8 @@ import threading
 import time
 
 from cmion_mesh.messages import Event, encode
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 TICK_KEY = "pub/ev/test/Tick"
 RAW_KEY = "raw/bytes"

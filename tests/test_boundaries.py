@@ -53,7 +53,7 @@ def loaded_by(code: str) -> list[str]:
     """The heavy modules (cryptography, lxml, the certificates, the planner) a fresh interpreter has
     loaded after running ``code``."""
     probe = (f"import sys\n{code}\n"
-             "heavy = ('cryptography', 'lxml', 'cmion_mesh.certs', 'cmion_mesh.planner', 'cmion_mesh.planner_search')\n"
+             "heavy = ('cryptography', 'lxml', 'cmion_mesh.transport.certs', 'cmion_mesh.planner', 'cmion_mesh.planner_search')\n"
              "print(sorted(m for m in sys.modules if m in heavy or m.split('.')[0] in heavy[:2]))\n")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
     return [m for m in ast.literal_eval(result.stdout.strip()) if "." not in m or m.startswith("cmion_mesh")]
@@ -63,7 +63,7 @@ def test_a_one_shot_command_loads_no_xml_crypto_or_planner() -> None:
     # what `cmion-mesh peers` / `bb get` load before they open their session: start time is theirs
     code = ("import cmion_mesh.cli as cli\n"
             "cli.build_parser('peers').parse_args(['peers'])\n"
-            "import cmion_mesh.client, cmion_mesh.presence, cmion_mesh.zenoh_transport")
+            "import cmion_mesh.client, cmion_mesh.presence, cmion_mesh.transport.zenoh")
     assert loaded_by(code) == []
 
 
@@ -71,14 +71,14 @@ def test_a_daemon_without_certificates_or_companion_loads_no_crypto() -> None:
     # `up` reads XML; it signs nothing until a companion is born or arrives, and --certs is off
     code = ("import cmion_mesh.cli as cli\n"
             "cli.build_parser('up').parse_args(['up', 'robot'])\n"
-            "import cmion_mesh.embodiment, cmion_mesh.validate, cmion_mesh.security, cmion_mesh.devices, cmion_mesh.statedir")
+            "import cmion_mesh.embodiment, cmion_mesh.validate, cmion_mesh.transport.security, cmion_mesh.devices, cmion_mesh.statedir")
     assert loaded_by(code) == ["lxml"]
 
 
 def test_no_import_cycle_between_certs_and_security() -> None:
     found = modules()
-    assert "cmion_mesh.certs" in found["security.py"]  # security builds on certs...
-    assert "cmion_mesh.security" not in found["certs.py"], "...never the reverse"
+    assert "cmion_mesh.transport.certs" in found["transport/security.py"]  # security builds on certs...
+    assert "cmion_mesh.transport.security" not in found["transport/certs.py"], "...never the reverse"
 
 
 def test_one_set_of_exit_codes() -> None:

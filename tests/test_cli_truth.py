@@ -29,8 +29,8 @@ from cmion_mesh.ion import send_request
 from cmion_mesh.messages import ActionStatus, Describe
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 pytestmark = pytest.mark.timeout(240)
 RUNS = 50

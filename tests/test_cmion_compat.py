@@ -25,11 +25,11 @@ from cmion_mesh.competency import load_library
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.rules import load_rules
 from cmion_mesh.standin import StandInCompetency, StandInComponent
 from cmion_mesh.storage import load_world_model_init
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.validate import check_embodiment, validate_paths
 
 from .conftest import DATA

@@ -14,10 +14,10 @@ from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
 from cmion_mesh.competency import Competency, RunContext, load_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Event
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
 

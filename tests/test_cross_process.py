@@ -116,8 +116,8 @@ def test_nobody_answering_is_not_success(session: zenoh.Session, mesh: str) -> N
 def test_client_outcome_unknown(robot: str, mesh: str) -> None:
     from cmion_mesh.client import MeshClient
     from cmion_mesh.errors import OutcomeUnknown
-    from cmion_mesh.transport import TransportConfig
-    from cmion_mesh.zenoh_transport import ZenohTransport
+    from cmion_mesh.transport.base import TransportConfig
+    from cmion_mesh.transport.zenoh import ZenohTransport
 
     with ZenohTransport(TransportConfig(connect=(robot,), multicast=False)) as t:
         client = MeshClient(t, mesh)
@@ -132,8 +132,8 @@ def test_cmion_test_scenario_across_processes(mesh: str) -> None:
     """CMION's own test scenario, its rules file unchanged, driven from another process."""
     from cmion_mesh.client import MeshClient
     from cmion_mesh.resources import embodiment_dir
-    from cmion_mesh.transport import TransportConfig
-    from cmion_mesh.zenoh_transport import ZenohTransport
+    from cmion_mesh.transport.base import TransportConfig
+    from cmion_mesh.transport.zenoh import ZenohTransport
 
     library = embodiment_dir("cmion_test") / "CompetencyLibrary.xml"
     daemon, endpoint = start_daemon(mesh, "cmion", "--rules", str(CMION_2011 / "CompManagerRulesTest.xml"),

@@ -21,7 +21,7 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import certs, cli, custody, keys, signing
+from cmion_mesh import cli, custody, keys, signing
 from cmion_mesh.client import MeshClient
 from cmion_mesh.custody import Link
 from cmion_mesh.errors import OutcomeUnknown
@@ -42,8 +42,9 @@ from cmion_mesh.messages import (
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.records import Record, Records
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport import certs
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .custody_helpers import Holder
 from .remote_helpers import diary_embodiment_config

@@ -23,14 +23,14 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.handshake import have
 from cmion_mesh.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
 from cmion_mesh.migration import INLINE
 from cmion_mesh.procs import free_port
 from cmion_mesh.records import Record, Records, SectionStore
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from . import delta_helpers, remote_helpers
 from .custody_helpers import Holder

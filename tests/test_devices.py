@@ -15,10 +15,10 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.migration import MigrationCompetency
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.validate import validate_file
 
 from .conftest import CMION_2011, DATA

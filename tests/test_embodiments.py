@@ -22,12 +22,12 @@ from cmion_mesh.competencies.spirit import SpeechSynthesis
 from cmion_mesh.competency import load_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import ActionReport, AddContainer, Event, RemoveProperty, SetProperty
 from cmion_mesh.mind import Mind
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.rules import MindAction
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.validate import validate_file
 
 pytestmark = pytest.mark.timeout(60)

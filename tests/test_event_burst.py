@@ -19,8 +19,8 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
 from cmion_mesh.procs import Daemon, free_port
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 PUB = "burst-pub"
 LOOP_BURST = 20_000

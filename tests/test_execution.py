@@ -16,11 +16,11 @@ from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Simulation
-from cmion_mesh.memory_transport import MemoryTransport
 from cmion_mesh.messages import ExecutionStatus, SetProperty
 from cmion_mesh.rules import MindAction, Plan, Step
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryTransport
 
 from .competency_helpers import Scripted, pump
 

@@ -27,11 +27,11 @@ from cmion_mesh.fatima import (
     parse_semantic_memory,
     property_changed_line,
 )
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
 from cmion_mesh.rules import load_rules
 from cmion_mesh.testing.fatima_peer import Peer, PeerProcess
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 RULES = """<CompetencyManagerRules>
   <Rule><MindAction Name="Express"><Parameter No="1" Value="*"/></MindAction>

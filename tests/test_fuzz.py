@@ -40,7 +40,6 @@ from cmion_mesh.competency import Competency, RunContext, read_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.identity import Identity
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import (
     Act,
     ActionReport,
@@ -90,6 +89,7 @@ from cmion_mesh.planner_spec import load_spec, spec_from_data
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import load_world_model_init
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
 from .custody_helpers import Holder

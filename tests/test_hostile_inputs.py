@@ -39,7 +39,6 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError, XmlError
 from cmion_mesh.identity import Identity
 from cmion_mesh.ion import Component, Simulation
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import (
     MAX_DEPTH,
     MAX_PAYLOAD,
@@ -63,6 +62,7 @@ from cmion_mesh.rules import load_rules
 from cmion_mesh.statedir import LOCK_FILE
 from cmion_mesh.storage import WorldModel
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
 from .custody_helpers import Holder

@@ -17,7 +17,6 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.devices import DeviceTable
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Code, Invite
 from cmion_mesh.mind import Mind
 from cmion_mesh.planner import PlannerMind
@@ -26,8 +25,9 @@ from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.resources import data_dir
 from cmion_mesh.rules import MindAction
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import DATA
 from .test_devices import configuration_copy

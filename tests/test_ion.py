@@ -12,10 +12,10 @@ import pytest
 
 from cmion_mesh.errors import ClosedError, MeshError, RequestRejected
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, Event, Message, MindMessage, MindState, Outcome, decode
 from cmion_mesh.mind import Mind
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 pytestmark = pytest.mark.timeout(30)
 

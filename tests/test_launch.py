@@ -20,8 +20,8 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 pytestmark = pytest.mark.timeout(120)
 BODIES = {"robot", "screen", "phone"}

@@ -18,9 +18,9 @@ from cmion_mesh.competency import Competency
 from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Simulation
 from cmion_mesh.manager import CompetencyManager
-from cmion_mesh.memory_transport import MemoryTransport
 from cmion_mesh.messages import Act, ActionStatus, CancelAction, Code, Message, Outcome
 from cmion_mesh.rules import load_rules
+from cmion_mesh.transport.memory import MemoryTransport
 
 from .competency_helpers import Scripted, pump
 

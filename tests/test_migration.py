@@ -15,11 +15,11 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.ion import Component, Simulation
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Event, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
 from cmion_mesh.migration import MigrationManager
 from cmion_mesh.records import Records
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .custody_helpers import Holder
 from .remote_helpers import Diary

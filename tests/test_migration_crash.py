@@ -20,8 +20,8 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Migrate, MindMessage, MindState
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .remote_helpers import Node, diary_embodiment_config
 

@@ -12,8 +12,8 @@ import threading
 import pytest
 
 from cmion_mesh.errors import ClosedError
-from cmion_mesh.outbox import OVERHEAD, Outbox
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.outbox import OVERHEAD, Outbox
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -42,7 +42,7 @@ class Link:
 def test_a_held_link_never_holds_the_caller_and_a_full_queue_drops_the_newest(caplog: pytest.LogCaptureFixture) -> None:
     link = Link()
     link.hold()
-    with caplog.at_level(logging.WARNING, logger="cmion_mesh.outbox"), Outbox(link.send, max_items=4) as box:
+    with caplog.at_level(logging.WARNING, logger="cmion_mesh.transport.outbox"), Outbox(link.send, max_items=4) as box:
         assert box.put("k/0", b"0")
         link.busy.wait(10.0)  # the thread holds k/0: it counts until it is sent
         taken = [box.put(f"k/{i}", str(i).encode()) for i in range(1, 10)]
@@ -108,7 +108,7 @@ def test_a_failed_publication_loses_no_other(caplog: pytest.LogCaptureFixture) -
             raise ValueError(f"refused {key}")
         sent.append(key)
 
-    with caplog.at_level(logging.WARNING, logger="cmion_mesh.outbox"), Outbox(send) as box:
+    with caplog.at_level(logging.WARNING, logger="cmion_mesh.transport.outbox"), Outbox(send) as box:
         for i in range(10):
             box.put(f"bad/{i}", b"x")
             box.put(f"good/{i}", b"x")

@@ -11,11 +11,11 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import PERSISTENT_FILE, Embodiment
 from cmion_mesh.errors import Refused
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.storage import WorldModel
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 pytestmark = pytest.mark.timeout(60)
 ROBOT_WM = embodiment_dir("robot") / "WorldModel.xml"

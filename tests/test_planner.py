@@ -17,12 +17,12 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
 from cmion_mesh.planner import PlannerMind
 from cmion_mesh.planner_search import find_plan
 from cmion_mesh.planner_spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -15,10 +15,10 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.errors import Refused
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.presence import Joining, NameClaim
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import Closeable
+from cmion_mesh.transport.base import Closeable
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 OLDEST = "0" * 20 + "-elder"
 YOUNGEST = "9" * 20 + "-newcomer"

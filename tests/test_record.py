@@ -17,13 +17,13 @@ from cmion_mesh import record
 from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import Timeline, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Event, decode, encode
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.record import Recorder, RecordingReader
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 pytestmark = pytest.mark.timeout(240)
 

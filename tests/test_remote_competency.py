@@ -14,8 +14,8 @@ from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import Event
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import start_daemon
 

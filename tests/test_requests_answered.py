@@ -20,8 +20,8 @@ from cmion_mesh import keys, messages
 from cmion_mesh.messages import Code, Describe, Message, Outcome, SetProperty, decode, encode, tag
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import start_daemon
 

@@ -15,10 +15,10 @@ import pytest
 from cmion_mesh import ros2
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import Sample
+from cmion_mesh.transport.base import Sample
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 pytestmark = pytest.mark.timeout(60)
 ROS_ROBOT = embodiment_dir("ros_robot")

@@ -11,9 +11,9 @@ import pytest
 from cmion_mesh import ros2
 from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.errors import ConfigError, ProtocolError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import Sample
+from cmion_mesh.transport.base import Sample
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
@@ -160,7 +160,7 @@ def test_competency_parameters() -> None:
 
 def test_a_query_ends_when_cancelled() -> None:
     """A get that nobody answers yet (a ROS 2 action's result) ends when its caller cancels it."""
-    from cmion_mesh.transport import IncomingQuery, QueryCancel
+    from cmion_mesh.transport.base import IncomingQuery, QueryCancel
 
     held: list[IncomingQuery] = []
     arrived = threading.Event()

@@ -35,8 +35,8 @@ import json, sys, threading, time
 import msgspec
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import SetProperty
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 spec = json.loads(sys.argv[1])
 start = time.monotonic()

@@ -21,14 +21,15 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import certs, cli, keys, security
+from cmion_mesh import cli, keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, StorageError
 from cmion_mesh.messages import SetProperty
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport import certs, security
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import CMION_2011
 
@@ -257,7 +258,7 @@ def _drain_until(q: queue.SimpleQueue[str], key: str) -> bool:
 
 PEER = r"""
 import json, signal, sys, zenoh
-from cmion_mesh import security
+from cmion_mesh.transport import security
 directory, name, mesh, listen, answer = sys.argv[1:6]
 doc = security.config_document(directory, name, mesh, listen=[listen], multicast=False)
 session = zenoh.open(zenoh.Config.from_json5(json.dumps(doc)))
@@ -524,10 +525,10 @@ def test_cli_flag_when_wired(pki: Pki, mesh: str) -> None:
 
 LAN_PROBE = r"""
 import json, sys, time
-from cmion_mesh import security
+from cmion_mesh.transport import security
 from cmion_mesh.client import MeshClient
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 spec = json.loads(sys.argv[1])
 config = TransportConfig(multicast=True, multicast_interface="eth0", listen=("tcp/0.0.0.0:0",))
 if spec.get("certs"):

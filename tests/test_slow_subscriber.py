@@ -28,8 +28,8 @@ from cmion_mesh.messages import Event, decode
 from cmion_mesh.procs import Daemon
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import Sample, TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import Sample, TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import CMION_2011, start_daemon
 

@@ -11,9 +11,9 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected, StorageError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import AddContainer, Container, Event, Property, RemoveContainer, RemoveProperty, SetProperty
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
 from .test_ion import held

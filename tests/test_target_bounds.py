@@ -22,13 +22,13 @@ from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.handshake import have
 from cmion_mesh.identity import Identity
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, Outcome, SectionChunk
 from cmion_mesh.migration import INLINE, MigrationManager
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .custody_helpers import Holder
 from .remote_helpers import Diary, Node, diary_embodiment_config

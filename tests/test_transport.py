@@ -12,10 +12,10 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from cmion_mesh.errors import ClosedError, TransportError
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import MAX_BATCH, IncomingQuery, Sample, Transport, TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import MAX_BATCH, IncomingQuery, Sample, Transport, TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -19,9 +19,9 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import Daemon
 from cmion_mesh.testing.wait import migrate_once_seen
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.view import spawn_view
-from cmion_mesh.zenoh_transport import ZenohTransport
 
 from .browser import screenshot
 from .conftest import start_daemon

@@ -15,9 +15,9 @@ from websockets.sync.client import ClientConnection, connect
 
 from cmion_mesh import keys, view
 from cmion_mesh.client import MeshClient
-from cmion_mesh.memory_transport import MemoryNetwork, MemoryTransport
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.view import MeshView, Model, Page
 from cmion_mesh.webserver import WebServer
 

@@ -30,8 +30,8 @@ from cmion_mesh.demo import Scenario, start_bodies, stop_bodies, web_address
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport import TransportConfig
-from cmion_mesh.zenoh_transport import ZenohTransport
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.browser import screenshot
 
 WAIT = 60.0

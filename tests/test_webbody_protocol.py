@@ -17,10 +17,10 @@ from websockets.sync.client import ClientConnection, connect
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
-from cmion_mesh.memory_transport import MemoryTransport
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryTransport
 from cmion_mesh.webbody import WebBody
 
 WAIT = 30.0

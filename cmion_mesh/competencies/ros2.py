@@ -51,7 +51,7 @@ from cmion_mesh.competencies.spirit import SELF, _bb_set, _quietly, _seconds, _t
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Simulation
-from cmion_mesh.transport import QueryCancel
+from cmion_mesh.transport.base import QueryCancel
 
 __all__ = ["Ros2Competency", "Ros2Navigation", "Ros2SensorBridge", "Ros2Speech", "Ros2Velocity"]
 

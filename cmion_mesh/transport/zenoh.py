@@ -31,8 +31,7 @@ from typing import Any
 import zenoh
 
 from cmion_mesh.errors import ClosedError, ConfigError, TransportError
-from cmion_mesh.outbox import Outbox
-from cmion_mesh.transport import (
+from cmion_mesh.transport.base import (
     MAX_BATCH,
     BatchHandler,
     Closeable,
@@ -45,6 +44,7 @@ from cmion_mesh.transport import (
     SampleHandler,
     TransportConfig,
 )
+from cmion_mesh.transport.outbox import Outbox
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,7 @@ Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<o
 control lets ``S`` query only keys whose last chunk is ``S``, so a target knows the sender of a
 handshake message from the key it arrived on. A name revoked (``certs revoke``) is never admitted.
 
-Only ``zenoh_transport`` imports zenoh: this module produces settings (json5 key, value) that
+Only ``transport.zenoh`` imports zenoh: this module produces settings (json5 key, value) that
 reach the session through ``TransportConfig.overrides``.
 """
 
@@ -48,12 +48,12 @@ from typing import TYPE_CHECKING, Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.transport import TransportConfig
+from cmion_mesh.transport.base import TransportConfig
 
 if TYPE_CHECKING:
     # Imported where used: certificates mean cryptography, whose import costs every daemon start
     # time, and only secure mode needs them.
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
 #: Every message kind zenoh 1.10's access control knows (``AclMessage``).
 MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -110,7 +110,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
     whole mesh to it: every trusted name is then allowed everything under ``cmion/<mesh>/`` (the
     member filtered it by sender on its own links), and untrusted names still nothing.
     """
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     m = keys.mesh_prefix(mesh)
     alive, competency = f"{m}/{keys.ALIVE}", f"{m}/{keys.COMPETENCY}"
@@ -193,7 +193,7 @@ class Credentials:
 def load_credentials(directory: str | os.PathLike[str], name: str, trust: certs.Trust | None = None) -> Credentials:
     """Check that ``directory`` holds a usable identity ``name``: the authority, a certificate of
     ``name`` it signed and that has not expired, its key (0600, matching), and ``name`` in the trust list."""
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     folder = Path(directory)
     certs.check_cert_name(name)
@@ -272,7 +272,7 @@ def secure(config: TransportConfig, directory: str | os.PathLike[str], name: str
     to open a session with any other protocol, since only TLS is allowed (and a file without
     listen endpoints gets zenoh's ``tcp/[::]:0``, so it must list them).
     """
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     cred = load_credentials(directory, name)
     trust = certs.Trust.load(directory)
@@ -288,7 +288,7 @@ def config_document(directory: str | os.PathLike[str], name: str, mesh: str, *, 
                     mode: str = "peer") -> dict[str, Any]:
     """A whole zenoh configuration (as a dict) for identity ``name``: what ``--config FILE`` takes,
     and what a client in another language can load."""
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     cred = load_credentials(directory, name)
     trust = certs.Trust.load(directory)
@@ -319,7 +319,7 @@ def config_json5(directory: str | os.PathLike[str], name: str, mesh: str, **opti
 def choose_identity(directory: str | os.PathLike[str], chosen: str | None = None) -> str:
     """Who this process speaks as: ``chosen`` (``--identity``, else the embodiment's name), else the
     one private key in the certificates folder (a member's folder holds its own key only)."""
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     if chosen:
         return chosen
@@ -343,7 +343,7 @@ def describe(*, certs_dir: str | os.PathLike[str] | None, identity: str | None =
     """One line for a daemon to print at start: which mode it runs in."""
     if not certs_dir:
         return PLAIN_WARNING
-    from cmion_mesh import certs
+    from cmion_mesh.transport import certs
 
     who = choose_identity(certs_dir, identity or name)
     cred = load_credentials(certs_dir, who)

@@ -1,7 +1,7 @@
 """The small transport interface that the rest of cmion-mesh talks to.
 
-``zenoh_transport`` implements it over a real zenoh session (the only module that imports
-zenoh); ``memory_transport`` implements it in one process for fast unit tests of logic.
+``transport.zenoh`` implements it over a real zenoh session (the only module that imports
+zenoh); ``transport.memory`` implements it in one process for fast unit tests of logic.
 
 Threading contract: handlers given to ``subscribe``, ``subscribe_batches``, ``declare_queryable``
 and ``watch_liveliness`` run on a worker thread owned by the transport (never on a zenoh thread);

@@ -14,7 +14,7 @@ from typing import Any
 
 from cmion_mesh.errors import ClosedError
 from cmion_mesh.keys import matches as _matches
-from cmion_mesh.transport import (
+from cmion_mesh.transport.base import (
     MAX_BATCH,
     BatchHandler,
     Closeable,

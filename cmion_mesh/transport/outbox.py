@@ -18,7 +18,7 @@ blocking publications to an ``Outbox`` instead:
   (counted, and said in the log). ``put`` after ``close`` raises ``ClosedError``.
 
 The bound is a last resort: the transport also has zenoh give a stuck link up quickly
-(``zenoh_transport.CONGESTED_LINK_WAIT_US``), so the queue only grows while one link is being
+(``transport.zenoh.CONGESTED_LINK_WAIT_US``), so the queue only grows while one link is being
 given up, and the subscriber that stopped reading loses what was meant for it alone.
 """
 
@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable
 
 from cmion_mesh.errors import ClosedError
-from cmion_mesh.transport import Handle
+from cmion_mesh.transport.base import Handle
 
 log = logging.getLogger(__name__)
 

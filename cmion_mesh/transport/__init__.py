@@ -1,0 +1,1 @@
+"""How embodiments reach each other: the transport interface, its zenoh adapter, an in-memory double, TLS."""
