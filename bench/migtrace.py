@@ -108,10 +108,12 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 
 
 def install() -> None:
-    from cmion_mesh import custody, handshake, identity, ion, migration, signing
-    from cmion_mesh import records as records_module
-    from cmion_mesh.migration import MigrationManager
-    from cmion_mesh.records import IncomingSection, Records, SectionStore
+    from cmion_mesh import ion
+    from cmion_mesh.migration import custody, handshake, identity, signing
+    from cmion_mesh.migration import ledger as records_module
+    from cmion_mesh.migration import manager as migration
+    from cmion_mesh.migration.ledger import IncomingSection, Records, SectionStore
+    from cmion_mesh.migration.manager import MigrationManager
     from cmion_mesh.transport import zenoh as zenoh_transport
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:

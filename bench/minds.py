@@ -23,7 +23,7 @@ from typing import Any
 
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ActionReport, Event
-from cmion_mesh.migration import MigrationManager
+from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.mind import Mind
 
 

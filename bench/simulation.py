@@ -1,6 +1,6 @@
 """Simulation testing of the migration handshake, FoundationDB style.
 
-Three embodiments run the real decisions of ``cmion_mesh.handshake`` (the same functions
+Three embodiments run the real decisions of ``cmion_mesh.migration.handshake`` (the same functions
 ``MigrationManager`` calls) over a simulated network driven by one seeded random generator. Any
 message ever sent may be delivered late, lost, duplicated, reordered or **replayed later**; any
 embodiment may crash (losing everything but its durable record, document and key) and restart at
@@ -40,12 +40,12 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh import custody, handshake, signing
-from cmion_mesh.custody import Fork, Link
-from cmion_mesh.handshake import Claim
-from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.messages import MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
-from cmion_mesh.records import Record
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.custody import Fork, Link
+from cmion_mesh.migration.handshake import Claim
+from cmion_mesh.migration.identity import Identity, unpack
+from cmion_mesh.migration.ledger import Record
 
 COMPANION = "spirit"
 SECTIONS: dict[str, Any] = {"mind": {"memory": ["met Ada", "kitchen"]}, "face": {"smile": 0.7}}

@@ -30,10 +30,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmion_mesh import keys, signing, xmlsafe
+from cmion_mesh import keys, xmlsafe
 from cmion_mesh.classes import construct, find_file, import_class, split_parameters
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
+from cmion_mesh.migration import signing
 
 if TYPE_CHECKING:
     from cmion_mesh.ion import Component

@@ -26,6 +26,14 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.security": "cmion_mesh.transport.security",
     "cmion_mesh.certs": "cmion_mesh.transport.certs",
     "cmion_mesh.outbox": "cmion_mesh.transport.outbox",
+    "cmion_mesh.migration": "cmion_mesh.migration.manager",
+    "cmion_mesh.handshake": "cmion_mesh.migration.handshake",
+    "cmion_mesh.custody": "cmion_mesh.migration.custody",
+    "cmion_mesh.signing": "cmion_mesh.migration.signing",
+    "cmion_mesh.identity": "cmion_mesh.migration.identity",
+    "cmion_mesh.records": "cmion_mesh.migration.ledger",
+    "cmion_mesh.invitation": "cmion_mesh.migration.invitation",
+    "cmion_mesh.devices": "cmion_mesh.migration.devices",
 }
 
 

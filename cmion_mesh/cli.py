@@ -231,7 +231,7 @@ def resolve_config(path: str) -> str:
 
 def admit(args: argparse.Namespace) -> dict[str, bytes | None] | None:
     """``--admit NAME[=PUBLICKEY]``: which companions may migrate in (default: any)."""
-    from cmion_mesh.signing import decode_public
+    from cmion_mesh.migration.signing import decode_public
 
     if not args.admit:
         return None
@@ -251,8 +251,8 @@ def _existing(path: str | None, option: str) -> str | None:
 def cmd_up(args: argparse.Namespace) -> int:
     # Only what it takes to know the name and the endpoints is imported before the mesh is joined:
     # the rest is imported and built while the mesh answers the name claim (``presence.Joining``).
-    from cmion_mesh import devices
     from cmion_mesh.diagnostics import Diagnostics
+    from cmion_mesh.migration import devices
 
     stop = Stopper()
     rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
@@ -262,7 +262,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     # The checks of `validate`, every problem reported: refuse on errors, start with warnings.
     found = Diagnostics()
     arch = None
-    # The device table (devices.py) is read before the session opens: it names the embodiment,
+    # The device table (migration/devices.py) is read before the session opens: it names the embodiment,
     # its endpoints and the companion's birth; options given on the command line win over it.
     if args.path:
         from cmion_mesh.architecture import read_architecture

@@ -23,14 +23,14 @@ from cmion_mesh import __version__, keys
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, load_library
-from cmion_mesh.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.errors import MeshError
 from cmion_mesh.execution import ExecutionSystem
-from cmion_mesh.invitation import Invitations
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Describe, Event
-from cmion_mesh.migration import MigrationCompetency, MigrationManager
+from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
+from cmion_mesh.migration.invitation import Invitations
+from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import Joining, NameClaim, Presence, claim_name
 from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules

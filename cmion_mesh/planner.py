@@ -29,8 +29,8 @@ import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.invitation import INVITATION_ACTION
 from cmion_mesh.messages import ActionReport
+from cmion_mesh.migration.invitation import INVITATION_ACTION
 from cmion_mesh.mind import Mind
 from cmion_mesh.planner_search import (
     Beliefs,

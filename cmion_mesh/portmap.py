@@ -71,10 +71,10 @@ _SUPERSIMPLE = "cmion.level3.supersimplemind."
 #: files, the generic bases and the test competencies), by full Java name.
 PORT_MAP: dict[str, Port] = _ports(
     # --- generic infrastructure -------------------------------------------------------------------
-    Port("cmion.level2.competencies.Migration", "competency", "cmion_mesh.migration:MigrationCompetency",
+    Port("cmion.level2.competencies.Migration", "competency", "cmion_mesh.migration.manager:MigrationCompetency",
          "TCP migration and invitations; its parameter names the device table (a migrationconfig file)",
          ("Migration",), file_parameters=(0,)),
-    Port("cmion.level2.competencies.AndroidMigration", "competency", "cmion_mesh.migration:MigrationCompetency",
+    Port("cmion.level2.competencies.AndroidMigration", "competency", "cmion_mesh.migration.manager:MigrationCompetency",
          "Android subclass of Migration: its parameter is a raw-resource name, read as NAME.xml",
          ("Migration",), file_parameters=(0,)),
     Port("cmion.level3.fatima.FAtiMAConnector", "mind connector", "cmion_mesh.fatima:FAtiMAConnector",

@@ -82,7 +82,7 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
                      check_types=arch.library is not None)
     arch.build_components(diagnostics)  # built, not attached: a constructor refusing its parameters is found here
     if arch.library is not None:
-        from cmion_mesh.devices import embodiment_name, table_for_library
+        from cmion_mesh.migration.devices import embodiment_name, table_for_library
 
         # The device table its Migration competency names, as ``up`` reads it (``validate_paths``
         # then does not check that file alone: each of its problems is reported once).
@@ -94,7 +94,7 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
 
 
 def _migrationconfig(path: str, diagnostics: Diagnostics, options: Options) -> None:
-    from cmion_mesh.devices import read_device_table
+    from cmion_mesh.migration.devices import read_device_table
 
     read_device_table(path, diagnostics)
 
@@ -249,7 +249,7 @@ def _referenced(arch: Architecture | None) -> list[Path]:
     """The files checked with a configuration: its rules, library, world model and device table."""
     if arch is None:
         return []
-    from cmion_mesh.devices import named_table
+    from cmion_mesh.migration.devices import named_table
 
     table = named_table(arch.library, Diagnostics()) if arch.library is not None else None
     return [p for p in (arch.rules, arch.library, arch.world_model, table) if p is not None]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from cmion_mesh import custody, handshake, signing
-from cmion_mesh.custody import Link
 from cmion_mesh.messages import MigrateCommit, MigratePrepare, Outcome
-from cmion_mesh.records import Record
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.custody import Link
+from cmion_mesh.migration.ledger import Record
 
 
 class Holder:

@@ -10,7 +10,7 @@ from typing import Any
 
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import Event
-from cmion_mesh.migration import MigrationManager
+from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.mind import Mind
 
 from .remote_helpers import diary_embodiment_config

@@ -13,7 +13,7 @@ import pytest
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.classes import MOVED_MODULES, current_name, import_class
 from cmion_mesh.competency import load_library
-from cmion_mesh.devices import MIGRATION_CLASSES, is_migration_class
+from cmion_mesh.migration.devices import MIGRATION_CLASSES, is_migration_class
 from cmion_mesh.resources import data_dir
 
 OLD_NAMES = {new: old for old, new in MOVED_MODULES.items()}
@@ -45,7 +45,7 @@ def test_an_old_module_name_loads_the_class_of_the_new_one(old: str, new: str) -
 
 @pytest.mark.parametrize("old", sorted(MOVED_MODULES))
 def test_an_old_name_hides_no_class_of_today(old: str) -> None:
-    # an old name may be a package today (cmion_mesh.migration): it must define no class its alias would hide
+    # an old name may be a package today (cmion_mesh.migration.manager): it must define no class its alias would hide
     try:
         classes = classes_of(old)
     except ImportError:

@@ -84,7 +84,7 @@ def test_port_map_covers_every_class_of_real_configurations() -> None:
     for n in range(1, 7):
         assert targets[f"cmion.level2.competencies.test.TestCompetency{n}"] == f"cmion_mesh.competencies.cmion_test:TestCompetency{n}"
     assert targets["cmion.level2.competencies.Migration"] == targets["cmion.level2.competencies.AndroidMigration"] == \
-        "cmion_mesh.migration:MigrationCompetency"
+        "cmion_mesh.migration.manager:MigrationCompetency"
     assert targets["cmion.level3.fatima.FAtiMAConnector"] == "cmion_mesh.fatima:FAtiMAConnector"
     assert targets["cmion.level3.supersimplemind.SuperSimpleMigratingByInviteMindConnector"] == \
         "cmion_mesh.supersimple:SuperSimpleMigratingByInviteMind"
@@ -288,7 +288,7 @@ def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) ->
         '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, bogus"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,nowhere.json"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.supersimple:SuperSimpleMind" ConstructorParameters="too,many"/>\n'
-        f'<ArchitectureComponent ClassName="cmion_mesh.migration:MigrationManager" ConstructorParameters="{state}"/>\n'
+        f'<ArchitectureComponent ClassName="cmion_mesh.migration.manager:MigrationManager" ConstructorParameters="{state}"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
         '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, port:0"/>\n'
@@ -298,7 +298,7 @@ def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) ->
         (2, "cmion.level3.fatima.FAtiMAConnector (ported as cmion_mesh.fatima:FAtiMAConnector): unknown option 'bogus'"),
         (3, "cmion_mesh.planner:PlannerMind: "),
         (4, "cannot construct cmion_mesh.supersimple:SuperSimpleMind with parameters ['too', 'many']: TypeError"),
-        (5, "cmion_mesh.migration:MigrationManager is built by every embodiment itself"),
+        (5, "cmion_mesh.migration.manager:MigrationManager is built by every embodiment itself"),
         (7, "cmion_mesh.mind:Mind: a component named 'twin' is already in this configuration"),
     ]
     code, out, err = run_cli("validate", config, "--json")

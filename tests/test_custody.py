@@ -8,13 +8,13 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from cmion_mesh import custody, handshake, signing
-from cmion_mesh.custody import ClaimProof
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.handshake import Claim
 from cmion_mesh.messages import MigratePrepare
-from cmion_mesh.records import Record
-from cmion_mesh.signing import SignatureRefused
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.custody import ClaimProof
+from cmion_mesh.migration.handshake import Claim
+from cmion_mesh.migration.ledger import Record
+from cmion_mesh.migration.signing import SignatureRefused
 from cmion_mesh.transport import certs, security
 
 DOC = custody.digest(b"<Identity/>")

@@ -21,11 +21,9 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import cli, custody, keys, signing
+from cmion_mesh import cli, keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.custody import Link
 from cmion_mesh.errors import OutcomeUnknown
-from cmion_mesh.identity import Identity
 from cmion_mesh.ion import send_request
 from cmion_mesh.messages import (
     Act,
@@ -39,8 +37,11 @@ from cmion_mesh.messages import (
     decode,
     encode,
 )
+from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.custody import Link
+from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.ledger import Record, Records
 from cmion_mesh.procs import Daemon, cli_argv, free_port
-from cmion_mesh.records import Record, Records
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import certs
 from cmion_mesh.transport.base import TransportConfig

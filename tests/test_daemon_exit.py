@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from cmion_mesh.migration.ledger import Records
 from cmion_mesh.procs import Daemon, cli_argv, free_port
-from cmion_mesh.records import Records
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -17,16 +17,17 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import identity, records
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
-from cmion_mesh.handshake import have
-from cmion_mesh.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
-from cmion_mesh.migration import INLINE
+from cmion_mesh.migration import identity
+from cmion_mesh.migration import ledger as records
+from cmion_mesh.migration.handshake import have
+from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
+from cmion_mesh.migration.ledger import Record, Records, SectionStore
+from cmion_mesh.migration.manager import INLINE
 from cmion_mesh.procs import free_port
-from cmion_mesh.records import Record, Records, SectionStore
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

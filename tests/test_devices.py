@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import devices
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.cli import main
 from cmion_mesh.client import MeshClient
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.migration import MigrationCompetency
+from cmion_mesh.migration import devices
+from cmion_mesh.migration.manager import MigrationCompetency
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -26,7 +26,7 @@ from .conftest import CMION_2011, DATA
 pytestmark = pytest.mark.timeout(60)
 
 INVITE = DATA / "invite"
-OURS = {"cmion.level2.competencies.Migration": "cmion_mesh.migration:MigrationCompetency",
+OURS = {"cmion.level2.competencies.Migration": "cmion_mesh.migration.manager:MigrationCompetency",
         "cmion.level3.supersimplemind.SuperSimpleMigratingByInviteMindConnector":
             "cmion_mesh.supersimple:SuperSimpleMigratingByInviteMind"}
 
@@ -173,7 +173,7 @@ def test_android_raw_names_and_missing_tables(tmp_path: Path) -> None:
     table = devices.table_for_library(library(tmp_path, "cmion.level2.competencies.AndroidMigration", "migrationconfig"))
     assert table is not None and table.name == "B"
     # no parameter (our own class, used plainly), or another competency: no table
-    assert devices.table_for_library(library(tmp_path, "cmion_mesh.migration:MigrationCompetency", None)) is None
+    assert devices.table_for_library(library(tmp_path, "cmion_mesh.migration.manager:MigrationCompetency", None)) is None
     assert devices.table_for_library(library(tmp_path, "cmion_mesh.competencies.cmion_test:TestCompetency1", "x.xml")) is None
     lib = library(tmp_path, "cmion.level2.competencies.Migration", "Nowhere.xml")
     with pytest.raises(ConfigError, match=rf"^{lib}:1: device table 'Nowhere.xml' not found"):

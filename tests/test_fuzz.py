@@ -34,12 +34,11 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from cmion_mesh import custody, identity, keys, messages, signing
+from cmion_mesh import keys, messages
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.competency import Competency, RunContext, read_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, ProtocolError
-from cmion_mesh.identity import Identity
 from cmion_mesh.messages import (
     Act,
     ActionReport,
@@ -85,6 +84,8 @@ from cmion_mesh.messages import (
     decode,
     encode,
 )
+from cmion_mesh.migration import custody, identity, signing
+from cmion_mesh.migration.identity import Identity
 from cmion_mesh.planner_spec import load_spec, spec_from_data
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules

@@ -12,10 +12,10 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import custody, handshake, signing
-from cmion_mesh.identity import Bytes, Identity
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, Outcome
-from cmion_mesh.records import Record
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.identity import Bytes, Identity
+from cmion_mesh.migration.ledger import Record
 
 from .custody_helpers import Holder
 

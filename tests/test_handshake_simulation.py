@@ -9,10 +9,10 @@ import pytest
 
 from bench import simulation
 from bench.simulation import HOSTILE, InvariantBroken, Message, World
-from cmion_mesh import custody, handshake, signing
-from cmion_mesh.identity import Identity
 from cmion_mesh.messages import MigrateCommit, MigrateStatus
-from cmion_mesh.records import Record
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.ledger import Record
 
 SCHEDULES = 10_000
 

@@ -31,13 +31,12 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import custody, identity, keys, records, signing, xmlsafe
+from cmion_mesh import keys, xmlsafe
 from cmion_mesh.architecture import load_architecture
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext, load_library
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError, XmlError
-from cmion_mesh.identity import Identity
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
     MAX_DEPTH,
@@ -55,7 +54,10 @@ from cmion_mesh.messages import (
     decode,
     encode,
 )
-from cmion_mesh.migration import MigrationManager
+from cmion_mesh.migration import custody, identity, signing
+from cmion_mesh.migration import ledger as records
+from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.planner_spec import load_spec
 from cmion_mesh.remote import CompetencyHost
 from cmion_mesh.rules import load_rules

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import devices, invitation, keys, supersimple
+from cmion_mesh import keys, supersimple
 from cmion_mesh.client import MeshClient
-from cmion_mesh.devices import DeviceTable
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import AddContainer, Code, Invite
+from cmion_mesh.migration import devices, invitation
+from cmion_mesh.migration.devices import DeviceTable
 from cmion_mesh.mind import Mind
 from cmion_mesh.planner import PlannerMind
 from cmion_mesh.planner_spec import InvitationPolicy

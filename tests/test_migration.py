@@ -9,15 +9,15 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import custody, signing
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
-from cmion_mesh.identity import Identity, unpack
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
-from cmion_mesh.migration import MigrationManager
-from cmion_mesh.records import Records
+from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.identity import Identity, unpack
+from cmion_mesh.migration.ledger import Records
+from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 

@@ -20,10 +20,10 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
-from cmion_mesh.handshake import have
-from cmion_mesh.identity import Identity
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, Outcome, SectionChunk
-from cmion_mesh.migration import INLINE, MigrationManager
+from cmion_mesh.migration.handshake import have
+from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.manager import INLINE, MigrationManager
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig

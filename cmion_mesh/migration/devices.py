@@ -56,8 +56,8 @@ SCHEMA = "MigrationConfig.xsd"
 MIGRATION_CLASSES = frozenset({
     "cmion.level2.competencies.Migration",
     "cmion.level2.competencies.AndroidMigration",
-    "cmion_mesh.migration:MigrationCompetency",
-    "cmion_mesh.migration.MigrationCompetency",
+    "cmion_mesh.migration.manager:MigrationCompetency",
+    "cmion_mesh.migration.manager.MigrationCompetency",
 })
 #: Android's migration competency named its table as a raw resource: no folder, no ``.xml``.
 ANDROID_MIGRATION = "cmion.level2.competencies.AndroidMigration"

@@ -38,10 +38,11 @@ from typing import Literal, TypeVar
 
 import msgspec
 
-from cmion_mesh import custody, keys, signing
-from cmion_mesh.custody import Link
+from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
-from cmion_mesh.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, SectionRef, read_manifest
+from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.custody import Link
+from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, SectionRef, read_manifest
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)

@@ -43,8 +43,8 @@ from typing import Literal
 
 import msgspec
 
-from cmion_mesh import signing
-from cmion_mesh.signing import SignatureRefused
+from cmion_mesh.migration import signing
+from cmion_mesh.migration.signing import SignatureRefused
 
 #: Most links a chain may have (about 200 bytes each): far more migrations than a companion makes
 #: in years; the record holding the chain stays small enough to be rewritten at every step.

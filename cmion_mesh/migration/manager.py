@@ -85,11 +85,9 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh import custody, handshake, keys, signing
+from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
-from cmion_mesh.handshake import POLICY_SECTION, Claim, refuses
-from cmion_mesh.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
 from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer, send_request
 from cmion_mesh.messages import (
     Code,
@@ -107,9 +105,12 @@ from cmion_mesh.messages import (
     SectionChunk,
     SetPolicy,
 )
+from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.handshake import POLICY_SECTION, Claim, refuses
+from cmion_mesh.migration.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
+from cmion_mesh.migration.ledger import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
+from cmion_mesh.migration.signing import SignatureRefused
 from cmion_mesh.mind import Mind
-from cmion_mesh.records import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
-from cmion_mesh.signing import SignatureRefused
 from cmion_mesh.storage import Store
 from cmion_mesh.transport.base import Closeable
 

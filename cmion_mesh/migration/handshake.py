@@ -77,12 +77,13 @@ from typing import Any, Literal
 
 import msgspec
 
-from cmion_mesh import custody, keys, signing
-from cmion_mesh.custody import Link, Offer
+from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
-from cmion_mesh.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus, Outcome
-from cmion_mesh.records import Record
+from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.custody import Link, Offer
+from cmion_mesh.migration.identity import Bytes, Identity, Manifest, MissingSections, SectionRef, read_manifest
+from cmion_mesh.migration.ledger import Record
 
 POLICY_SECTION = "policy"
 #: Seconds T keeps an attempt ``incoming`` that its source has neither committed nor aborted,
