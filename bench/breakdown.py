@@ -59,8 +59,8 @@ from bench.harness import (
 )
 from bench.registry import Options, Row
 from bench.stats import summarize
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.ion import IncomingRequest, Simulation
 from cmion_mesh.messages import Event, SetProperty
 from cmion_mesh.storage import Store

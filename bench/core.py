@@ -187,7 +187,7 @@ class Echo(Component):
 
 
 def serve_mesh(args: argparse.Namespace) -> int:
-    from cmion_mesh.embodiment import Embodiment
+    from cmion_mesh.body.embodiment import Embodiment
 
     stop = StopSignal(args.parent)
     with Embodiment(B_NAME, mesh=args.mesh, transport_config=loopback_config(listen=args.listen)) as body:

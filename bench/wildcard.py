@@ -71,7 +71,7 @@ class Loader(Component):
 
 
 def serve(args: argparse.Namespace) -> int:
-    from cmion_mesh.embodiment import Embodiment
+    from cmion_mesh.body.embodiment import Embodiment
 
     stop = StopSignal(args.parent)
     session = open_session(loopback_config(listen=args.raw_listen))

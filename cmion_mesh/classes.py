@@ -34,6 +34,15 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.records": "cmion_mesh.migration.ledger",
     "cmion_mesh.invitation": "cmion_mesh.migration.invitation",
     "cmion_mesh.devices": "cmion_mesh.migration.devices",
+    "cmion_mesh.embodiment": "cmion_mesh.body.embodiment",
+    "cmion_mesh.architecture": "cmion_mesh.body.architecture",
+    "cmion_mesh.standin": "cmion_mesh.body.standin",
+    "cmion_mesh.portmap": "cmion_mesh.body.java_classes",
+    "cmion_mesh.remote": "cmion_mesh.body.remote",
+    "cmion_mesh.execution": "cmion_mesh.body.execution",
+    "cmion_mesh.manager": "cmion_mesh.body.manager",
+    "cmion_mesh.rules": "cmion_mesh.body.rules",
+    "cmion_mesh.validate": "cmion_mesh.body.validate",
 }
 
 

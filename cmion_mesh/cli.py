@@ -265,7 +265,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     # The device table (migration/devices.py) is read before the session opens: it names the embodiment,
     # its endpoints and the companion's birth; options given on the command line win over it.
     if args.path:
-        from cmion_mesh.architecture import read_architecture
+        from cmion_mesh.body.architecture import read_architecture
 
         arch = read_architecture(resolve_config(args.path), found, name=args.name)
         if arch is None:
@@ -297,10 +297,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         joined = None
         if name and not found.errors and keys.is_name(name) and keys.is_name(args.mesh):
             joined = _join(args, name, joining_stack)
-        from cmion_mesh.embodiment import Embodiment
+        from cmion_mesh.body.embodiment import Embodiment
+        from cmion_mesh.body.validate import check_embodiment, render
         from cmion_mesh.ion import Component
         from cmion_mesh.statedir import default_state_dir
-        from cmion_mesh.validate import check_embodiment, render
 
         ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
                                                  check_types=arch is None or library is not None)
@@ -406,11 +406,11 @@ def _run_daemon(args: argparse.Namespace, embodiment: Any, table: Any, companion
 def _serve(args: argparse.Namespace, base: type[Any], what: str) -> int:
     """Host a component built from ``CLASS --parameters`` for ``--embodiment`` until stopped, and say
     while that embodiment is not alive (the component then serves nobody)."""
+    from cmion_mesh.body.remote import CompetencyHost
     from cmion_mesh.classes import construct, split_parameters
     from cmion_mesh.client import alive_list, did_you_mean
     from cmion_mesh.competency import Competency
     from cmion_mesh.ion import serve
-    from cmion_mesh.remote import CompetencyHost
 
     built = construct(args.cls, base, split_parameters(args.parameters))
     component = CompetencyHost(built) if isinstance(built, Competency) else built
@@ -887,7 +887,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from cmion_mesh.validate import FileReport, expand, render, validate_paths
+    from cmion_mesh.body.validate import FileReport, expand, render, validate_paths
 
     reports: list[FileReport] = []
     paths: list[str] = []

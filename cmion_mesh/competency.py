@@ -314,7 +314,7 @@ def load_library(path: str | os.PathLike[str], diagnostics: Diagnostics | None =
     With ``diagnostics`` every problem is reported there and the faulty entries are left out;
     without, the first error raises its ``ConfigError``.
     """
-    from cmion_mesh.standin import StandInCompetency, competency_types, resolve, unique
+    from cmion_mesh.body.standin import StandInCompetency, competency_types, resolve, unique
 
     diag = Diagnostics.raising() if diagnostics is None else diagnostics
     name = os.fspath(path)

@@ -33,6 +33,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
+from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, RequestRejected
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import (
@@ -48,7 +49,6 @@ from cmion_mesh.messages import (
     StorageChange,
     Wake,
 )
-from cmion_mesh.rules import MindAction
 
 log = logging.getLogger(__name__)
 

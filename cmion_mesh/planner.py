@@ -28,6 +28,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
+from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.migration.invitation import INVITATION_ACTION
@@ -60,7 +61,6 @@ from cmion_mesh.planner_spec import (
     spec_from_data,
     to_plain,
 )
-from cmion_mesh.rules import MindAction
 from cmion_mesh.storage import WorldModel
 
 __all__ = ["STATE_VERSION", "PlannerMind"]

@@ -71,7 +71,7 @@ def test_a_daemon_without_certificates_or_companion_loads_no_crypto() -> None:
     # `up` reads XML; it signs nothing until a companion is born or arrives, and --certs is off
     code = ("import cmion_mesh.cli as cli\n"
             "cli.build_parser('up').parse_args(['up', 'robot'])\n"
-            "import cmion_mesh.embodiment, cmion_mesh.validate, cmion_mesh.transport.security, cmion_mesh.migration.devices, "
+            "import cmion_mesh.body.embodiment, cmion_mesh.body.validate, cmion_mesh.transport.security, cmion_mesh.migration.devices, "
             "cmion_mesh.statedir")
     assert loaded_by(code) == ["lxml"]
 

@@ -21,9 +21,9 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh import cli
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import Scenario, start_bodies, stop_bodies
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import MeshError, NotReached, Refused
 from cmion_mesh.ion import send_request
 from cmion_mesh.messages import ActionStatus, Describe

@@ -17,20 +17,21 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import cli, portmap
-from cmion_mesh.architecture import load_architecture, read_architecture
+from cmion_mesh import cli
+from cmion_mesh.body import java_classes as portmap
+from cmion_mesh.body.architecture import load_architecture, read_architecture
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.rules import load_rules
+from cmion_mesh.body.standin import StandInCompetency, StandInComponent
+from cmion_mesh.body.validate import check_embodiment, validate_paths
 from cmion_mesh.classes import split_parameters
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import load_library
 from cmion_mesh.diagnostics import Diagnostics
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
-from cmion_mesh.rules import load_rules
-from cmion_mesh.standin import StandInCompetency, StandInComponent
 from cmion_mesh.storage import load_world_model_init
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
-from cmion_mesh.validate import check_embodiment, validate_paths
 
 from .conftest import DATA
 
@@ -99,7 +100,7 @@ def test_port_map_covers_every_class_of_real_configurations() -> None:
 
 def test_port_map_document_is_generated_from_the_table() -> None:
     text = (ROOT / "docs" / "portmap.md").read_text()
-    assert text == portmap.markdown(), "docs/portmap.md is stale: python -m cmion_mesh.portmap > docs/portmap.md"
+    assert text == portmap.markdown(), "docs/portmap.md is stale: python -m cmion_mesh.body.java_classes > docs/portmap.md"
     for name in portmap.PORT_MAP:
         assert f"`{name}`" in text, name
 

@@ -17,8 +17,8 @@ from typing import Any
 import msgspec
 import pytest
 
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
 from cmion_mesh.migration import identity

@@ -8,18 +8,18 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh.architecture import load_architecture
+from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.validate import validate_file
 from cmion_mesh.cli import main
 from cmion_mesh.client import MeshClient
 from cmion_mesh.diagnostics import Diagnostics
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.migration import devices
 from cmion_mesh.migration.manager import MigrationCompetency
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
-from cmion_mesh.validate import validate_file
 
 from .conftest import CMION_2011, DATA
 

@@ -12,8 +12,9 @@ from typing import Any
 import pytest
 
 from cmion_mesh import fatima
-from cmion_mesh.architecture import load_architecture
-from cmion_mesh.embodiment import Embodiment
+from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.rules import load_rules
 from cmion_mesh.errors import ConfigError, MeshError, XmlError
 from cmion_mesh.fatima import (
     FailureGate,
@@ -28,7 +29,6 @@ from cmion_mesh.fatima import (
     property_changed_line,
 )
 from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
-from cmion_mesh.rules import load_rules
 from cmion_mesh.testing.fatima_peer import Peer, PeerProcess
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

@@ -35,9 +35,11 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from cmion_mesh import keys, messages
-from cmion_mesh.architecture import load_architecture
+from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.remote import CompetencyHost
+from cmion_mesh.body.rules import load_rules
 from cmion_mesh.competency import Competency, RunContext, read_library
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.messages import (
     Act,
@@ -87,8 +89,6 @@ from cmion_mesh.messages import (
 from cmion_mesh.migration import custody, identity, signing
 from cmion_mesh.migration.identity import Identity
 from cmion_mesh.planner_spec import load_spec, spec_from_data
-from cmion_mesh.remote import CompetencyHost
-from cmion_mesh.rules import load_rules
 from cmion_mesh.storage import load_world_model_init
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 

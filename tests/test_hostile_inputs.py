@@ -32,10 +32,12 @@ import msgspec
 import pytest
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.architecture import load_architecture
+from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.remote import CompetencyHost
+from cmion_mesh.body.rules import load_rules
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext, load_library
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError, XmlError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
@@ -59,8 +61,6 @@ from cmion_mesh.migration import ledger as records
 from cmion_mesh.migration.identity import Identity
 from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.planner_spec import load_spec
-from cmion_mesh.remote import CompetencyHost
-from cmion_mesh.rules import load_rules
 from cmion_mesh.statedir import LOCK_FILE
 from cmion_mesh.storage import WorldModel
 from cmion_mesh.testing.wait import wait_for

@@ -13,8 +13,9 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh import keys, supersimple
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.rules import MindAction
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import AddContainer, Code, Invite
 from cmion_mesh.migration import devices, invitation
@@ -24,7 +25,6 @@ from cmion_mesh.planner import PlannerMind
 from cmion_mesh.planner_spec import InvitationPolicy
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.resources import data_dir
-from cmion_mesh.rules import MindAction
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

@@ -13,13 +13,13 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import manager
+from cmion_mesh.body import manager
+from cmion_mesh.body.execution import ExecutionSystem
+from cmion_mesh.body.manager import CompetencyManager
+from cmion_mesh.body.rules import load_rules
 from cmion_mesh.competency import Competency
-from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Simulation
-from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Act, ActionStatus, CancelAction, Code, Message, Outcome
-from cmion_mesh.rules import load_rules
 from cmion_mesh.transport.memory import MemoryTransport
 
 from .competency_helpers import Scripted, pump

@@ -9,8 +9,8 @@ from typing import Any
 import msgspec
 import pytest
 
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import NotAlive, RequestRejected
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy

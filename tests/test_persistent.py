@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from cmion_mesh.body.embodiment import PERSISTENT_FILE, Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import PERSISTENT_FILE, Embodiment
 from cmion_mesh.errors import Refused
 from cmion_mesh.messages import AddContainer
 from cmion_mesh.resources import embodiment_dir

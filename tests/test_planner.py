@@ -13,9 +13,9 @@ import msgspec
 import pytest
 
 from cmion_mesh import keys
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
 from cmion_mesh.planner import PlannerMind

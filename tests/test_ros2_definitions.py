@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh import ros2
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Sample

@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from cmion_mesh import xmlsafe
+from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules, parse_rules, substitute, substitute_step
 from cmion_mesh.errors import ConfigError, PlanError, StorageError, XmlError
-from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules, parse_rules, substitute, substitute_step
 
 from .conftest import CMION_2011
 

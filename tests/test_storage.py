@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.errors import ConfigError, RequestRejected, StorageError
 from cmion_mesh.messages import AddContainer, Container, Event, Property, RemoveContainer, RemoveProperty, SetProperty
 from cmion_mesh.testing.wait import wait_for

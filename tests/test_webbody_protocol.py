@@ -15,8 +15,8 @@ import pytest
 from websockets.sync.client import ClientConnection, connect
 
 from cmion_mesh import keys
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.embodiment import Embodiment
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for

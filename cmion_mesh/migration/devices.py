@@ -43,7 +43,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.architecture import Architecture
+from cmion_mesh.body.architecture import Architecture
 from cmion_mesh.classes import current_name
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName

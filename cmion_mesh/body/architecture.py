@@ -17,7 +17,7 @@ names the embodiment; without it the configuration's folder name is used, which 
 valid embodiment name (else an error asks for ``Embodiment``). ``Companion`` (an extension) names
 a companion born here on the first start, if this embodiment holds no companion.
 
-CMION's own files load unchanged: Java class names go through the port map (``portmap``; a class
+CMION's own files load unchanged: Java class names go through the port map (``body.java_classes``; a class
 with no equivalent is an inert stand-in component, ``standin``), components and ``AdmitCompanion``
 may come in any order, and a referenced file name without a suffix that is not found as given is
 looked up as ``NAME.xml`` (CMION for Android named raw resources so).
@@ -69,9 +69,9 @@ class Architecture:
         components the embodiment builds itself (``built_by_embodiment``) are refused unbuilt."""
         # Imported here: reading a configuration (``up`` does, to know its name and endpoints before
         # it joins the mesh) needs none of the component machinery.
+        from cmion_mesh.body.java_classes import DOC
+        from cmion_mesh.body.standin import StandInComponent, resolve, unique, why_standin
         from cmion_mesh.ion import Component
-        from cmion_mesh.portmap import DOC
-        from cmion_mesh.standin import StandInComponent, resolve, unique, why_standin
 
         diag = Diagnostics.raising() if diagnostics is None else diagnostics
         where = str(self.path)

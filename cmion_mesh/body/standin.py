@@ -1,7 +1,7 @@
 """Stand-ins: what a CMION Java class with no cmion-mesh equivalent loads as.
 
 A configuration naming a robot head, a Kinect or Greta still starts: each such class (see
-``portmap``) becomes a stand-in, reported unavailable, and listed by ``validate``, ``up`` and
+``body.java_classes``) becomes a stand-in, reported unavailable, and listed by ``validate``, ``up`` and
 ``describe``.
 
 * A **stand-in competency** is in the library under the competency types the port map knows for
@@ -25,12 +25,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from cmion_mesh import portmap
+from cmion_mesh.body import java_classes as portmap
+from cmion_mesh.body.java_classes import Port
 from cmion_mesh.classes import find_file
 from cmion_mesh.competency import Competency, Done, RunContext, RunResult, short_name
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.ion import Component, Simulation
-from cmion_mesh.portmap import Port
 
 
 def unavailable_reason(stand_ins: Sequence[StandIn]) -> str:

@@ -12,7 +12,7 @@ they are). Each entry says what the class was (its ``kind``) and what happens to
 * **base class**: abstract in CMION too (CMION could not build one either): naming it is an
   error, and ``target`` is the cmion-mesh class to subclass instead;
 * **stand-in**: no equivalent (a robot head, a Kinect, Greta, SAMGAR...): it loads as a stand-in
-  that is reported unavailable (``cmion_mesh.standin``). So does any ``cmion.`` name that is
+  that is reported unavailable (``cmion_mesh.body.standin``). So does any ``cmion.`` name that is
   not in the map.
 
 ``types`` are the competency types a competency provided in CMION, where known: a stand-in
@@ -20,7 +20,7 @@ competency is entered under them, so that rules needing them fail naming the cla
 ``file_parameters`` are the positions of constructor parameters that name files (resolved
 relative to the file naming the class, ``NAME.xml`` for an Android raw-resource name).
 
-``docs/portmap.md`` is generated from this table: ``python -m cmion_mesh.portmap > docs/portmap.md``.
+``docs/portmap.md`` is generated from this table: ``python -m cmion_mesh.body.java_classes > docs/portmap.md``.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ def markdown() -> str:
     lines = [
         "# Port map: CMION Java classes in cmion-mesh",
         "",
-        "<!-- Generated from cmion_mesh/portmap.py: python -m cmion_mesh.portmap > docs/portmap.md -->",
+        "<!-- Generated from cmion_mesh/body/java_classes.py: python -m cmion_mesh.body.java_classes > docs/portmap.md -->",
         "",
         "CMION configuration files name Java classes. cmion-mesh reads those files unchanged and looks",
         "each `cmion.` name up in this table:",

@@ -20,22 +20,22 @@ from collections.abc import Iterable
 from typing import Any
 
 from cmion_mesh import __version__, keys
-from cmion_mesh.architecture import load_architecture
+from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.execution import ExecutionSystem
+from cmion_mesh.body.manager import CompetencyManager
+from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.body.standin import StandIn
+from cmion_mesh.body.standin import summary as standin_summary
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.errors import MeshError
-from cmion_mesh.execution import ExecutionSystem
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
-from cmion_mesh.manager import CompetencyManager
 from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import Joining, NameClaim, Presence, claim_name
-from cmion_mesh.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
-from cmion_mesh.standin import StandIn
-from cmion_mesh.standin import summary as standin_summary
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport.base import Closeable, Transport, TransportConfig
@@ -170,7 +170,7 @@ class Embodiment:
         A device table named by the library's Migration competency (``devices``) gives the name,
         the companion's birth and, where ``transport_config`` leaves them empty, the endpoints;
         the arguments given here win over it."""
-        from cmion_mesh.validate import check_embodiment
+        from cmion_mesh.body.validate import check_embodiment
 
         arch = load_architecture(path, name=name)
         table = table_for_library(arch.library) if arch.library is not None else None
