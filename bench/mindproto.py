@@ -1,7 +1,7 @@
 """The agent-mind line protocol (FAtiMA): action line in -> ``ACTION-FINISHED`` out, a one-step plan.
 
 Processes (all on loopback): a daemon ``cmion-mesh up`` of the bench embodiment (rule ``One`` -> one
-``Instant`` step) with ``cmion_mesh.fatima:FAtiMAConnector`` listening on a free port and the
+``Instant`` step) with ``cmion_mesh.minds.fatima.connector:FAtiMAConnector`` listening on a free port and the
 companion living there, so the mind is awake; ``python -m bench.mindproto serve-echo`` (a plain TCP
 line echo, for the cost of the socket hops alone); ``python -m bench.core serve-raw`` (a raw zenoh
 queryable); the measuring process, which plays the mind itself on one TCP connection (handshake,
@@ -117,7 +117,8 @@ def write_config(folder: Path, mind_port: int) -> Path:
     config.write_text(
         f'<ArchitectureConfiguration Embodiment="{EMBODIMENT}" CompetencyManagerRulesFile="{RULES}"'
         f' CompetencyLibraryConfigurationFile="{LIBRARY}">\n'
-        f'  <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector" ConstructorParameters="modular port:{mind_port}"/>\n'
+        f'  <ArchitectureComponent ClassName="cmion_mesh.minds.fatima.connector:FAtiMAConnector" ConstructorParameters="modular '
+        f'port:{mind_port}"/>\n'
         "</ArchitectureConfiguration>\n")
     return config
 

@@ -43,6 +43,11 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.manager": "cmion_mesh.body.manager",
     "cmion_mesh.rules": "cmion_mesh.body.rules",
     "cmion_mesh.validate": "cmion_mesh.body.validate",
+    "cmion_mesh.supersimple": "cmion_mesh.minds.supersimple",
+    "cmion_mesh.planner": "cmion_mesh.minds.planner.mind",
+    "cmion_mesh.planner_spec": "cmion_mesh.minds.planner.spec",
+    "cmion_mesh.planner_search": "cmion_mesh.minds.planner.search",
+    "cmion_mesh.fatima": "cmion_mesh.minds.fatima.connector",
 }
 
 

@@ -53,7 +53,8 @@ def loaded_by(code: str) -> list[str]:
     """The heavy modules (cryptography, lxml, the certificates, the planner) a fresh interpreter has
     loaded after running ``code``."""
     probe = (f"import sys\n{code}\n"
-             "heavy = ('cryptography', 'lxml', 'cmion_mesh.transport.certs', 'cmion_mesh.planner', 'cmion_mesh.planner_search')\n"
+             "heavy = ('cryptography', 'lxml', 'cmion_mesh.transport.certs', 'cmion_mesh.minds.planner.mind', "
+             "'cmion_mesh.minds.planner.search')\n"
              "print(sorted(m for m in sys.modules if m in heavy or m.split('.')[0] in heavy[:2]))\n")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
     return [m for m in ast.literal_eval(result.stdout.strip()) if "." not in m or m.startswith("cmion_mesh")]

@@ -86,9 +86,9 @@ def test_port_map_covers_every_class_of_real_configurations() -> None:
         assert targets[f"cmion.level2.competencies.test.TestCompetency{n}"] == f"cmion_mesh.competencies.cmion_test:TestCompetency{n}"
     assert targets["cmion.level2.competencies.Migration"] == targets["cmion.level2.competencies.AndroidMigration"] == \
         "cmion_mesh.migration.manager:MigrationCompetency"
-    assert targets["cmion.level3.fatima.FAtiMAConnector"] == "cmion_mesh.fatima:FAtiMAConnector"
+    assert targets["cmion.level3.fatima.FAtiMAConnector"] == "cmion_mesh.minds.fatima.connector:FAtiMAConnector"
     assert targets["cmion.level3.supersimplemind.SuperSimpleMigratingByInviteMindConnector"] == \
-        "cmion_mesh.supersimple:SuperSimpleMigratingByInviteMind"
+        "cmion_mesh.minds.supersimple:SuperSimpleMigratingByInviteMind"
     gui = [p for p in portmap.PORT_MAP.values() if p.kind == "GUI add-on"]
     assert gui and all(p.action == "command" and p.command and p.command.startswith("cmion-mesh ") for p in gui)
     for port in portmap.PORT_MAP.values():
@@ -287,8 +287,8 @@ def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) ->
     (tmp_path / "ArchitectureConfiguration.xml").write_text(
         '<ArchitectureConfiguration Embodiment="x" CompetencyManagerRulesFile="r.xml" CompetencyLibraryConfigurationFile="l.xml">\n'
         '<ArchitectureComponent ClassName="cmion.level3.fatima.FAtiMAConnector" ConstructorParameters="modular, bogus"/>\n'
-        '<ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,nowhere.json"/>\n'
-        '<ArchitectureComponent ClassName="cmion_mesh.supersimple:SuperSimpleMind" ConstructorParameters="too,many"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.minds.planner.mind:PlannerMind" ConstructorParameters="mind,nowhere.json"/>\n'
+        '<ArchitectureComponent ClassName="cmion_mesh.minds.supersimple:SuperSimpleMind" ConstructorParameters="too,many"/>\n'
         f'<ArchitectureComponent ClassName="cmion_mesh.migration.manager:MigrationManager" ConstructorParameters="{state}"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
         '<ArchitectureComponent ClassName="cmion_mesh.mind:Mind" ConstructorParameters="twin"/>\n'
@@ -296,9 +296,9 @@ def test_validate_builds_the_components_as_up_does(tmp_path: Path, mesh: str) ->
         "</ArchitectureConfiguration>")
     config = str(tmp_path / "ArchitectureConfiguration.xml")
     expected = [
-        (2, "cmion.level3.fatima.FAtiMAConnector (ported as cmion_mesh.fatima:FAtiMAConnector): unknown option 'bogus'"),
-        (3, "cmion_mesh.planner:PlannerMind: "),
-        (4, "cannot construct cmion_mesh.supersimple:SuperSimpleMind with parameters ['too', 'many']: TypeError"),
+        (2, "cmion.level3.fatima.FAtiMAConnector (ported as cmion_mesh.minds.fatima.connector:FAtiMAConnector): unknown option 'bogus'"),
+        (3, "cmion_mesh.minds.planner.mind:PlannerMind: "),
+        (4, "cannot construct cmion_mesh.minds.supersimple:SuperSimpleMind with parameters ['too', 'many']: TypeError"),
         (5, "cmion_mesh.migration.manager:MigrationManager is built by every embodiment itself"),
         (7, "cmion_mesh.mind:Mind: a component named 'twin' is already in this configuration"),
     ]
@@ -465,7 +465,7 @@ def test_up_starts_with_standins_listed(wild_daemon: tuple[Daemon, list[str]]) -
 def test_up_starts_cmion_own_test_configuration(wild_daemon: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     """CMION 2011's ArchitectureConfiguration.xml as it is (FAtiMA connector, GUI add-ons, SAMGAR),
     joined to the running daemon's mesh."""
-    from cmion_mesh.fatima import PORT_VARIABLE
+    from cmion_mesh.minds.fatima.connector import PORT_VARIABLE
     from cmion_mesh.testing.fatima_peer import PeerProcess
 
     _, net = wild_daemon

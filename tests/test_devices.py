@@ -28,7 +28,7 @@ pytestmark = pytest.mark.timeout(60)
 INVITE = DATA / "invite"
 OURS = {"cmion.level2.competencies.Migration": "cmion_mesh.migration.manager:MigrationCompetency",
         "cmion.level3.supersimplemind.SuperSimpleMigratingByInviteMindConnector":
-            "cmion_mesh.supersimple:SuperSimpleMigratingByInviteMind"}
+            "cmion_mesh.minds.supersimple:SuperSimpleMigratingByInviteMind"}
 
 
 def table_xml(*, config: str = "", devices_xml: str = "") -> str:

@@ -78,7 +78,7 @@ def test_configuration_validates_and_builds(name: str, transport: MemoryTranspor
     files = [arch.path, arch.rules, arch.library, arch.world_model]
     assert [validate_file(f) for f in files if f is not None] == [
         "ArchitectureConfiguration", "CompetencyManagerRules", "CompetencyLibrary", "WorldModel"]
-    expected_minds = [] if name == "cmion_test" else ["cmion_mesh.planner:PlannerMind"]
+    expected_minds = [] if name == "cmion_test" else ["cmion_mesh.minds.planner.mind:PlannerMind"]
     assert [c.class_name for c in arch.components] == expected_minds
     with up(name, transport, mesh) as body:
         description = client.describe(name)

@@ -1,4 +1,4 @@
-"""The FAtiMA line protocol with real processes: two daemons, each with ``cmion_mesh.fatima:FAtiMAConnector``,
+"""The FAtiMA line protocol with real processes: two daemons, each with ``cmion_mesh.minds.fatima.connector:FAtiMAConnector``,
 and the stand-in FAtiMA (``cmion_mesh.testing.fatima_peer``, written from the spec) in processes of
 its own over real sockets.
 
@@ -24,10 +24,10 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import fatima
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import StorageError
 from cmion_mesh.messages import ActionStatus, Event, Migrate, SetProperty
+from cmion_mesh.minds.fatima import connector as fatima
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.fatima_peer import PeerProcess
 from cmion_mesh.testing.wait import wait_for
@@ -84,7 +84,8 @@ def write_config(folder: Path, name: str, options: str, port: int) -> Path:
     config.write_text(
         f'<ArchitectureConfiguration Embodiment="{name}" CompetencyManagerRulesFile="rules.xml"'
         ' CompetencyLibraryConfigurationFile="library.xml" WorldModelInitFile="world.xml">\n'
-        f'  <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector" ConstructorParameters="{options} port:{port}"/>\n'
+        f'  <ArchitectureComponent ClassName="cmion_mesh.minds.fatima.connector:FAtiMAConnector" ConstructorParameters="{options} '
+        f'port:{port}"/>\n'
         "</ArchitectureConfiguration>\n")
     return config
 

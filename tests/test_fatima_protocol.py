@@ -11,12 +11,13 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import fatima
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.body.rules import load_rules
 from cmion_mesh.errors import ConfigError, MeshError, XmlError
-from cmion_mesh.fatima import (
+from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
+from cmion_mesh.minds.fatima import connector as fatima
+from cmion_mesh.minds.fatima.connector import (
     FailureGate,
     FAtiMAConnector,
     Options,
@@ -28,7 +29,6 @@ from cmion_mesh.fatima import (
     parse_semantic_memory,
     property_changed_line,
 )
-from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
 from cmion_mesh.testing.fatima_peer import Peer, PeerProcess
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -136,7 +136,8 @@ def test_architecture_names_the_connector_with_cmion_parameters(tmp_path: Path) 
         (tmp_path / "l.xml").write_text("<CompetencyLibrary/>")
         config.write_text('<ArchitectureConfiguration Embodiment="e" CompetencyManagerRulesFile="r.xml" '
                           'CompetencyLibraryConfigurationFile="l.xml">\n'
-                          f'  <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector" ConstructorParameters="{params}"/>\n'
+                          f'  <ArchitectureComponent ClassName="cmion_mesh.minds.fatima.connector:FAtiMAConnector" '
+                          f'ConstructorParameters="{params}"/>\n'
                           "</ArchitectureConfiguration>\n")
         (built,) = load_architecture(config).build_components()
         assert isinstance(built, FAtiMAConnector) and built.options == expected and built.listener is None

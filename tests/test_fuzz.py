@@ -88,7 +88,7 @@ from cmion_mesh.messages import (
 )
 from cmion_mesh.migration import custody, identity, signing
 from cmion_mesh.migration.identity import Identity
-from cmion_mesh.planner_spec import load_spec, spec_from_data
+from cmion_mesh.minds.planner.spec import load_spec, spec_from_data
 from cmion_mesh.storage import load_world_model_init
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 

@@ -60,7 +60,7 @@ from cmion_mesh.migration import custody, identity, signing
 from cmion_mesh.migration import ledger as records
 from cmion_mesh.migration.identity import Identity
 from cmion_mesh.migration.manager import MigrationManager
-from cmion_mesh.planner_spec import load_spec
+from cmion_mesh.minds.planner.spec import load_spec
 from cmion_mesh.statedir import LOCK_FILE
 from cmion_mesh.storage import WorldModel
 from cmion_mesh.testing.wait import wait_for

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import keys, supersimple
+from cmion_mesh import keys
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.body.rules import MindAction
 from cmion_mesh.client import MeshClient
@@ -21,8 +21,9 @@ from cmion_mesh.messages import AddContainer, Code, Invite
 from cmion_mesh.migration import devices, invitation
 from cmion_mesh.migration.devices import DeviceTable
 from cmion_mesh.mind import Mind
-from cmion_mesh.planner import PlannerMind
-from cmion_mesh.planner_spec import InvitationPolicy
+from cmion_mesh.minds import supersimple
+from cmion_mesh.minds.planner.mind import PlannerMind
+from cmion_mesh.minds.planner.spec import InvitationPolicy
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.resources import data_dir
 from cmion_mesh.testing.wait import wait_for

@@ -18,9 +18,9 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import AddContainer, Event, MindMessage, MindState, SetProperty, Wake
-from cmion_mesh.planner import PlannerMind
-from cmion_mesh.planner_search import find_plan
-from cmion_mesh.planner_spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
+from cmion_mesh.minds.planner.mind import PlannerMind
+from cmion_mesh.minds.planner.search import find_plan
+from cmion_mesh.minds.planner.spec import Goal, Limits, goals_from_data, load_operators, load_spec, operators_from_data, spec_from_data
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
@@ -134,9 +134,9 @@ def test_spec_file_loads(tmp_path: Path) -> None:
 
 
 def test_the_documented_spec_example_loads() -> None:
-    import cmion_mesh.planner_spec
+    import cmion_mesh.minds.planner.spec
 
-    doc = cmion_mesh.planner_spec.__doc__ or ""
+    doc = cmion_mesh.minds.planner.spec.__doc__ or ""
     start = doc.index("    {\n")
     spec = spec_from_data(msgspec.json.decode(doc[start:doc.index("\n    }\n", start) + 6]))
     assert [o.name for o in spec.operators] == ["walk", "greet"] and spec.limits == Limits()

@@ -6,7 +6,7 @@
         CompetencyManagerRulesFile="rules.xml"
         CompetencyLibraryConfigurationFile="library.xml"
         WorldModelInitFile="worldModel.xml">
-      <ArchitectureComponent ClassName="cmion_mesh.planner:PlannerMind" ConstructorParameters="mind,spirit.json"/>
+      <ArchitectureComponent ClassName="cmion_mesh.minds.planner.mind:PlannerMind" ConstructorParameters="mind,spirit.json"/>
     </ArchitectureConfiguration>
 
 File names are relative to the configuration file. ``ArchitectureComponent`` entries name ION

@@ -1,6 +1,6 @@
 """A stand-in for the FAtiMA agent mind, written from the line protocol (docs/fatima.md), not from FAtiMA.
 
-It is the other side of ``cmion_mesh.fatima`` and knows nothing of cmion-mesh (standard library
+It is the other side of ``cmion_mesh.minds.fatima.connector`` and knows nothing of cmion-mesh (standard library
 only). It connects, sends its handshake, records every line it receives, answers the body's
 commands as FAtiMA does (``CMD GET-STATE`` with a given opaque hex state, ``CMD SET-STATE`` with
 ``STATE-SET``, ``CMD GET-PROPERTIES`` with its semantic memory, ``CMD Stop``/``Start``), and

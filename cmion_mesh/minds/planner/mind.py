@@ -2,7 +2,7 @@
 
 The mind keeps a *belief base* (entity -> {property: value}), fed by world-model perceptions and
 by the effects of its own actions when they succeed. Its operators, goals, triggers, emotion and
-limits come from a spec (``planner_spec``); plans come from a bounded search (``planner_search``).
+limits come from a spec (``minds.planner.spec``); plans come from a bounded search (``minds.planner.search``).
 
 Achieved goals move to the ``achieved`` list; a *persistent* goal stays pending as a maintenance
 goal and is pursued again whenever its facts stop holding. An unsolvable goal ends as a
@@ -33,7 +33,7 @@ from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.migration.invitation import INVITATION_ACTION
 from cmion_mesh.mind import Mind
-from cmion_mesh.planner_search import (
+from cmion_mesh.minds.planner.search import (
     Beliefs,
     GroundedOperator,
     PlanResult,
@@ -45,7 +45,7 @@ from cmion_mesh.planner_search import (
     same_value,
     text,
 )
-from cmion_mesh.planner_spec import (
+from cmion_mesh.minds.planner.spec import (
     EmotionConfig,
     Fact,
     Goal,

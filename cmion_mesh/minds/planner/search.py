@@ -1,6 +1,6 @@
 """The reference planner's search: matching facts against beliefs, and finding a plan. Pure.
 
-Beliefs are ``entity -> {property: value}``; facts and operators are those of ``planner_spec``.
+Beliefs are ``entity -> {property: value}``; facts and operators are those of ``minds.planner.spec``.
 ``match`` yields every binding of the variables under which facts hold; ``find_plan`` is a
 uniform-cost search over belief states, bounded by depth, expanded states and generated
 successors: an unsolvable goal ends with ``found`` False and the reason, never a hang.
@@ -20,7 +20,7 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh.planner_spec import VARIABLE, Fact, Operator, is_var_text
+from cmion_mesh.minds.planner.spec import VARIABLE, Fact, Operator, is_var_text
 
 __all__ = [
     "Beliefs",

@@ -6,7 +6,7 @@ embodiment: FAtiMA's actions go to the competency manager's rules, the world mod
 FAtiMA, and around a migration FAtiMA's whole state (an opaque hex string) travels in the
 companion's identity document. Name it in an ArchitectureConfiguration as CMION did::
 
-    <ArchitectureComponent ClassName="cmion_mesh.fatima:FAtiMAConnector"
+    <ArchitectureComponent ClassName="cmion_mesh.minds.fatima.connector:FAtiMAConnector"
                            ConstructorParameters="modular persistent migrating"/>
 
 **Options** (words of the constructor parameters, separated by spaces or commas, any order):

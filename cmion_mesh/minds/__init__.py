@@ -1,0 +1,1 @@
+"""Minds: CMION's demonstration minds, the planner mind, the FAtiMA connector."""

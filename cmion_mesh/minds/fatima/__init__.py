@@ -1,0 +1,1 @@
+"""The original FAtiMA mind over CMION's agent-mind line protocol."""

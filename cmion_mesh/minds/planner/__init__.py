@@ -1,0 +1,1 @@
+"""The reference planner mind: the mind, its spec, its search."""
