@@ -35,7 +35,7 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.transport.zenoh import ZenohTransport
-from cmion_mesh.view import spawn_view
+from cmion_mesh.web.view import spawn_view
 
 PAGE_WAIT_MS = 20_000
 

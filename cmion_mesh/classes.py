@@ -48,6 +48,11 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.planner_spec": "cmion_mesh.minds.planner.spec",
     "cmion_mesh.planner_search": "cmion_mesh.minds.planner.search",
     "cmion_mesh.fatima": "cmion_mesh.minds.fatima.connector",
+    "cmion_mesh.webserver": "cmion_mesh.web.server",
+    "cmion_mesh.webbody": "cmion_mesh.web.body",
+    "cmion_mesh.view": "cmion_mesh.web.view",
+    "cmion_mesh.competencies.web": "cmion_mesh.web.competencies",
+    "cmion_mesh.speech": "cmion_mesh.web.speech",
 }
 
 

@@ -348,10 +348,10 @@ def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> A
 def _web_bodies(args: argparse.Namespace, components: list[Any]) -> list[Any]:
     """The web bodies to serve: the configuration's ``WebBody`` components, and ``--web``'s address
     (replacing the configuration's first one, or adding one)."""
-    if not args.web and "cmion_mesh.webbody" not in sys.modules:
+    if not args.web and "cmion_mesh.web.body" not in sys.modules:
         return []  # starlette and uvicorn cost start time: imported only for a page
-    from cmion_mesh.webbody import WebBody
-    from cmion_mesh.webserver import parse_bind
+    from cmion_mesh.web.body import WebBody
+    from cmion_mesh.web.server import parse_bind
 
     bodies = [c for c in components if isinstance(c, WebBody)]
     if args.web:
@@ -780,8 +780,8 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from cmion_mesh.view import MeshView
-    from cmion_mesh.webserver import WebServer, parse_bind
+    from cmion_mesh.web.server import WebServer, parse_bind
+    from cmion_mesh.web.view import MeshView
 
     host, port = parse_bind(args.web)
     stop = Stopper()

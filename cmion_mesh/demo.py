@@ -10,7 +10,7 @@ them, and come back home to the robot, carrying its memory of the visit all the 
 The demo plays the world: the guest is at the entrance when the companion arrives there and
 answers the question with a "yes" gesture. It prints a timeline and ends by itself.
 
-``demo --web``: the screen and the phone serve their pages (``webbody``) and a live view of the
+``demo --web``: the screen and the phone serve their pages (``web.body``) and a live view of the
 mesh runs (``view``), on free loopback ports whose addresses it prints; nobody plays the guest: a
 person at the screen's page says "I am here" and answers "yes" (or "no"), and watches the companion
 go on to the phone's page. The daemons keep running after the story, for a look at the pages, until
@@ -128,7 +128,7 @@ WEB_BODIES = ("screen", "phone")
 def web_pages(scenario: Scenario, stack: contextlib.ExitStack) -> dict[str, str]:
     """The pages ``demo --web`` shows, name -> address: the bodies' own, and whatever else is
     started here for the demo's mesh (closed by ``stack``)."""
-    from cmion_mesh.view import spawn_view
+    from cmion_mesh.web.view import spawn_view
 
     pages = {name: web_address(scenario.daemons[name]) for name in WEB_BODIES}
     view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values())

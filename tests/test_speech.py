@@ -6,7 +6,7 @@ import struct
 
 import pytest
 
-from cmion_mesh import speech
+from cmion_mesh.web import speech
 
 
 def pcm_wav(samples: int, rate: int = 22050, sizes: int | None = None) -> bytes:

@@ -21,7 +21,7 @@ from cmion_mesh.procs import Daemon
 from cmion_mesh.testing.wait import migrate_once_seen
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
-from cmion_mesh.view import spawn_view
+from cmion_mesh.web.view import spawn_view
 
 from .browser import screenshot
 from .conftest import start_daemon

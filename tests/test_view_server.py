@@ -13,13 +13,14 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
-from cmion_mesh import keys, view
+from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
-from cmion_mesh.view import MeshView, Model, Page
-from cmion_mesh.webserver import WebServer
+from cmion_mesh.web import view
+from cmion_mesh.web.server import WebServer
+from cmion_mesh.web.view import MeshView, Model, Page
 
 
 def event(embodiment: str, component: str, name: str, data: Any = None, seq: int = 1) -> Event:

@@ -24,7 +24,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 from websockets.typing import Origin
 
-from cmion_mesh import keys, speech
+from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.demo import Scenario, start_bodies, stop_bodies, web_address
 from cmion_mesh.errors import MeshError
@@ -32,6 +32,7 @@ from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
+from cmion_mesh.web import speech
 from tests.browser import screenshot
 
 WAIT = 60.0

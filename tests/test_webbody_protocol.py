@@ -21,7 +21,7 @@ from cmion_mesh.messages import ActionReport
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryTransport
-from cmion_mesh.webbody import WebBody
+from cmion_mesh.web.body import WebBody
 
 WAIT = 30.0
 

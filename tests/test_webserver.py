@@ -12,7 +12,7 @@ from starlette.responses import PlainTextResponse
 from starlette.routing import Route
 
 from cmion_mesh.errors import ConfigError, WebServerError
-from cmion_mesh.webserver import WebServer, parse_bind
+from cmion_mesh.web.server import WebServer, parse_bind
 
 
 def _app() -> Starlette:

@@ -1,10 +1,10 @@
 """A body in the browser: the companion's face, voice and senses on a web page.
 
-``WebBody`` is an ION component (named ``web``) that serves a page (``cmion_mesh/web/body/``, plain
+``WebBody`` is an ION component (named ``web``) that serves a page (``cmion_mesh/web/static/body/``, plain
 static files) from the daemon: ``cmion-mesh up screen --web 127.0.0.1:8080``, or an
-``ArchitectureComponent ClassName="cmion_mesh.webbody:WebBody" ConstructorParameters="127.0.0.1:8080"``
+``ArchitectureComponent ClassName="cmion_mesh.web.body:WebBody" ConstructorParameters="127.0.0.1:8080"``
 in the configuration. The page is the body's actuators and sensors; the competencies that drive
-it are the web competencies (``competencies/web.py``), which look the body up in their
+it are the web competencies (``web/competencies.py``), which look the body up in their
 embodiment and behave as the simulated ones when there is none.
 
 What the page shows is one state (``snapshot()``): who inhabits the body (an empty, waiting body
@@ -23,7 +23,7 @@ Which pages: only the body's own. A WebSocket opened by a page of another site (
 on a loopback body by a name that is not loopback (its ``Host``: a site made to resolve to
 127.0.0.1, DNS rebinding), is refused before it is accepted, and so are such names asking for the
 state or the speech: another page in the same browser neither drives the senses nor hears what the
-companion says. It is the live view's check (``webserver.same_origin``).
+companion says. It is the live view's check (``web.server.same_origin``).
 
 Who may act: anyone who can open the page, in plain mode (it is bound to loopback unless told
 otherwise). With a ``key`` (``up --certs`` makes one, and prints the page's address with it), the
@@ -61,10 +61,10 @@ from cmion_mesh import keys
 from cmion_mesh.errors import InvalidName, MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
-from cmion_mesh.webserver import LOOPBACK_NAMES, WebServer, host_allowed, parse_bind, same_origin
+from cmion_mesh.web.server import LOOPBACK_NAMES, WebServer, host_allowed, parse_bind, same_origin
 
 if TYPE_CHECKING:
-    from cmion_mesh.competencies.web import WebSense
+    from cmion_mesh.web.competencies import WebSense
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ MIGRATION_EVENTS = frozenset({"MigrationOccurred", "CompanionResumed", "Migratio
 
 
 def static_dir() -> Any:
-    return resources.files("cmion_mesh") / "web" / "body"
+    return resources.files("cmion_mesh") / "web" / "static" / "body"
 
 
 class _Page:
@@ -268,13 +268,13 @@ class WebBody(Component):
         return inhabitant if isinstance(inhabitant, str) else None
 
     def _senses(self) -> list[str]:
-        from cmion_mesh.competencies.web import WebSense
+        from cmion_mesh.web.competencies import WebSense
 
         execution = self.sim.components_by_name().get("execution")
         return sorted({c.sense for c in getattr(execution, "competencies", ()) if isinstance(c, WebSense)})
 
     def sensing(self) -> list[WebSense]:
-        from cmion_mesh.competencies.web import WebSense
+        from cmion_mesh.web.competencies import WebSense
 
         execution = self.sim.components_by_name().get("execution")
         return [c for c in getattr(execution, "competencies", ()) if isinstance(c, WebSense)]

@@ -20,7 +20,7 @@ from urllib.parse import urlsplit
 
 import uvicorn
 
-from .errors import ConfigError, WebServerError
+from cmion_mesh.errors import ConfigError, WebServerError
 
 _START_TIMEOUT = 10.0
 _STOP_TIMEOUT = 5.0

@@ -53,7 +53,7 @@ from cmion_mesh.errors import MeshError, ProtocolError
 from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, decode
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport.base import Closeable, Sample
-from cmion_mesh.webserver import host_allowed, same_origin
+from cmion_mesh.web.server import host_allowed, same_origin
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ def spawn_view(mesh: str, connect: Iterable[str], *extra: str, web: str = "127.0
 
 
 def static_dir() -> Path:
-    return Path(__file__).resolve().parent / "web" / "view"
+    return Path(__file__).resolve().parent / "static" / "view"
 
 
 def entry_json(entry: Property | Container | None) -> dict[str, Any] | None:
@@ -692,7 +692,7 @@ class MeshView:
 
     def same_origin(self, websocket: WebSocket) -> bool:
         """Whether a page from this server opened the socket: a foreign page must not read the
-        mesh (or act on it). The check the web body makes too (``webserver.same_origin``)."""
+        mesh (or act on it). The check the web body makes too (``web.server.same_origin``)."""
         return same_origin(websocket.headers, loopback=self.loopback)
 
     async def _websocket(self, websocket: WebSocket) -> None:

@@ -1,11 +1,11 @@
-"""Competencies of a body on a web page (``webbody.WebBody``): speech, animation, gestures,
+"""Competencies of a body on a web page (``web.body.WebBody``): speech, animation, gestures,
 visitors and typed commands.
 
 Each one is the simulated competency of the same type (``spirit.py``) with its world made real:
 the same constructor parameters, run parameters, blackboard and world-model writes and events, so
 rules and minds cannot tell them apart. When the embodiment has a web body serving its page:
 
-* ``WebSpeechSynthesis`` synthesizes the line on the server (espeak-ng, ``speech.py``), shows it on
+* ``WebSpeechSynthesis`` synthesizes the line on the server (espeak-ng, ``web/speech.py``), shows it on
   the page with its audio and lip movement, and takes as long as the sound does; without a speech
   engine the page shows the text for as long as reading it takes (one warning in the log);
 * ``WebAnimation`` plays the animation on the face, at least ``ANIMATION_SECONDS`` of it;
@@ -25,8 +25,8 @@ from typing import Any, ClassVar
 
 from cmion_mesh.competencies.spirit import SELF, Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection, _seconds
 from cmion_mesh.competency import RunContext
-from cmion_mesh.speech import SpeechUnavailable, duration, synthesize
-from cmion_mesh.webbody import WebBody, web_body
+from cmion_mesh.web.body import WebBody, web_body
+from cmion_mesh.web.speech import SpeechUnavailable, duration, synthesize
 
 __all__ = ["WebAnimation", "WebCommandInput", "WebGestureDetect", "WebSense", "WebSpeechSynthesis", "WebUserDetection"]
 
