@@ -36,11 +36,11 @@ from bench.daemons import Node, stop_and_report
 from bench.harness import loopback_config, loopback_endpoint, start_child, stop_child
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
-from cmion_mesh import ros2
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.ros2 import wire as ros2
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 EMBODIMENT = "ros_robot"

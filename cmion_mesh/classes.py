@@ -53,6 +53,8 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.view": "cmion_mesh.web.view",
     "cmion_mesh.competencies.web": "cmion_mesh.web.competencies",
     "cmion_mesh.speech": "cmion_mesh.web.speech",
+    "cmion_mesh.ros2": "cmion_mesh.ros2.wire",
+    "cmion_mesh.competencies.ros2": "cmion_mesh.ros2.competencies",
 }
 
 

@@ -20,7 +20,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient, mesh_problems
 from cmion_mesh.errors import ExitCode
-from cmion_mesh.ros2 import ADMIN_SPACE, parse_token
+from cmion_mesh.ros2.wire import ADMIN_SPACE, parse_token
 from cmion_mesh.transport.base import TransportConfig
 
 IFF_UP, IFF_LOOPBACK, IFF_MULTICAST = 0x1, 0x8, 0x1000

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import ros2
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.ros2 import wire as ros2
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Sample
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -25,9 +25,9 @@ ROS_ROBOT = embodiment_dir("ros_robot")
 OTHER_HASH = "RIHS01_" + "ab" * 32
 LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 <CompetencyLibrary>
-  <Competency ClassName="cmion_mesh.competencies.ros2:Ros2Navigation" ConstructorParameters="server_timeout=0.5" />
-  <Competency ClassName="cmion_mesh.competencies.ros2:Ros2Velocity" ConstructorParameters="subscriber_timeout=0.5" />
-  <Competency ClassName="cmion_mesh.competencies.ros2:Ros2Speech" ConstructorParameters="subscriber_timeout=0.5" />
+  <Competency ClassName="cmion_mesh.ros2.competencies:Ros2Navigation" ConstructorParameters="server_timeout=0.5" />
+  <Competency ClassName="cmion_mesh.ros2.competencies:Ros2Velocity" ConstructorParameters="subscriber_timeout=0.5" />
+  <Competency ClassName="cmion_mesh.ros2.competencies:Ros2Speech" ConstructorParameters="subscriber_timeout=0.5" />
   <Competency ClassName="cmion_mesh.competencies.spirit:LanguageGeneration" ConstructorParameters="0.02,Self" />
   <Competency ClassName="cmion_mesh.competencies.spirit:Animation" ConstructorParameters="0.05,talk,wave,nod" />
 </CompetencyLibrary>

@@ -8,9 +8,9 @@ import threading
 
 import pytest
 
-from cmion_mesh import ros2
-from cmion_mesh.competencies.ros2 import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.errors import ConfigError, ProtocolError
+from cmion_mesh.ros2 import wire as ros2
+from cmion_mesh.ros2.competencies import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Sample
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

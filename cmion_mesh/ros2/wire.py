@@ -24,7 +24,7 @@ CDR and the type descriptions come from ``rosbags`` (its ROS 2 Jazzy type store:
 messages, and the Nav2 and action types registered here from their ``.msg``/``.action`` text);
 this module adds what rosbags has no notion of: services and actions as rmw_zenoh names and hashes
 them, keys, tokens and attachments. Only this module knows the format; the competencies
-(``competencies/ros2.py``) use ``Ros2Node``.
+(``ros2/competencies.py``) use ``Ros2Node``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Competencies that drive a ROS 2 robot over rmw_zenoh (``cmion_mesh/ros2.py`` is the wire).
+"""Competencies that drive a ROS 2 robot over rmw_zenoh (``cmion_mesh/ros2/wire.py`` is the wire).
 
 The daemon's own zenoh session is a ROS 2 node (``cmion_<embodiment>`` unless ``node=`` says
 otherwise): no ROS installation, no DDS, no bridge process. Every parameter is ``name=value`` in
@@ -46,11 +46,12 @@ import time
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-from cmion_mesh import keys, ros2
+from cmion_mesh import keys
 from cmion_mesh.competencies.spirit import SELF, _bb_set, _quietly, _seconds, _text, _valid_name, _wm_set
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Simulation
+from cmion_mesh.ros2 import wire as ros2
 from cmion_mesh.transport.base import QueryCancel
 
 __all__ = ["Ros2Competency", "Ros2Navigation", "Ros2SensorBridge", "Ros2Speech", "Ros2Velocity"]
