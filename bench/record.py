@@ -31,8 +31,8 @@ from bench.fanout import DONE, control_key
 from bench.harness import loopback_config, loopback_endpoint, start_child, stop_child
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
-from cmion_mesh import record
 from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
+from cmion_mesh.tools import recording as record
 
 LABELS = {
     "record_raw": "raw zenoh events/s, 1 subscriber (baseline)",

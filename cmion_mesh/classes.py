@@ -55,6 +55,13 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.speech": "cmion_mesh.web.speech",
     "cmion_mesh.ros2": "cmion_mesh.ros2.wire",
     "cmion_mesh.competencies.ros2": "cmion_mesh.ros2.competencies",
+    "cmion_mesh.record": "cmion_mesh.tools.recording",
+    "cmion_mesh.replay": "cmion_mesh.tools.replay",
+    "cmion_mesh.tap": "cmion_mesh.tools.hz_echo",
+    "cmion_mesh.doctor": "cmion_mesh.tools.doctor",
+    "cmion_mesh.launch": "cmion_mesh.tools.launch",
+    "cmion_mesh.demo": "cmion_mesh.tools.demo",
+    "cmion_mesh.router": "cmion_mesh.tools.router",
 }
 
 

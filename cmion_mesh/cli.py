@@ -607,7 +607,7 @@ def cmd_events(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     if args.filters[:1] == ["info"]:
         return _record_info(args.filters[1:], args.json)
-    from cmion_mesh.record import Recorder, parse_size
+    from cmion_mesh.tools.recording import Recorder, parse_size
 
     if args.split_time is not None and args.split_time <= 0:
         raise ConfigError(f"--split-time {args.split_time:g} must be more than 0 seconds")
@@ -642,7 +642,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record_info(files: list[str], as_json: bool) -> int:
-    from cmion_mesh.record import format_info, info
+    from cmion_mesh.tools.recording import format_info, info
 
     if not files:
         raise ConfigError("record info: name the recording (cmion-mesh record info FILE.mcap)")
@@ -655,7 +655,7 @@ def _record_info(files: list[str], as_json: bool) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from cmion_mesh.replay import replay
+    from cmion_mesh.tools.replay import replay
 
     stop = Stopper()  # before any thread starts
     halt = threading.Event()
@@ -712,7 +712,7 @@ def _run_until(stop: Stopper, done: threading.Event, duration: float, every: flo
 
 
 def cmd_hz(args: argparse.Namespace) -> int:
-    from cmion_mesh import tap
+    from cmion_mesh.tools import hz_echo as tap
 
     if args.window < 1 or args.count < 0 or args.duration < 0:
         raise ConfigError("--window must be at least 1, --count and --duration at least 0")
@@ -750,7 +750,7 @@ def cmd_hz(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from cmion_mesh import tap
+    from cmion_mesh.tools import hz_echo as tap
 
     if args.count < 0 or args.duration < 0:
         raise ConfigError("--count and --duration must be at least 0")
@@ -881,7 +881,7 @@ def cmd_invite(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from cmion_mesh.doctor import run_doctor
+    from cmion_mesh.tools.doctor import run_doctor
 
     return run_doctor(transport_config(args), mesh=args.mesh, timeout=args.timeout, as_json=args.json)
 
@@ -932,13 +932,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from cmion_mesh.signals import Interrupter
 
     stop = Interrupter()  # before any thread: interrupted or terminated, the demo still stops its daemons
-    from cmion_mesh.demo import run_demo
+    from cmion_mesh.tools.demo import run_demo
 
     return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait, record=args.record)
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
-    from cmion_mesh import launch
+    from cmion_mesh.tools import launch
 
     plan = launch.load(launch.resolve_file(args.file), mesh=args.mesh)
     if args.check:
@@ -958,7 +958,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from cmion_mesh.router import DEFAULT_LISTEN, RouterOptions, run
+    from cmion_mesh.tools.router import DEFAULT_LISTEN, RouterOptions, run
 
     options = RouterOptions(listen=tuple(args.listen or (DEFAULT_LISTEN,)), connect=tuple(args.connect or ()),
                             config_file=args.config, multicast=not args.no_multicast, multicast_interface=args.multicast_interface,
@@ -1101,7 +1101,7 @@ def _certs_parsers(parser: argparse.ArgumentParser) -> None:
 
 
 def _router_parser(parser: argparse.ArgumentParser) -> None:
-    from cmion_mesh.router import DEFAULT_LISTEN
+    from cmion_mesh.tools.router import DEFAULT_LISTEN
 
     _zenoh_options(parser, listen=f"endpoint to accept peers and routers on; repeatable (default: {DEFAULT_LISTEN})",
                    connect="another router to connect to (chaining sites), e.g. tcp/10.0.0.5:7447; repeatable",

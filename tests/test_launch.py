@@ -14,12 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import launch, procs
+from cmion_mesh import procs
 from cmion_mesh.cli import main
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools import launch
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 

@@ -13,14 +13,14 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 
-from cmion_mesh import record
 from cmion_mesh.client import MeshClient
-from cmion_mesh.demo import Timeline, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import Event, decode, encode
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
-from cmion_mesh.record import Recorder, RecordingReader
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools import recording as record
+from cmion_mesh.tools.demo import Timeline, run_scenario, start_bodies, stop_bodies
+from cmion_mesh.tools.recording import Recorder, RecordingReader
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
@@ -188,7 +188,7 @@ def test_replay_filters_and_rejects_a_bad_rate(session: Session, tmp_path: Path)
         heard: list[Event] = []
         listen = MeshClient(listener_t, "fresh")
         with listen.events(heard.append):
-            from cmion_mesh.replay import replay
+            from cmion_mesh.tools.replay import replay
 
             stats = replay(MeshClient(t, "fresh"), session.clean, rate=0, filters=["*/ev/migration/MigrationStep"])
             wait_for(lambda: len(heard) == stats.published, 10, "the replayed steps")
@@ -202,7 +202,7 @@ def test_replay_stops_at_once_while_it_waits_to_join(session: Session, waiting_f
     """Ctrl-C (``stop``) ends replay's join wait at once, not when --join-timeout has passed."""
     import threading
 
-    from cmion_mesh.replay import replay
+    from cmion_mesh.tools.replay import replay
 
     with MemoryTransport(MemoryNetwork(), "replay") as t:
         client = MeshClient(t, "empty")
@@ -228,7 +228,7 @@ def test_replay_stops_at_once_while_it_waits_to_join(session: Session, waiting_f
 def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Past ``MAX_CHANNELS`` event keys, events share one channel whose topic is a pattern; replay
     still publishes each on its own key."""
-    from cmion_mesh.replay import replay
+    from cmion_mesh.tools.replay import replay
 
     monkeypatch.setattr(record, "MAX_CHANNELS", 2)
     network = MemoryNetwork()
@@ -270,7 +270,7 @@ def test_answers_are_told_only_while_someone_listens() -> None:
         assert send_request(tool_t, key, Describe()).status == "accepted"
         assert not [k for k in published if "@outcome" in k], "nobody listens: nothing told"
         # What `cmion-mesh echo '*/@outcome/**'` does: a subscription (not a liveliness watch).
-        from cmion_mesh.tap import Tap, resolve
+        from cmion_mesh.tools.hz_echo import Tap, resolve
 
         with Tap(tool_t, resolve("m", "*/@outcome/**"), lambda seen: told.append(decode(seen.payload, RequestAnswered))):
             assert send_request(tool_t, key, Describe()).status == "accepted"

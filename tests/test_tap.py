@@ -10,7 +10,7 @@ import pytest
 
 from cmion_mesh.errors import InvalidName
 from cmion_mesh.procs import Daemon, cli_argv, free_port
-from cmion_mesh.tap import is_liveliness, resolve, yamlish
+from cmion_mesh.tools.hz_echo import is_liveliness, resolve, yamlish
 from tests.rate_publisher import BINARY, RAW_KEY, TEXT, TICK_KEY
 
 pytestmark = pytest.mark.timeout(120)

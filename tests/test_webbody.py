@@ -26,10 +26,10 @@ from websockets.typing import Origin
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.demo import Scenario, start_bodies, stop_bodies, web_address
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools.demo import Scenario, start_bodies, stop_bodies, web_address
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web import speech

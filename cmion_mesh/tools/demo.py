@@ -40,7 +40,7 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 if TYPE_CHECKING:
-    from cmion_mesh.record import Recorder
+    from cmion_mesh.tools.recording import Recorder
 
 BODIES = ("robot", "screen", "phone")
 COMPANION = "spirit"
@@ -211,7 +211,7 @@ def _record(client: MeshClient, path: str, stack: contextlib.ExitStack) -> Recor
     """A recorder of the demo's mesh, closed by ``stack`` at the latest, with the three bodies
     described in its file. Describing them also joins: their answers come after they learnt of
     the recorder's subscriptions (one link, in order), so nothing of the story is missed."""
-    from cmion_mesh.record import Recorder
+    from cmion_mesh.tools.recording import Recorder
 
     recorder = stack.enter_context(Recorder(client.transport, client.mesh, path, overwrite=False))
     described: list[dict[str, Any]] = []

@@ -1,0 +1,1 @@
+"""Tools around a mesh: recording, replay, hz and echo, doctor, launch, demo, router."""
