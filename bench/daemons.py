@@ -97,7 +97,7 @@ class Node:
     companion: str | None = None
     architecture: str | None = None  # a shipped embodiment (e.g. "robot") instead of the bench config
     extra_env: dict[str, str] | None = None
-    launcher: tuple[str, ...] | None = None  # replaces ``python -m cmion_mesh.cli`` (e.g. a tracing wrapper)
+    launcher: tuple[str, ...] | None = None  # replaces ``python -m cmion_mesh.cli.main`` (e.g. a tracing wrapper)
     extra_args: tuple[str, ...] = ()  # more ``cmion-mesh up`` arguments (e.g. ``--config FILE``)
     daemon: Stamped | None = None
 

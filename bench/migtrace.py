@@ -1,7 +1,7 @@
 """Where a migration's time goes (diagnostic): ``python -m bench --only migtrace``.
 
 Runs the migration benchmark's two daemons through ``python -m bench.migtrace up ...``, which
-wraps, before handing over to ``cmion_mesh.cli``, the functions a migration passes through and
+wraps, before handing over to ``cmion_mesh.cli.main``, the functions a migration passes through and
 prints one ``TRACE <label> <start_ns> <duration_ns> <thread>`` line per call
 (``time.perf_counter_ns``: ``CLOCK_MONOTONIC``, one clock for every process). The measuring
 process notes the window of each migration and adds up, per label, the calls of both daemons
@@ -242,7 +242,7 @@ def main(argv: list[str]) -> int:
     if os.environ.get("BENCH_SWITCH_INTERVAL"):
         sys.setswitchinterval(float(os.environ["BENCH_SWITCH_INTERVAL"]))
     install()
-    from cmion_mesh.cli import main as cli_main
+    from cmion_mesh.cli.main import main as cli_main
 
     return cli_main(argv)
 

@@ -62,6 +62,7 @@ MOVED_MODULES: dict[str, str] = {
     "cmion_mesh.launch": "cmion_mesh.tools.launch",
     "cmion_mesh.demo": "cmion_mesh.tools.demo",
     "cmion_mesh.router": "cmion_mesh.tools.router",
+    "cmion_mesh.cli": "cmion_mesh.cli.main",
 }
 
 

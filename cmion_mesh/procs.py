@@ -193,4 +193,4 @@ class Daemon:
 
 
 def cli_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "cmion_mesh.cli", *args]
+    return [sys.executable, "-m", "cmion_mesh.cli.main", *args]

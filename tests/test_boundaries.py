@@ -1,4 +1,4 @@
-"""The package's inner boundaries: argparse only at the edge (cli.py), no import of bench/, no
+"""The package's inner boundaries: argparse only at the edge (cli/main.py), no import of bench/, no
 import cycle between certs and security, one set of exit codes."""
 
 from __future__ import annotations
@@ -31,14 +31,14 @@ def modules() -> dict[str, set[str]]:
 
 
 def test_only_cli_imports_argparse() -> None:
-    offenders = sorted(name for name, imports in modules().items() if "argparse" in imports and name != "cli.py")
-    assert offenders == [], f"argparse is read by the command line only (cli.py), but also imported by: {offenders}"
+    offenders = sorted(name for name, imports in modules().items() if "argparse" in imports and name != "cli/main.py")
+    assert offenders == [], f"argparse is read by the command line only (cli/main.py), but also imported by: {offenders}"
 
 
 def test_importing_the_library_does_not_load_argparse() -> None:
     code = ("import importlib, pkgutil, sys, cmion_mesh\n"
             "for m in pkgutil.walk_packages(cmion_mesh.__path__, 'cmion_mesh.'):\n"
-            "    if m.name != 'cmion_mesh.cli': importlib.import_module(m.name)\n"
+            "    if m.name != 'cmion_mesh.cli.main': importlib.import_module(m.name)\n"
             "print(sorted(k for k in sys.modules if k == 'argparse' or k.split('.')[0] == 'bench'))\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert result.stdout.strip() == "[]", result.stdout
@@ -62,7 +62,7 @@ def loaded_by(code: str) -> list[str]:
 
 def test_a_one_shot_command_loads_no_xml_crypto_or_planner() -> None:
     # what `cmion-mesh peers` / `bb get` load before they open their session: start time is theirs
-    code = ("import cmion_mesh.cli as cli\n"
+    code = ("import cmion_mesh.cli.main as cli\n"
             "cli.build_parser('peers').parse_args(['peers'])\n"
             "import cmion_mesh.client, cmion_mesh.presence, cmion_mesh.transport.zenoh")
     assert loaded_by(code) == []
@@ -70,7 +70,7 @@ def test_a_one_shot_command_loads_no_xml_crypto_or_planner() -> None:
 
 def test_a_daemon_without_certificates_or_companion_loads_no_crypto() -> None:
     # `up` reads XML; it signs nothing until a companion is born or arrives, and --certs is off
-    code = ("import cmion_mesh.cli as cli\n"
+    code = ("import cmion_mesh.cli.main as cli\n"
             "cli.build_parser('up').parse_args(['up', 'robot'])\n"
             "import cmion_mesh.body.embodiment, cmion_mesh.body.validate, cmion_mesh.transport.security, cmion_mesh.migration.devices, "
             "cmion_mesh.statedir")
@@ -96,7 +96,7 @@ def test_one_set_of_exit_codes() -> None:
 def test_the_parser_of_one_command_parses_as_the_whole_one() -> None:
     # build_parser(command) gives only that command its arguments (start time): every command is
     # still known, what it parses does not change, and a name that is no command gets the whole parser
-    from cmion_mesh import cli
+    from cmion_mesh.cli import main as cli
 
     def commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
         subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # argparse has no public walk

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh import cli
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, NotReached, Refused
 from cmion_mesh.ion import send_request

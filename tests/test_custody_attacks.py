@@ -21,7 +21,8 @@ from typing import Any
 import msgspec
 import pytest
 
-from cmion_mesh import cli, keys
+from cmion_mesh import keys
+from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.ion import send_request

@@ -11,7 +11,7 @@ import pytest
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.body.validate import validate_file
-from cmion_mesh.cli import main
+from cmion_mesh.cli.main import main
 from cmion_mesh.client import MeshClient
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.errors import ConfigError

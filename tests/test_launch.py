@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh import procs
-from cmion_mesh.cli import main
+from cmion_mesh.cli.main import main
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.procs import Daemon, cli_argv

@@ -128,7 +128,7 @@ def test_router_joins_two_subnets(net: RoutedSubnets, mesh: str) -> None:
 
     # With the router process, the same client reaches a: liveliness, blackboard read and write.
     start = time.monotonic()
-    router = net.router.popen([sys.executable, "-m", "cmion_mesh.cli", "router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}",
+    router = net.router.popen([sys.executable, "-m", "cmion_mesh.cli.main", "router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}",
                                "--no-multicast"], name="router")
     ready = router.wait_line("router up, listening on tcp/0.0.0.0:7447", 20)
     assert "LANs: eth0, eth1" in ready, ready  # the namespace's two interfaces, one LAN each
@@ -158,7 +158,7 @@ def test_router_joins_two_subnets(net: RoutedSubnets, mesh: str) -> None:
 def test_router_cli_errors_are_one_line(tmp_path: Any) -> None:
     """A bad config file: one clear line on stderr and exit 2, a configuration error (no namespaces needed)."""
     missing = tmp_path / "nope.json5"
-    daemon = Daemon([sys.executable, "-m", "cmion_mesh.cli", "router", "--config", str(missing), "--listen", "tcp/127.0.0.1:0",
+    daemon = Daemon([sys.executable, "-m", "cmion_mesh.cli.main", "router", "--config", str(missing), "--listen", "tcp/127.0.0.1:0",
                      "--no-multicast"], name="router")
     with daemon:
         assert daemon.proc.wait(30) == 2
@@ -173,9 +173,9 @@ def test_chained_routers(net: RoutedSubnets, mesh: str) -> None:
     router_lan1, router_lan2 = net.router.on(net.lan1).address, net.router.on(net.lan2).address
     # Both routers run in the router namespace, each listening on one side only and each with
     # that side as its one LAN; the link between them is a router-to-router one.
-    first = net.router.popen([sys.executable, "-m", "cmion_mesh.cli", "router", "--listen", f"tcp/{router_lan1}:{ROUTER_PORT}",
+    first = net.router.popen([sys.executable, "-m", "cmion_mesh.cli.main", "router", "--listen", f"tcp/{router_lan1}:{ROUTER_PORT}",
                               "--lan", "eth0", "--no-multicast"], name="router1")
-    second = net.router.popen([sys.executable, "-m", "cmion_mesh.cli", "router", "--listen", f"tcp/{router_lan2}:{ROUTER_PORT}",
+    second = net.router.popen([sys.executable, "-m", "cmion_mesh.cli.main", "router", "--listen", f"tcp/{router_lan2}:{ROUTER_PORT}",
                                "--lan", "eth1", "--connect", f"tcp/{router_lan1}:{ROUTER_PORT}", "--no-multicast"], name="router2")
     first.wait_line("router up", 20)
     assert f"connecting to tcp/{router_lan1}:{ROUTER_PORT}" in second.wait_line("router up", 20)

@@ -21,7 +21,8 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import cli, keys
+from cmion_mesh import keys
+from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, StorageError
 from cmion_mesh.messages import SetProperty
@@ -500,12 +501,12 @@ def test_apply_turns_a_plain_config_secure(pki: Pki) -> None:
 
 
 def test_cli_flag_when_wired(pki: Pki, mesh: str) -> None:
-    """``cmion-mesh up --certs DIR`` (once cli.py has the flag): the daemon says it is secure, listens over TLS only."""
-    from cmion_mesh import cli
+    """``cmion-mesh up --certs DIR`` (once cli/main.py has the flag): the daemon says it is secure, listens over TLS only."""
+    from cmion_mesh.cli import main as cli
 
     _, unknown = cli.build_parser().parse_known_args(["up", "--certs", str(pki.dir)])
     if unknown:
-        pytest.skip("cli.py does not have --certs yet")
+        pytest.skip("cli/main.py does not have --certs yet")
     port = free_port()
     with Daemon(cli_argv("up", "--name", "robot", "--mesh", mesh, "--certs", str(pki.dir), "--listen", f"tcp/127.0.0.1:{port}",
                          "--no-multicast"), name="robot") as daemon:

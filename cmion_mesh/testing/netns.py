@@ -17,7 +17,7 @@ destroys the bridges and veths with them.
 Needs root (or CAP_NET_ADMIN + CAP_SYS_ADMIN) and ``ip`` from iproute2; ``available()`` tells.
 
     with Lan(3) as lan:
-        a = lan.hosts[0].popen([sys.executable, "-m", "cmion_mesh.cli", "up", ...])
+        a = lan.hosts[0].popen([sys.executable, "-m", "cmion_mesh.cli.main", "up", ...])
         a.wait_line("up in mesh")
         lan.cut(lan.hosts[0]); ...; lan.heal(lan.hosts[0])
 
