@@ -3,7 +3,7 @@
     python -m bench [--quick] [--full] [--only events,get,set] [--samples N] [--json PATH] [--check] [--png PATH]
     python -m bench --only breakdown             # diagnostic: per-hop timestamps
     python -m bench soak [--seconds N]           # the soak (not part of the default set)
-    python -m bench sim [--schedules N]          # handshake simulation testing (bench/simulation.py)
+    python -m bench sim [--schedules N]          # handshake simulation testing (cmion_mesh/testing/simulation.py)
     python -m bench report [RUN.json ...] [--readme] [--check]   # the targets table of earlier runs
 
 Exit status: 1 if a correctness check failed (a row's ``failures``: lost events or writes, a lost
@@ -140,7 +140,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--png", metavar="PATH", help="draw the growth curves into PATH (needs matplotlib)")
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["sim"]:
-        from bench import simulation  # only this command needs it
+        from cmion_mesh.testing import simulation  # only this command needs it
 
         return simulation.main(argv[1:])
     if argv[:1] == ["report"]:

@@ -1,18 +1,18 @@
 """The handshake's real decisions through 10,000 random schedules of faults, replays, crashes, splits
 of the mesh, restored backups, targets giving up incoming attempts at their bound, and a hostile former
-host that declares bare tokens and forges, claims and offers forks (``bench/simulation.py``); a million
-run with ``python -m bench.simulation``."""
+host that declares bare tokens and forges, claims and offers forks (``cmion_mesh/testing/simulation.py``); a million
+run with ``python -m cmion_mesh.testing.simulation``."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench import simulation
-from bench.simulation import HOSTILE, InvariantBroken, Message, World
 from cmion_mesh.messages import MigrateCommit, MigrateStatus
 from cmion_mesh.migration import custody, handshake, signing
 from cmion_mesh.migration.identity import Identity
 from cmion_mesh.migration.ledger import Record
+from cmion_mesh.testing import simulation
+from cmion_mesh.testing.simulation import HOSTILE, InvariantBroken, Message, World
 
 SCHEDULES = 10_000
 
@@ -31,7 +31,7 @@ def test_a_broken_rule_is_caught_with_a_replayable_seed(monkeypatch: pytest.Monk
         return real(msg, None, **{**kwargs, "held": None, "claims": []})
 
     monkeypatch.setattr(simulation.handshake, "on_prepare", careless)
-    with pytest.raises(InvariantBroken, match=r"seed \d+: .*\nreplay: python -m bench.simulation --seed \d+ --trace"):
+    with pytest.raises(InvariantBroken, match=r"seed \d+: .*\nreplay: python -m cmion_mesh.testing.simulation --seed \d+ --trace"):
         simulation.run_many(500)
 
 

@@ -5,4 +5,6 @@
   host sees the target).
 * ``netns``: throw-away multi-host networks of Linux network namespaces, for tests that need
   real LANs (root only).
+* ``simulation``: the migration handshake's real decisions through random schedules of faults,
+  replays, crashes and a hostile former host (``python -m bench sim``).
 """

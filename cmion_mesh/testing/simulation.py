@@ -24,13 +24,12 @@ the split heals and the hostile one is revoked (its tokens gone), everything is 
 operator keeps the true branch (``handshake.retired`` for the others): exactly one host, not
 frozen, its chain free of forged links, its identity byte-identical to the one born.
 
-``python -m bench sim --schedules 1000000`` (or ``python -m bench.simulation``) runs many; a
+``python -m bench sim --schedules 1000000`` (or ``python -m cmion_mesh.testing.simulation``) runs many; a
 failing seed prints the trace that replays it (``--seed N --trace``).
 """
 
 from __future__ import annotations
 
-import argparse
 import random
 import sys
 import time
@@ -618,7 +617,7 @@ def run_schedule(seed: int, *, steps: int = 60, trace: bool = False) -> World:
     try:
         world.run()
     except Exception as exc:  # any failure of a schedule is reported with its seed and trace
-        raise InvariantBroken(f"seed {seed}: {exc}\nreplay: python -m bench.simulation --seed {seed} --trace\n"
+        raise InvariantBroken(f"seed {seed}: {exc}\nreplay: python -m cmion_mesh.testing.simulation --seed {seed} --trace\n"
                               + "\n".join(world.log[-40:])) from None
     return world
 
@@ -634,7 +633,8 @@ def run_many(count: int, *, first: int = 0, steps: int = 60, progress: Callable[
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.simulation", description=__doc__.splitlines()[0])
+    import argparse  # its command line only: importing the package loads no argparse
+    parser = argparse.ArgumentParser(prog="python -m cmion_mesh.testing.simulation", description=__doc__.splitlines()[0])
     parser.add_argument("--schedules", type=int, default=10_000, help="how many random schedules (default 10,000)")
     parser.add_argument("--first", type=int, default=0, help="the first seed")
     parser.add_argument("--steps", type=int, default=60, help="faulty steps per schedule before healing")
