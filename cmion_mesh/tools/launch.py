@@ -18,22 +18,19 @@ SIGKILLed (``procs.child_setup``), so none is left running for ever.
 
 from __future__ import annotations
 
-import functools
 import os
 import queue
-import re
 import signal
 import subprocess
 import sys
 import threading
 import time
-import tomllib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from cmion_mesh import keys
+from cmion_mesh import keys, tomlsafe
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.errors import ConfigError, ExitCode
 from cmion_mesh.procs import child_setup, cli_argv, free_port
@@ -42,6 +39,7 @@ from cmion_mesh.signals import Stopper
 ON_FAILURE = ("stop_all", "continue", "restart")
 NETWORKS = ("lan", "loopback")
 SUFFIX = ".launch.toml"
+WHAT = "launch file"
 #: The line each kind of cmion-mesh process writes once it serves: it is then ready.
 READY_LINES = {"embodiment": "up in mesh", "router": "router up", "mind": "serving embodiment",
                "competency": "serving embodiment"}
@@ -52,12 +50,8 @@ KILL_WAIT = 5.0
 #: A second stop signal kills at once only this long after the first: some tools deliver one
 #: signal twice at once (GNU timeout signals its child, then its whole process group).
 SECOND_SIGNAL_GAP = 1.0
-#: Largest launch file read: one is a few KiB; a bigger one is a mistake, not a mesh to start.
-MAX_FILE = 1024 * 1024
-#: Deepest nesting of arrays and inline tables, and most parts of a dotted key. Python's TOML
-#: reader recurses once per level (its stack gives out at a few hundred, as a RecursionError) and
-#: takes a time growing with the square of a key's parts; a launch file needs two or three.
-MAX_NESTING = 32
+#: Largest launch file read (``tomlsafe``): one is a few KiB; a bigger one is a mistake, not a mesh to start.
+MAX_FILE = tomlsafe.MAX_FILE
 #: Longest ``stop_timeout`` / ``ready_timeout``: the clocks waited on overflow beyond some size.
 MAX_SECONDS = 24 * 3600.0
 
@@ -125,46 +119,12 @@ def resolve_file(given: str) -> Path:
     raise ConfigError(f"no launch file at {given!r} (a TOML file, or a shipped one: {', '.join(names)})")
 
 
-def _header_lines(text: str) -> dict[tuple[str, int], int]:
-    """Line of each table header: ``("launch", 0)`` for ``[launch]``, ``("embodiment", 1)`` for the
-    second ``[[embodiment]]`` (tomllib keeps no positions; errors should still name a line)."""
-    found: dict[tuple[str, int], int] = {}
-    counts: dict[str, int] = {}
-    for number, line in enumerate(text.splitlines(), 1):
-        match = re.match(r"\s*\[\[?\s*([A-Za-z_-]+)\s*\]\]?", line)
-        if match:
-            kind = match.group(1)
-            found[(kind, counts.get(kind, 0))] = number
-            counts[kind] = counts.get(kind, 0) + 1
-    return found
-
-
-@functools.lru_cache(maxsize=4)
-def _lines(text: str) -> list[str]:
-    """The file's lines, split once (every key's line is looked up in them)."""
-    return text.splitlines()
-
-
-def _key_line(text: str, start: int | None, key: str) -> int | None:
-    """Line of ``key = ...`` in the table whose header is on line ``start``."""
-    if start is None:
-        return None
-    lines = _lines(text)
-    for number in range(start, len(lines)):
-        line = lines[number]
-        if line.lstrip().startswith("["):
-            break
-        if re.match(rf"\s*\"?{re.escape(key)}\"?\s*=", line):
-            return number + 1
-    return start
-
-
 class _Checker:
     """Reads one table, reporting every problem with the file, line and key."""
 
     def __init__(self, path: Path, text: str, found: Diagnostics) -> None:
         self.path, self.text, self.found = path, text, found
-        self.headers = _header_lines(text)
+        self.headers = tomlsafe.header_lines(text)
 
     def table(self, kind: str, index: int, values: Any, what: str) -> dict[str, Any]:
         line = self.headers.get((kind, index))
@@ -174,7 +134,7 @@ class _Checker:
         allowed = _KEYS[kind]
         out: dict[str, Any] = {}
         for key, value in values.items():
-            where = _key_line(self.text, line, key)
+            where = tomlsafe.key_line(self.text, line, key)
             if key not in allowed:
                 from cmion_mesh.client import did_you_mean
 
@@ -195,7 +155,7 @@ class _Checker:
         value = table.get(key, default)
         if value not in choices:
             self.found.error(f"{what}: {key!r} must be one of {', '.join(choices)}, not {value!r}", self.path,
-                             _key_line(self.text, line, key))
+                             tomlsafe.key_line(self.text, line, key))
             return default
         return str(value)
 
@@ -226,91 +186,10 @@ def _show(value: Any) -> str:
     return f"{type(value).__name__} {value!r}"[:80]
 
 
-def _nesting_problem(text: str) -> tuple[int, str] | None:
-    """The line where arrays or inline tables nest deeper than ``MAX_NESTING``, or where a dotted
-    key has more parts, and which; None when nowhere. Strings and comments are skipped (what is in
-    them is no structure); the rest is left to the TOML reader, which reports its own errors."""
-    depth = dots = 0
-    line, i, end = 1, 0, len(text)
-    while i < end:
-        c = text[i]
-        if c in "\"'":
-            quote = c * 3 if text.startswith(c * 3, i) else c
-            i += len(quote)
-            while i < end and not text.startswith(quote, i):
-                if text[i] == "\n":
-                    if len(quote) == 1:
-                        break  # an unterminated string: the TOML reader says so
-                    line += 1
-                elif text[i] == "\\" and c == '"' and i + 1 < end:
-                    i += 1  # an escape: the next character is not the end of the string
-                    if text[i] == "\n":
-                        line += 1
-                i += 1
-            if text.startswith(quote, i):
-                i += len(quote)
-                while len(quote) == 3 and i < end and text[i] == c and text.startswith(quote, i - 3):
-                    i += 1  # up to two more quotes just before the end belong to the string
-            continue
-        if c == "#":
-            comment_end = text.find("\n", i)
-            i = end if comment_end < 0 else comment_end
-            continue
-        if c == ".":
-            dots += 1
-            if dots >= MAX_NESTING:
-                return line, f"a dotted key of more than {MAX_NESTING} parts"
-        elif c in "[{":
-            depth, dots = depth + 1, 0
-            if depth > MAX_NESTING:
-                return line, f"arrays or inline tables nested more than {MAX_NESTING} deep"
-        elif c in "]}":
-            depth, dots = max(0, depth - 1), 0
-        elif not (c.isalnum() or c in "_-+: \t"):  # a key's parts, a number's, a date's go on; anything else ends them
-            dots = 0
-        line += c == "\n"
-        i += 1
-    return None
-
-
-def _read(path: Path) -> str:
-    """The launch file's text: ``ConfigError`` naming the file (and the line) when it cannot be."""
-    try:
-        with path.open("rb") as file:
-            raw = file.read(MAX_FILE + 1)
-    except OSError as exc:
-        raise ConfigError(f"cannot read the launch file: {exc.strerror or exc}", path=str(path)) from None
-    if len(raw) > MAX_FILE:
-        raise ConfigError(f"the launch file is larger than {MAX_FILE // 1024} KiB: not a launch file", path=str(path))
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw.count(b"\n", 0, exc.start) + 1
-        raise ConfigError(f"not UTF-8 (byte {raw[exc.start]:#04x}: {exc.reason}): a launch file is UTF-8 text",
-                          path=str(path), line=line) from None
-
-
-def _parse(path: Path, text: str) -> dict[str, Any]:
-    deep = _nesting_problem(text)
-    if deep is not None:
-        raise ConfigError(f"too deep for a launch file: {deep[1]}", path=str(path), line=deep[0])
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        message = str(exc)
-        at = re.search(r"\(at line (\d+), column \d+\)", message)
-        line = int(at.group(1)) if at else max(1, len(text.splitlines()))
-        raise ConfigError(f"not valid TOML: {re.sub(r' [(]at .*[)]$', '', message)}", path=str(path), line=line) from None
-    except RecursionError:  # nesting the scan above did not see: still the file's fault, not ours
-        raise ConfigError("too deep for a launch file: arrays, inline tables or keys nested beyond what can be read",
-                          path=str(path)) from None
-
-
 def load(path: str | Path, *, mesh: str | None = None) -> LaunchFile:
     """Read and check a launch file; every problem in one ``ConfigError`` (file and line of the first)."""
     path = Path(path)
-    text = _read(path)
-    data = _parse(path, text)
+    text, data = tomlsafe.load(path, WHAT)
     found = Diagnostics()
     check = _Checker(path, text, found)
     for key in data:
@@ -328,7 +207,7 @@ def load(path: str | Path, *, mesh: str | None = None) -> LaunchFile:
     network = check.choice(top, "network", NETWORKS, "lan", "[launch]", top_line)
     chosen_mesh = mesh or top.get("mesh", keys.DEFAULT_MESH)
     if not keys.is_name(chosen_mesh):
-        found.error(f"[launch]: mesh {chosen_mesh!r} is not a valid name", path, _key_line(text, top_line, "mesh"))
+        found.error(f"[launch]: mesh {chosen_mesh!r} is not a valid name", path, tomlsafe.key_line(text, top_line, "mesh"))
     specs = _ordered(_specs(check, data, on_failure), check)
     if not specs and not found.errors:
         found.error(f"nothing to launch: no {', '.join(f'[[{k}]]' for k in KINDS)}", path, 1)
@@ -363,10 +242,10 @@ def _specs(check: _Checker, data: dict[str, Any], default_failure: str) -> list[
                     continue
             if not keys.is_name(name):
                 check.found.error(f"[[{kind}]] #{index + 1}: name {name!r} is not a valid name (no / * $ # ?, no leading @)",
-                                  check.path, _key_line(check.text, line, "name"))
+                                  check.path, tomlsafe.key_line(check.text, line, "name"))
                 continue
             if kind == "process" and "command" in table and not table["command"]:
-                check.found.error(f"[[process]] {name!r}: 'command' is empty", check.path, _key_line(check.text, line, "command"))
+                check.found.error(f"[[process]] {name!r}: 'command' is empty", check.path, tomlsafe.key_line(check.text, line, "command"))
             if kind == "embodiment":
                 _check_config(check, table, name, line)
             after = list(table.get("after", ()))
@@ -390,7 +269,7 @@ def _check_config(check: _Checker, table: dict[str, Any], name: str, line: int |
         table["config"] = config
     else:
         check.found.error(f"[[embodiment]] {name!r}: config {config!r}: no such file or folder beside the launch file, "
-                          f"nor a shipped embodiment", check.path, _key_line(check.text, line, "config"))
+                          f"nor a shipped embodiment", check.path, tomlsafe.key_line(check.text, line, "config"))
 
 
 def _ordered(specs: list[Spec], check: _Checker) -> tuple[Spec, ...]:
@@ -406,7 +285,7 @@ def _ordered(specs: list[Spec], check: _Checker) -> tuple[Spec, ...]:
                 from cmion_mesh.client import did_you_mean
 
                 check.found.error(f"[[{spec.kind}]] {spec.name!r}: after {other!r}: no process of that name{did_you_mean(other, by_name)}",
-                                  check.path, _key_line(check.text, spec.line, "after"))
+                                  check.path, tomlsafe.key_line(check.text, spec.line, "after"))
             elif other == spec.name:
                 check.found.error(f"[[{spec.kind}]] {spec.name!r}: comes after itself", check.path, spec.line)
     out: list[Spec] = []
