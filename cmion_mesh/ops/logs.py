@@ -49,6 +49,7 @@ Wiring (the command line, ``up``; each one call):
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import logging.handlers
@@ -91,6 +92,7 @@ _embodiment: str | None = None
 _throttles: weakref.WeakSet[Throttle] = weakref.WeakSet()
 
 
+@functools.lru_cache(maxsize=1024)  # a few names, written again and again
 def is_secret(name: str) -> bool:
     """Whether a field of this name holds a secret (its value is never written)."""
     lowered = name.lower()
