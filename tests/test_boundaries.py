@@ -12,8 +12,9 @@ from pathlib import Path
 from cmion_mesh.errors import ConfigError, ExitCode, InvalidName, NotAlive, NotReached, RequestRejected, Vanished, exit_code
 
 PACKAGE = Path(__file__).resolve().parents[1] / "cmion_mesh"
-#: The modules that read a command line: the package's, and the handshake simulation's own.
-COMMAND_LINES = ("cli/main.py", "testing/simulation.py")
+#: The modules that read a command line: the package's, the handshake simulation's own, and the
+#: settings file's (it parses ``up``'s command line again to know which options it gives).
+COMMAND_LINES = ("cli/main.py", "testing/simulation.py", "ops/settings.py")
 
 
 def imported_modules(path: Path) -> set[str]:

@@ -302,7 +302,7 @@ def test_a_flood_from_many_senders_writes_a_bounded_number_of_lines_and_holds_bo
         throttle(f"sender{i % senders}", "refused a request from %s", f"sender{i % senders}", code="denied")
         clock.now += STEP
         if i % 10_000 == 0:
-            assert len(throttle._counts) <= budget and len(throttle._other_keys) <= logs.MAX_OTHERS
+            assert throttle.held <= budget + logs.MAX_OTHERS
     throttle.flush()
     windows = count * STEP / window
     assert len(lines.lines) <= (windows + 1) * (2 * budget + 1), len(lines.lines)
@@ -317,7 +317,7 @@ def test_a_throttle_whose_level_is_off_does_nothing(lines: Lines) -> None:
     throttle = logs.Throttle(logging.getLogger("cmion_mesh.test_flood"), "refused", level=logging.DEBUG, clock=clock)
     assert not any(throttle("phone", "refused") for _ in range(1000))
     throttle.flush()
-    assert lines.lines == [] and throttle._counts == {}
+    assert lines.lines == [] and throttle.held == 0
 
 
 def test_shutdown_writes_the_counts_still_held(lines: Lines) -> None:

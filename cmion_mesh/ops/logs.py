@@ -344,6 +344,12 @@ class Throttle:
         self.log.log(self.level, msg, *args, extra={"fields": fields}, stacklevel=2)
         return True
 
+    @property
+    def held(self) -> int:
+        """How many keys the throttle holds now (with its window's counts): at most ``budget + MAX_OTHERS``."""
+        with self._lock:
+            return len(self._counts) + len(self._other_keys)
+
     def flush(self) -> None:
         """Write the counts of the window under way now, and start a new one."""
         with self._lock:

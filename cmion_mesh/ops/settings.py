@@ -22,18 +22,23 @@ Wiring (the command line, ``up``; each one call):
   it sets on ``args`` every value of the file whose option the command line does not give.
   ``parser`` and ``argv`` are the ones just parsed (the whole command line: the options given
   are found by parsing it again with no defaults).
+
+This module is part of the command line's edge: ``given_options`` reads ``argv`` again with
+``argparse``, imported there only (importing the module does not load it).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from cmion_mesh import keys, tomlsafe
+
+if TYPE_CHECKING:
+    import argparse
 
 WHAT: Final = "settings file"
 EXAMPLE: Final = Path(__file__).with_name("device.example.toml")
@@ -143,6 +148,8 @@ def given_options(parser: argparse.ArgumentParser, argv: Sequence[str]) -> set[s
     """The destinations ``argv`` gives a value to, as ``parser`` (and the sub-command's parser)
     parses it: it is parsed again with every default taken away, so an option given with its
     default value counts as given."""
+    import argparse
+
     saved: list[tuple[Any, str, Any]] = []
 
     def strip(p: argparse.ArgumentParser) -> None:
