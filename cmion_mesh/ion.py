@@ -261,6 +261,13 @@ class Simulation:
         self._closed = False
         self._stopped = threading.Event()
         self.updates = 0
+        # Counters for whoever watches the daemon (``ops.metrics`` reads them at scrape time): plain
+        # ints kept on the loop, and one small uncontended lock per request answered over the mesh.
+        #: Events this simulation raised (published) / received from other sessions, so far.
+        self.events_raised = 0
+        self.events_received = 0
+        self._answered: dict[tuple[str, str], int] = {}
+        self._answered_lock = threading.Lock()
         # Whether someone (a recorder) listens to this embodiment's answers: followed from the first
         # queryable on, so that a request costs one attribute read when nobody does.
         self._outcome_tap: Matching | None = None
@@ -418,6 +425,7 @@ class Simulation:
                 query.reply(query.key, encode(outcome))
             finally:
                 query.finish()
+                self._count_answer(outcome)
                 if tap is not None and tap.matching:
                     self._tell(component.name, name, sender, outcome)
 
@@ -445,6 +453,17 @@ class Simulation:
             answer(Outcome("rejected", f"embodiment {self.embodiment!r} is shutting down", code=Code.SHUTTING_DOWN))
             return
         self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, sender, answer)))
+
+    def _count_answer(self, outcome: Outcome) -> None:
+        # Answers come from the loop and from transport workers (refusals): the lock keeps the count exact.
+        counted = (outcome.status, outcome.code)
+        with self._answered_lock:
+            self._answered[counted] = self._answered.get(counted, 0) + 1
+
+    def answered(self) -> dict[tuple[str, str], int]:
+        """Requests answered over the mesh so far, by (status, code): a copy, from any thread."""
+        with self._answered_lock:
+            return dict(self._answered)
 
     def _tell(self, component: str, request: str, sender: str, outcome: Outcome) -> None:
         """Publish how a request was answered, for whoever listens (only called while someone does).
@@ -514,6 +533,7 @@ class Simulation:
             check_value(data)
         event = Event(embodiment, component, name, data, next(self._seq), time.time())
         self._events.append((event, key, None))
+        self.events_raised += 1
         try:
             self.transport.publish(key, encode(event))  # encoded once, whoever subscribes; queued, never waits
         except MeshError as exc:
@@ -673,6 +693,7 @@ class Simulation:
             kind = type(item)
             if kind is list:  # remote events, in the order their subscription received them
                 events.extend(item)
+                self.events_received += len(item)
             elif kind is _RequestItem:
                 batches.setdefault(item.component.name, []).append(item.request)
             else:
