@@ -3,6 +3,11 @@ HTTP and parsed with prometheus_client's own parsers; /healthz flips while the l
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import subprocess
+import sys
 import threading
 import urllib.error
 import urllib.request
@@ -283,3 +288,25 @@ def test_minds_and_pages_connected_are_read_when_scraped(mesh: str) -> None:
         wait_for(lambda: value(scrape(server), "cmion_mesh_web_pages_open", component="web") == 0, 5, "the page closed")
         wait_for(lambda: value(scrape(server), "cmion_mesh_mind_connected", mind="fatima", protocol="fatima") == 0, 5,
                  "the mind gone")
+
+
+def test_the_containerfile_health_check_as_written(mesh: str) -> None:
+    text = (Path(__file__).resolve().parents[1] / "Containerfile").read_text()
+    assert re.search(r"^USER cmion-mesh$", text, re.M) and re.search(r"^VOLUME /state$", text, re.M)
+    assert not re.search(r"^EXPOSE", text, re.M), "zenoh's ports are chosen when run"
+    found = re.search(r"^HEALTHCHECK .*?CMD (\[.*\])$", text, re.M | re.S)
+    assert found, "a HEALTHCHECK in exec form"
+    command = json.loads(found.group(1))
+    assert command[0] == "python"
+
+    def check(address: str | None) -> subprocess.CompletedProcess[str]:
+        env = {k: v for k, v in os.environ.items() if k != "CMION_MESH_METRICS"} | ({"CMION_MESH_METRICS": address} if address else {})
+        return subprocess.run([sys.executable, *command[1:]], env=env, capture_output=True, text=True, timeout=30, check=False)
+
+    with MemoryTransport(MemoryNetwork(), "robot") as transport, Embodiment("robot", mesh=mesh, transport=transport) as robot, \
+            ops_metrics.serve("127.0.0.1:0", robot) as server:
+        wait_for(lambda: get(server.url + "/healthz")[0] == 200, 5, "healthy")
+        assert check(f"0.0.0.0:{server.port}").returncode == 0
+        robot.close()
+        done = check(f"0.0.0.0:{server.port}")
+        assert done.returncode == 1 and "503" in done.stdout and "stopping" in done.stdout, done
