@@ -128,15 +128,14 @@ class Metrics(Handle):
                                            ["embodiment", "outcome"], buckets=MIGRATION_BUCKETS, registry=self.registry)
         self.custody_conflicts = Counter("cmion_mesh_custody_conflicts", "Custody conflicts seen (another embodiment claims "
                                          "the companion living here)", ["embodiment"], registry=self.registry)
-        # Every series exists from the first scrape on (at 0): a rate over a counter that appears later misses its first counts.
-        for outcome in ACTION_OUTCOMES.values():
-            self.actions.labels(me, outcome)
-            self.action_seconds.labels(me, outcome)
-        for role, outcome in MIGRATION_OUTCOMES.values():
-            self.migrations.labels(me, role, outcome)
-        for outcome in ("succeeded", "failed"):
-            self.migration_seconds.labels(me, outcome)
-        self.custody_conflicts.labels(me)
+        # Every series exists from the first scrape on (at 0): a rate over a counter that appears later
+        # misses its first counts. Resolved once: the handlers then only count (no label lookup per event).
+        self._action_counts = {event: self.actions.labels(me, outcome) for event, outcome in ACTION_OUTCOMES.items()}
+        self._action_times = {event: self.action_seconds.labels(me, outcome) for event, outcome in ACTION_OUTCOMES.items()}
+        self._migration_counts = {event: self.migrations.labels(me, role, outcome) for event, (role, outcome) in MIGRATION_OUTCOMES.items()}
+        self._migration_times = {event: self.migration_seconds.labels(me, MIGRATION_OUTCOMES[event][1])
+                                 for event in ("MigrationSucceeded", "MigrationFailed")}
+        self._conflicts = self.custody_conflicts.labels(me)
         self.registry.register(_Readings(self))
         self._actions_started: dict[str, float] = {}
         self._migrations_started: dict[str, float] = {}
@@ -152,38 +151,41 @@ class Metrics(Handle):
     # --- counted from events, on the loop -----------------------------------------------------
 
     def _on_action(self, event: Event) -> None:
-        data = event.data if isinstance(event.data, dict) else {}
-        action_id = str(data.get("action_id", ""))
-        if event.name == "ActionStarted":
-            _remember(self._actions_started, action_id, event.time)
+        name = event.name
+        if name == "ActionStarted":
+            data = event.data
+            if isinstance(data, dict):
+                _remember(self._actions_started, str(data.get("action_id", "")), event.time)
             return
-        outcome = ACTION_OUTCOMES.get(event.name)
-        if outcome is None:
-            return
-        self.actions.labels(self.name, outcome).inc()
-        started = self._actions_started.pop(action_id, None)
+        counter = self._action_counts.get(name)
+        if counter is None:
+            return  # ActionAttempt
+        counter.inc()
+        data = event.data
+        started = self._actions_started.pop(str(data.get("action_id", "")), None) if isinstance(data, dict) else None
         if started is not None:  # an action refused before it started has no duration
-            self.action_seconds.labels(self.name, outcome).observe(max(0.0, event.time - started))
+            self._action_times[name].observe(max(0.0, event.time - started))
 
     def _on_migration(self, event: Event) -> None:
+        name = event.name
         data = event.data if isinstance(event.data, dict) else {}
         attempt = str(data.get("attempt") or "")
-        if event.name == "MigrationStarting":
+        if name == "MigrationStarting":
             if attempt:
                 _remember(self._migrations_started, attempt, event.time)
             return
-        if event.name == "CustodyConflict":
-            self.custody_conflicts.labels(self.name).inc()
+        if name == "CustodyConflict":
+            self._conflicts.inc()
             return
-        counted = MIGRATION_OUTCOMES.get(event.name)
-        if counted is None:
+        counter = self._migration_counts.get(name)
+        if counter is None:
             return
-        role, outcome = counted
-        self.migrations.labels(self.name, role, outcome).inc()
-        if outcome in ("succeeded", "failed") and attempt:
+        counter.inc()
+        timer = self._migration_times.get(name)
+        if timer is not None and attempt:
             started = self._migrations_started.pop(attempt, None)
             if started is not None:  # one refused before it started has none
-                self.migration_seconds.labels(self.name, outcome).observe(max(0.0, event.time - started))
+                timer.observe(max(0.0, event.time - started))
 
     # --- health --------------------------------------------------------------------------------
 
