@@ -147,7 +147,10 @@ def test_a_scrape_counts_what_the_embodiment_did(bodies: tuple[Embodiment, Embod
         assert robot.migration is not None
         assert robot.migration.start("nowhere").result(10).status == "rejected"
         assert robot.migration.start("kiosk").result(10).status == "accepted"
-        robot.sim.raise_event("migration", "CustodyConflict", {"companion": "spirit", "holders": {}})
+        # A custody conflict lost, then its end (no other holder left: not a conflict).
+        robot.sim.raise_event("migration", "CustodyConflict", {"companion": "spirit", "holders": {"robot": 3, "kiosk": 4},
+                                                               "keeper": "kiosk"})
+        robot.sim.raise_event("migration", "CustodyConflict", {"companion": "spirit", "holders": {"robot": 5}, "keeper": "robot"})
         wait_for(lambda: value(scrape(server), "cmion_mesh_custody_conflicts_total") == 1, 5, "the conflict counted")
         after = scrape(server)
 
@@ -164,10 +167,10 @@ def test_a_scrape_counts_what_the_embodiment_did(bodies: tuple[Embodiment, Embod
     assert delta("cmion_mesh_requests_answered_total", status="rejected", code="not_found") == 2
     assert value(answered, "cmion_mesh_requests_answered_total", status="rejected", code="not_found") == 1, "the refused action"
     assert delta("cmion_mesh_events_received_total", since=raised) == 3
-    # Raised here since then: the five, the migration's own events and the conflict; none is counted twice.
+    # Raised here since then: the five, the migration's own events and the conflict's two; none is counted twice.
     assert delta("cmion_mesh_events_published_total", since=raised) == robot.sim.events_raised - raised[
         ("cmion_mesh_events_published_total", frozenset({"embodiment": "robot"}.items()))]
-    assert delta("cmion_mesh_events_published_total", since=raised) >= 5 + 2 + 1
+    assert delta("cmion_mesh_events_published_total", since=raised) >= 5 + 2 + 2
 
     assert value(after, "cmion_mesh_migrations_total", role="source", outcome="failed") == 1
     assert value(after, "cmion_mesh_migrations_total", role="source", outcome="succeeded") == 1

@@ -61,8 +61,6 @@ from cmion_mesh.transport.base import Closeable, Handle, Transport
 
 log = logging.getLogger(__name__)
 
-#: Where ``--metrics PORT`` listens when it names no host.
-DEFAULT_HOST = "127.0.0.1"
 #: ``/healthz`` is unhealthy once the update loop has not turned for this long (seconds).
 STALE_AFTER = 5.0
 #: Seconds, for actions (a one-step plan takes milliseconds; a walk across a room, minutes).
@@ -126,8 +124,8 @@ class Metrics(Handle):
         self.migration_seconds = Histogram("cmion_mesh_migration_duration_seconds",
                                            "Time from a migration's start at its source to its end there, by outcome",
                                            ["embodiment", "outcome"], buckets=MIGRATION_BUCKETS, registry=self.registry)
-        self.custody_conflicts = Counter("cmion_mesh_custody_conflicts", "Custody conflicts seen (another embodiment claims "
-                                         "the companion living here)", ["embodiment"], registry=self.registry)
+        self.custody_conflicts = Counter("cmion_mesh_custody_conflicts", "Custody conflicts lost: another embodiment holds "
+                                         "the companion living here, and keeps it by the rule", ["embodiment"], registry=self.registry)
         # Every series exists from the first scrape on (at 0): a rate over a counter that appears later
         # misses its first counts. Resolved once: the handlers then only count (no label lookup per event).
         self._action_counts = {event: self.actions.labels(me, outcome) for event, outcome in ACTION_OUTCOMES.items()}
@@ -175,7 +173,11 @@ class Metrics(Handle):
                 _remember(self._migrations_started, attempt, event.time)
             return
         if name == "CustodyConflict":
-            self._conflicts.inc()
+            # Raised when the keeper changes: on a conflict this embodiment loses (another holder keeps
+            # the companion), and again when it ends (no other holder left), which is not one.
+            holders = data.get("holders")
+            if isinstance(holders, dict) and len(holders) > 1:
+                self._conflicts.inc()
             return
         counter = self._migration_counts.get(name)
         if counter is None:
