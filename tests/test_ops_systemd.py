@@ -138,6 +138,7 @@ def test_ready_once_the_name_is_held_then_pings_then_stopping(listener: tuple[Li
         robot = Embodiment("robot", mesh=mesh, transport=transport, join=0.0, state_dir=tmp_path / "robot")
         with robot, systemd.Service(robot, environ=environ) as service:
             first = got.next()
+            assert service.ready
             assert first == ["READY=1", f"STATUS=embodiment 'robot' up in mesh {mesh!r}"], "READY=1 comes first, with its status"
             # When systemd hears READY=1 the name is held: another daemon is refused it.
             with pytest.raises(Refused, match="already alive"):
@@ -181,6 +182,22 @@ def test_a_stuck_loop_stops_the_pings_and_they_resume_when_it_turns(
         assert len(datagrams) - 1 == watchdog.pings, "each ping counted is a datagram sent"
     stuck = [r for r in caplog.records if "has not turned" in r.getMessage()]
     assert len(stuck) - said == 1, "the stall is said once, however long it lasts"
+
+
+def test_a_loop_stuck_from_the_start_is_never_reported_ready(listener: tuple[Listener, str], mesh: str) -> None:
+    got, path = listener
+    stall = Stall()
+    with MemoryTransport(MemoryNetwork(), "robot") as transport, \
+            Embodiment("robot", mesh=mesh, transport=transport, components=[stall]) as robot:
+        stall.block()
+        try:
+            assert stall.entered.wait(5.0)
+            with systemd.Service(robot, environ={"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000"}, first_beat_wait=0.2) as service:
+                assert not service.ready and service.watchdog is None
+                assert got.next() == ["STATUS=the update loop of 'robot' did not turn within 0.2 s: not ready"]
+        finally:
+            stall.release.set()
+        assert got.next() == ["STOPPING=1"] and got.pending() == []
 
 
 def test_the_heartbeat_must_beat_between_two_pings(mesh: str) -> None:

@@ -53,7 +53,7 @@ USER = "cmion-mesh"
 SETTINGS_PATH = "/etc/cmion-mesh/{name}.toml"
 #: The option of ``cmion-mesh up`` naming the settings file.
 SETTINGS_OPTION = "--settings"
-#: How long ``Service`` waits for the update loop's first beat before it reports ready anyway.
+#: How long ``Service`` waits for the update loop's first beat before it gives up reporting ready.
 FIRST_BEAT_WAIT = 10.0
 
 
@@ -219,15 +219,18 @@ class Service(Handle):
 
     Opening it (the embodiment started: joined, its name held) waits for the update loop's first
     beat, sends ``READY=1`` with ``STATUS=status`` (by default "embodiment NAME up in mesh MESH"),
-    and starts the watchdog when systemd asks for one. ``close`` (idempotent) sends ``STOPPING=1``
+    and starts the watchdog when systemd asks for one. A loop that does not turn within
+    ``first_beat_wait`` is never reported ready (``STATUS=`` says why). ``close`` (idempotent) sends ``STOPPING=1``
     and stops the watchdog. Without ``$NOTIFY_SOCKET`` it sends nothing and starts no thread.
 
     ``heartbeat``: one to share (with ``ops.metrics``' health check); else one of its own, closed with it.
     """
 
     def __init__(self, embodiment: Served, *, status: str | None = None, notifier: Notifier | None = None,
-                 heartbeat: Heartbeat | None = None, environ: Mapping[str, str] = os.environ) -> None:
+                 heartbeat: Heartbeat | None = None, environ: Mapping[str, str] = os.environ,
+                 first_beat_wait: float = FIRST_BEAT_WAIT) -> None:
         self.notifier = notifier if notifier is not None else Notifier(environ=environ)
+        self.ready = False
         self._owns_notifier = notifier is None
         self.watchdog: Watchdog | None = None
         self._owned_heartbeat: Heartbeat | None = None
@@ -241,10 +244,14 @@ class Service(Handle):
             heartbeat = self._owned_heartbeat = Heartbeat(embodiment.sim, PERIOD if interval is None else min(PERIOD, interval / 2))
         self.heartbeat = heartbeat
         try:
-            if not heartbeat.wait_first(FIRST_BEAT_WAIT):
-                log.warning("the update loop of %r did not turn within %g s; reporting ready all the same",
-                            embodiment.name, FIRST_BEAT_WAIT)
-            self.notifier.ready(status if status is not None else f"embodiment {embodiment.name!r} up in mesh {embodiment.mesh!r}")
+            if not heartbeat.wait_first(first_beat_wait):
+                # Not ready: systemd fails the start when TimeoutStartSec passes, and starts it again.
+                why = f"the update loop of {embodiment.name!r} did not turn within {first_beat_wait:g} s: not ready"
+                log.error("%s", why)
+                self.notifier.status(why)
+                return
+            self.ready = self.notifier.ready(
+                status if status is not None else f"embodiment {embodiment.name!r} up in mesh {embodiment.mesh!r}")
             if interval is not None:
                 self.watchdog = Watchdog(self.notifier, heartbeat, interval)
         except BaseException:
