@@ -20,14 +20,21 @@ Prometheus text format) and ``/healthz``: ``200 ok`` while the update loop has t
 otherwise. Bound to loopback, it answers only requests naming a loopback host (``Host``), as the
 web pages do: a site rebound to 127.0.0.1 reads nothing.
 
-Wiring (``cli`` ``cmd_up``, two calls): the server is bound before the embodiment is announced,
-so an address in use is refused before anything but the name claim is on the mesh (``/healthz``
-answers 503 "starting" until then), and given the embodiment once it has started::
+Wiring (``cli``, two calls). In ``cmd_up``, with the web bodies inside ``with pages:`` (bound before
+the embodiment is announced, so an address in use is refused before anything but the name claim is
+on the mesh; ``/healthz`` answers 503 "starting" until the second call)::
 
-    server = pages.enter_context(MetricsServer(args.metrics))        # with the web bodies
-    ...
-    with embodiment, ...:                                             # _run_daemon
-        server.attach(Metrics(embodiment, heartbeat=service.heartbeat))
+    if args.metrics:
+        metrics_server = pages.enter_context(MetricsServer(args.metrics))
+
+and in ``_run_daemon``, right after the embodiment has started (sharing ``ops.systemd.Service``'s
+heartbeat, None outside systemd: ``Metrics`` then beats its own)::
+
+    with embodiment, systemd.Service(embodiment) as service:
+        if metrics_server is not None:
+            metrics_server.attach(Metrics(embodiment, heartbeat=service.heartbeat))
+
+(``parse_address(args.metrics)`` early in ``cmd_up`` refuses a malformed address before the session opens.)
 
 ``probe()`` is the container's health check (``Containerfile``).
 """

@@ -14,14 +14,16 @@ with the standard library; without ``$NOTIFY_SOCKET`` (not run by systemd) every
 
 Wiring (the daemon, ``cli`` ``_run_daemon``): one context manager around the daemon's wait, entered
 right after ``with embodiment:`` (``Embodiment.start`` has returned: the claim on the name was
-decided in ``Embodiment.__init__`` and the ``@alive`` token is declared), exited before the
-embodiment closes::
+decided in ``Embodiment.__init__``, through ``presence.Joining.result()``, and the ``@alive`` token
+is declared), exited before the embodiment closes::
 
-    with embodiment, systemd.Service(embodiment, status=...):
-        ...
+    with embodiment, systemd.Service(embodiment) as service:
+        ...                  # the lines ending in "up in mesh"
         stop.wait()          # SIGTERM collected here (signals.Stopper); leaving sends STOPPING=1
 
-``cmion-mesh service unit NAME`` prints ``unit(NAME, ...)``.
+``cmion-mesh service unit NAME [--mesh M] [--metrics HOST:PORT] [--settings FILE] [--watchdog S]``
+prints ``unit(NAME, mesh=..., metrics=..., settings=..., watchdog_sec=...)`` (``print(..., end="")``:
+the text ends with a newline).
 """
 
 from __future__ import annotations
