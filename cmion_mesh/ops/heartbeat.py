@@ -6,8 +6,9 @@ update, so a busy loop still beats, an idle one wakes once per ``period`` (nothi
 loop stuck in a handler stops beating: whoever reads ``beats`` or ``age()`` from another thread
 sees it. Nothing is added to the loop's work but that one timer.
 
-Wiring: ``Heartbeat(embodiment.sim)`` once the embodiment is started; the systemd watchdog
-(``ops.systemd``) and the metrics server (``ops.metrics``) read the same one.
+``ops.systemd.Service`` makes one when run by systemd (beating twice per watchdog ping) and
+``ops.metrics.Metrics`` takes it (``heartbeat=service.heartbeat``), or makes its own: no wiring
+of its own.
 """
 
 from __future__ import annotations
