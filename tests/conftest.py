@@ -147,6 +147,10 @@ TIERS: dict[str, str] = {
     "test_speech": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
+    "test_ops_logs": "unit",
+    "test_ops_settings": "unit",
+    "test_ops_systemd": "unit",
+    "test_ops_metrics": "unit",
     "test_class_aliases": "unit",
     "test_custody": "unit",
     "test_target_bounds": "mesh",
@@ -164,6 +168,8 @@ TIERS: dict[str, str] = {
 
 #: Tests whose tier is not their file's, by "file stem::test function" (every parametrization).
 TIER_OF_TEST: dict[str, str] = {
+    "test_ops_metrics::test_the_containerfile_health_check_as_written": "system",
+    "test_ops_systemd::test_the_unit_file_passes_systemd_analyze_verify": "system",
     # `python -m bench report` in a child process
     "test_bench_targets::test_report_check_exits_1_naming_the_missed_target": "mesh",
     "test_bench_targets::test_report_check_exits_0_when_every_measured_target_is_met": "mesh",
