@@ -147,7 +147,7 @@ TIERS: dict[str, str] = {
     "test_speech": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
-    "test_ops_logs": "unit",
+    "test_logs": "unit",
     "test_ops_settings": "unit",
     "test_ops_systemd": "unit",
     "test_ops_metrics": "unit",

@@ -11,9 +11,9 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import ConfigError, ExitCode, exit_code
-from cmion_mesh.ops import logs, settings
+from cmion_mesh.ops import settings
 
 ROOT = Path(__file__).resolve().parent.parent
 #: Options of up whose flag comes with a part built elsewhere: the key is here first.

@@ -1,4 +1,4 @@
-"""The daemon's logs (ops/logs.py): both formats parse back, secrets never reach a line, floods
+"""The daemon's logs (cmion_mesh/logs.py): both formats parse back, secrets never reach a line, floods
 are bounded. Pure: no network, no process."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Any
 
 import pytest
 
+from cmion_mesh import logs
 from cmion_mesh.errors import ConfigError, ExitCode, exit_code
-from cmion_mesh.ops import logs
 
 LOG = logging.getLogger("cmion_mesh.migration")
 #: 2026-11-26T19:00:00.123Z
