@@ -465,7 +465,7 @@ def test_up_starts_with_standins_listed(wild_daemon: tuple[Daemon, list[str]]) -
 def test_up_starts_cmion_own_test_configuration(wild_daemon: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     """CMION 2011's ArchitectureConfiguration.xml as it is (FAtiMA connector, GUI add-ons, SAMGAR),
     joined to the running daemon's mesh."""
-    from cmion_mesh.minds.fatima.connector import PORT_VARIABLE
+    from cmion_mesh.minds.fatima.protocol import PORT_VARIABLE
     from cmion_mesh.testing.fatima_peer import PeerProcess
 
     _, net = wild_daemon

@@ -27,7 +27,8 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import StorageError
 from cmion_mesh.messages import ActionStatus, Event, Migrate, SetProperty
-from cmion_mesh.minds.fatima import connector as fatima
+from cmion_mesh.minds.fatima import link as fatima_link
+from cmion_mesh.minds.fatima.protocol import HANDSHAKE_TIMEOUT
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.fatima_peer import PeerProcess
 from cmion_mesh.testing.wait import wait_for
@@ -309,13 +310,13 @@ def test_a_connection_that_never_handshakes_keeps_no_mind_out(tmp_path: Path) ->
         slow = socket.create_connection(("127.0.0.1", mind_port), timeout=10)
         idle.append(slow)
         slow.sendall(b"Spi")
-        for _ in range(3 * fatima.MAX_PENDING):
+        for _ in range(3 * fatima_link.MAX_PENDING):
             idle.append(socket.create_connection(("127.0.0.1", mind_port), timeout=10))
         with PeerProcess(mind_port, "--agent", "Spirit", "--prop", "role:TestAgent") as mind:
-            mind.got("OK", timeout=fatima.HANDSHAKE_TIMEOUT)  # not after the slowloris's time is up: at once
+            mind.got("OK", timeout=HANDSHAKE_TIMEOUT)  # not after the slowloris's time is up: at once
             mind.command("act Express wave")
             mind.got("ACTION-FINISHED Spirit Express wave")
-            still_open = [i for i, sock in enumerate(idle) if not closed_by_the_body(sock, fatima.HANDSHAKE_TIMEOUT + 10)]
+            still_open = [i for i, sock in enumerate(idle) if not closed_by_the_body(sock, HANDSHAKE_TIMEOUT + 10)]
             assert still_open == [], f"connections never handshaken still open: {still_open}"
             start = mind.mark()
             mind.command("act Express nod")  # served still, once they are gone

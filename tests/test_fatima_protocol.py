@@ -17,9 +17,11 @@ from cmion_mesh.body.rules import load_rules
 from cmion_mesh.errors import ConfigError, MeshError, XmlError
 from cmion_mesh.messages import Act, ActionStatus, AddContainer, Event, MindMessage, SetProperty
 from cmion_mesh.minds.fatima import connector as fatima
-from cmion_mesh.minds.fatima.connector import (
-    FailureGate,
-    FAtiMAConnector,
+from cmion_mesh.minds.fatima import link as fatima_link
+from cmion_mesh.minds.fatima.connector import FAtiMAConnector
+from cmion_mesh.minds.fatima.link import FailureGate
+from cmion_mesh.minds.fatima.protocol import (
+    HANDSHAKE_TIMEOUT,
     Options,
     format_value,
     look_at_line,
@@ -54,7 +56,7 @@ def test_options_as_cmion_wrote_them_and_our_extensions() -> None:
                           "handshake-timeout:0.5"])
     assert (opts.modular, opts.persistent, opts.migrating) == (True, True, True)
     assert (opts.port, opts.host, opts.name, opts.stop_wait, opts.state_timeout) == (0, "0.0.0.0", "mind2", 2.0, 1.5)
-    assert (opts.handshake_timeout, Options().handshake_timeout) == (0.5, fatima.HANDSHAKE_TIMEOUT)
+    assert (opts.handshake_timeout, Options().handshake_timeout) == (0.5, HANDSHAKE_TIMEOUT)
     assert parse_options(["sleeping"]) == Options()
     for bad, why in (("magic", "unknown option 'magic'"), ("port:99999", "not a TCP port"), ("port:x", "port:x"),
                      ("stop-wait:-1", "0 to 600"), ("name:a/b", "'/'"), ("colour:red", "unknown option"),
@@ -261,7 +263,7 @@ def test_refused_connections_are_logged_once_a_while(body: tuple[Embodiment, FAt
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     _, mind = body
     assert mind.listener is not None
-    monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 3600.0)
+    monkeypatch.setattr(fatima_link, "REFUSED_LOG_INTERVAL", 3600.0)
 
     def refused() -> None:
         with socket.create_connection(("127.0.0.1", mind.listener.port), timeout=5) as sock:  # type: ignore[union-attr]
@@ -276,7 +278,7 @@ def test_refused_connections_are_logged_once_a_while(body: tuple[Embodiment, FAt
         for _ in range(3):
             refused()
         assert len(warnings()) == 1 and "more from" not in warnings()[0], warnings()
-        monkeypatch.setattr(fatima, "REFUSED_LOG_INTERVAL", 0.0)
+        monkeypatch.setattr(fatima_link, "REFUSED_LOG_INTERVAL", 0.0)
         refused()
         assert len(warnings()) == 2 and "(2 more from 127.0.0.1 refused unlogged" in warnings()[1], warnings()
 
@@ -305,12 +307,12 @@ def test_pending_connections_are_bounded_and_the_newest_gets_through(caplog: pyt
         assert listener is not None
         # More idle connections than may wait: the oldest are closed at once, the others wait.
         extra = 3
-        idle = [socket.create_connection(("127.0.0.1", listener.port), timeout=10) for _ in range(fatima.MAX_PENDING + extra)]
+        idle = [socket.create_connection(("127.0.0.1", listener.port), timeout=10) for _ in range(fatima_link.MAX_PENDING + extra)]
         try:
             for sock in idle[:extra]:
                 sock.settimeout(10)
                 assert sock.recv(100) == b""
-            wait_for(lambda: mind.connection()["pending"] == fatima.MAX_PENDING, 5, "the newest waiting for their handshakes")
+            wait_for(lambda: mind.connection()["pending"] == fatima_link.MAX_PENDING, 5, "the newest waiting for their handshakes")
             with _peer(mind) as peer:  # the mind is the newest: it gets through, and the rest are closed
                 peer.connect()
                 peer.wait_for(lambda line: line == "OK")
@@ -334,7 +336,7 @@ def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Emb
         peer.wait(lambda line: line == "# quiet")
         peer.command("flood-reading look-at Far")  # at most 10,000 look-ats ahead of the answers read
         # The reader stops at the bound of lines in flight: TCP holds the mind back from there on.
-        wait_for(lambda: link.peak_in_flight >= fatima.MAX_IN_FLIGHT, 20, "the flood reaching the bound")
+        wait_for(lambda: link.peak_in_flight >= fatima_link.MAX_IN_FLIGHT, 20, "the flood reaching the bound")
         waiting: list[int] = []
 
         def written() -> bool:
@@ -349,11 +351,11 @@ def test_a_flooding_mind_is_held_back_and_the_body_keeps_working(body: tuple[Emb
         ended = peer.wait(lambda line: line.startswith("# flood ended"), 20)
         assert ended.endswith("(stopped)"), ended  # the connection held all along
         flooded = int(ended.split()[4])
-        assert flooded > 10 * fatima.MAX_IN_FLIGHT, ended
+        assert flooded > 10 * fatima_link.MAX_IN_FLIGHT, ended
     # What the daemon held for it stayed bounded, whatever the flood's length.
-    assert link.peak_in_flight == fatima.MAX_IN_FLIGHT
-    assert max(waiting) <= fatima.MAX_IN_FLIGHT + 16, max(waiting)
-    assert link.peak_queued <= fatima.MAX_QUEUED
+    assert link.peak_in_flight == fatima_link.MAX_IN_FLIGHT
+    assert max(waiting) <= fatima_link.MAX_IN_FLIGHT + 16, max(waiting)
+    assert link.peak_queued <= fatima_link.MAX_QUEUED
 
 
 def test_a_mind_that_does_not_read_is_disconnected(body: tuple[Embodiment, FAtiMAConnector],
@@ -374,7 +376,7 @@ def test_a_mind_that_does_not_read_is_disconnected(body: tuple[Embodiment, FAtiM
         peer.wait(lambda line: line.startswith("# flood ended"), 20)
     logged = next(r.getMessage() for r in caplog.records if "mind is not reading" in r.getMessage())
     assert link.peer in logged and "connection closed" in logged, logged
-    assert fatima.MAX_QUEUED < link.peak_queued <= fatima.MAX_QUEUED + 70_000, link.peak_queued  # at most one line beyond
+    assert fatima_link.MAX_QUEUED < link.peak_queued <= fatima_link.MAX_QUEUED + 70_000, link.peak_queued  # at most one line beyond
     with _peer(mind) as again:  # and the next mind is welcome
         again.connect()
         again.wait_for(lambda line: line == "OK")
@@ -383,7 +385,7 @@ def test_a_mind_that_does_not_read_is_disconnected(body: tuple[Embodiment, FAtiM
 def test_an_overlong_line_closes_the_connection(body: tuple[Embodiment, FAtiMAConnector], caplog: pytest.LogCaptureFixture,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     _, mind = body
-    monkeypatch.setattr(fatima, "MAX_LINE", 1000)
+    monkeypatch.setattr(fatima_link, "MAX_LINE", 1000)
     with _peer(mind) as peer:
         peer.connect()
         peer.wait_for(lambda line: line == "OK")
