@@ -2,7 +2,8 @@
 
 The mind keeps a *belief base* (entity -> {property: value}), fed by world-model perceptions and
 by the effects of its own actions when they succeed. Its operators, goals, triggers, emotion and
-limits come from a spec (``minds.planner.spec``); plans come from a bounded search (``minds.planner.search``).
+limits come from a spec (``minds.planner.spec``); plans come from a bounded search (``minds.planner.search``);
+its state, what migrates, is written and read by ``minds.planner.state``.
 
 Achieved goals move to the ``achieved`` list; a *persistent* goal stays pending as a maintenance
 goal and is pursued again whenever its facts stop holding. An unsolvable goal ends as a
@@ -61,13 +62,12 @@ from cmion_mesh.minds.planner.spec import (
     spec_from_data,
     to_plain,
 )
+from cmion_mesh.minds.planner.state import STATE_VERSION, dump_state, load_state
 from cmion_mesh.storage import WorldModel
 
 __all__ = ["STATE_VERSION", "PlannerMind"]
 
 log = logging.getLogger(__name__)
-
-STATE_VERSION = 1
 
 
 def _clamp(x: float) -> float:
@@ -595,83 +595,17 @@ class PlannerMind(Mind):
     # --- migration --------------------------------------------------------------------------------
 
     def state(self) -> dict[str, Any]:
-        """Everything the mind is, as one JSON-serialisable dict (``restore`` takes it back).
-
-        Keys: ``version``; ``spec`` (operators, triggers, emotion, limits and invitations settings); ``goals``
-        (``pending`` - goal maps plus ``satisfied`` for persistent goals - ``achieved`` and
-        ``abandoned``, each with ``time`` and maybe ``reason``); ``plan`` (``goal`` and ``steps``:
-        operator, bindings, action, parameters, subject - the first is the one in flight);
-        ``in_flight`` (action id or None); ``beliefs`` (entity -> property -> value);
-        ``persistent`` ([entity, property] pairs); ``memory`` (episodes: time, kind, details);
-        ``emotion`` (valence, arousal); ``failures`` and ``actions_spent`` per pending goal;
-        ``bans`` (goal -> failed step key -> planning attempts it is still avoided for).
-        """
-        return {
-            "version": STATE_VERSION,
-            "spec": {
-                "operators": [to_plain(op) for op in self.operators],
-                "triggers": [to_plain(t) for t in self.triggers],
-                "emotion": to_plain(self.emotion_config),
-                "limits": to_plain(self.limits),
-                "invitations": to_plain(self.invitations),
-            },
-            "goals": {
-                "pending": [{**to_plain(g), "satisfied": g.name in self.satisfied} for g in self.pending_goals],
-                "achieved": copy.deepcopy(self.achieved),
-                "abandoned": copy.deepcopy(self.abandoned),
-            },
-            "plan": {"goal": self.plan_goal, "steps": [s.to_data() for s in self.plan]},
-            "in_flight": self.in_flight,
-            "beliefs": copy.deepcopy(self.beliefs),
-            "persistent": [list(k) for k in sorted(self.persistent)],
-            "memory": copy.deepcopy(list(self.memory)),
-            "emotion": dict(self.emotion),
-            "failures": dict(self.failures),
-            "actions_spent": dict(self.actions_spent),
-            "bans": {g: dict(b) for g, b in self.bans.items()},
-        }
+        """Everything the mind is, as one JSON-serialisable dict (``restore`` takes it back; the keys
+        are ``state.dump_state``'s)."""
+        return dump_state(self)
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Become the mind ``state`` describes. An action that was in flight is dropped with the
-        plan it belonged to (it ran on another body); planning resumes on the loop when awake.
+        """Become the mind ``state`` describes. An action that was in flight is dropped with the plan
+        it belonged to (it ran on another body); planning resumes on the loop when awake.
         Otherwise ``state()`` afterwards equals ``state``."""
         try:
-            self._restore(state)
+            load_state(self, state)
         except (KeyError, TypeError, ValueError, msgspec.ValidationError) as exc:
             raise ConfigError(f"mind {self.name!r}: unusable state: {exc!r}") from None
-        self._think_soon()
-
-    def _restore(self, state: dict[str, Any]) -> None:
-        if state.get("version") != STATE_VERSION:
-            raise ValueError(f"state version {state.get('version')!r}, expected {STATE_VERSION}")
-        spec = state["spec"]
-        operators = operators_from_data(spec["operators"])
-        triggers = spec_from_data({"triggers": spec["triggers"]}).triggers
-        emotion = msgspec.convert(spec["emotion"], EmotionConfig)
-        limits = msgspec.convert(spec["limits"], Limits)
-        invitations = msgspec.convert(spec["invitations"], InvitationPolicy) if "invitations" in spec else self.invitations
-        pending = [dict(g) for g in state["goals"]["pending"]]
-        satisfied = {str(g["name"]) for g in pending if g.pop("satisfied", False)}
-        goals = goals_from_data(pending)
-        by_name = {op.name: op for op in operators}
-        plan = [GroundedOperator(by_name[s["operator"]], dict(s["bindings"])) for s in state["plan"]["steps"]]
-
-        if self.in_flight is not None:
-            self.pending.pop(self.in_flight, None)
-        self.operators, self.triggers, self.emotion_config, self.limits = tuple(operators), triggers, emotion, limits
-        self.invitations = invitations
-        self.pending_goals, self.satisfied = goals, satisfied
-        self.achieved = copy.deepcopy(list(state["goals"]["achieved"]))
-        self.abandoned = copy.deepcopy(list(state["goals"]["abandoned"]))
-        self.plan, self.plan_goal = plan, state["plan"]["goal"]
-        self.in_flight = None
-        if state["in_flight"] is not None:
-            self.plan, self.plan_goal = [], None
-        self.beliefs = {str(e): dict(p) for e, p in copy.deepcopy(state["beliefs"]).items()}
-        self.persistent = {(str(e), str(p)) for e, p in state["persistent"]}
-        self.memory = deque(copy.deepcopy(list(state["memory"])), maxlen=limits.memory)
-        self.emotion = {"valence": float(state["emotion"]["valence"]), "arousal": float(state["emotion"]["arousal"])}
-        self.failures = {str(k): int(v) for k, v in state["failures"].items()}
-        self.actions_spent = {str(k): int(v) for k, v in state["actions_spent"].items()}
-        self.bans = {str(g): {str(k): int(n) for k, n in b.items()} for g, b in state["bans"].items()}
         self._blocked, self._unreachable = {}, {}
+        self._think_soon()
