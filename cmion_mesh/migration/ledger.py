@@ -41,6 +41,7 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.bounds import env_limit
 from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, SectionRef, read_manifest
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
@@ -64,23 +65,6 @@ SECTIONS = "sections"
 #: Sections at least this large are read and checked on threads of their own (hashing frees the GIL).
 _PARALLEL_READ = 1024 * 1024
 T = TypeVar("T")
-
-
-def env_limit(name: str, default: float, *, low: float, high: float, unit: str = "seconds") -> float:
-    """The number in the environment variable ``name``, else ``default``; ``ConfigError`` naming
-    the variable and the range when it is not a number of ``unit`` between ``low`` and ``high``
-    (a whole number for bytes)."""
-    raw = os.environ.get(name, "").strip()
-    if not raw:
-        return default
-    try:
-        value = float(int(raw)) if unit == "bytes" else float(raw)
-    except ValueError:
-        value = float("nan")
-    if not low <= value <= high:  # NaN fails too
-        shown = [str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (low, high)]
-        raise ConfigError(f"{name}={raw[:40]!r}: not a number of {unit} between {shown[0]} and {shown[1]}")
-    return value
 
 
 def cache_bound() -> int:

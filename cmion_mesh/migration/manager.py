@@ -106,9 +106,10 @@ from cmion_mesh.messages import (
     SetPolicy,
 )
 from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.bounds import Quiet, TokenBucket, env_limit
 from cmion_mesh.migration.handshake import POLICY_SECTION, Claim, refuses
 from cmion_mesh.migration.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
-from cmion_mesh.migration.ledger import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
+from cmion_mesh.migration.ledger import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records
 from cmion_mesh.migration.signing import SignatureRefused
 from cmion_mesh.mind import Mind
 from cmion_mesh.storage import Store
@@ -116,10 +117,6 @@ from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)
 
-#: Prepares a sender may have refused or dropped in a burst, and how many more per second: a
-#: stranger's flood of prepares costs it ``rejected: busy``, not this embodiment's disk or time.
-PREPARE_BURST = 20
-PREPARE_RATE = 5.0
 #: Seconds the components of the source have to give their sections once a migration starts.
 SECTION_DEADLINE = 5.0
 #: Missing sections that together are at most this many bytes travel inside the prepare: a small
@@ -159,8 +156,6 @@ MAX_WAITING = 32
 #: answer a few times.
 CLAIM_TRIES = 4
 CLAIM_RETRY = 0.25
-#: Seconds between two log lines about claims of the same claimant ignored.
-QUIET = 60.0
 #: The command that resolves a fork, in logs and descriptions.
 RESOLVE = "cmion-mesh custody resolve {companion} --keep EMBODIMENT"
 
@@ -312,47 +307,6 @@ class _Waiting:
     deadline: float
 
 
-class _Quiet:
-    """Says whether to log about ``key`` now: at most once per ``QUIET`` seconds each (any thread)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._last: dict[str, float] = {}
-        self._muted: dict[str, int] = {}
-
-    def allow(self, key: str) -> int | None:
-        """None to keep quiet, else how many lines about ``key`` were left out since the last."""
-        now = time.monotonic()
-        with self._lock:
-            last = self._last.get(key)
-            if last is not None and now - last < QUIET:
-                self._muted[key] = self._muted.get(key, 0) + 1
-                return None
-            if len(self._last) > 1024:
-                self._last.clear()  # bounded: strangers are forgotten
-            self._last[key] = now
-            return self._muted.pop(key, 0)
-
-
-class TokenBucket:
-    """A token bucket: ``take()`` is False once a sender has used its burst faster than the rate."""
-
-    def __init__(self, burst: int = PREPARE_BURST, rate: float = PREPARE_RATE) -> None:
-        self.burst = burst
-        self.rate = rate
-        self.tokens = float(burst)
-        self.at = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
-        self.at = now
-        if self.tokens < 1:
-            return False
-        self.tokens -= 1
-        return True
-
-
 class MigrationManager(Component):
     """The ``migration`` component: owns the records, runs both sides of the handshake."""
 
@@ -415,7 +369,7 @@ class MigrationManager(Component):
         self._stood_down: set[ClaimKey] = set()  # claims of branch holders an operator retired: ignored
         self._checker: ClaimChecker | None = None
         self._waiting: list[_Waiting] = []  # offers waiting for claims to be checked (loop)
-        self._quiet = _Quiet()
+        self._quiet = Quiet()
         self._chain_buckets: dict[str, TokenBucket] = {}  # asker -> chain requests budget (loop)
         self._watches: list[Closeable] = []
 
