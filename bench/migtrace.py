@@ -112,8 +112,10 @@ def install() -> None:
     from cmion_mesh.migration import custody, handshake, identity, signing
     from cmion_mesh.migration import ledger as records_module
     from cmion_mesh.migration import manager as migration
-    from cmion_mesh.migration.ledger import IncomingSection, Records, SectionStore
+    from cmion_mesh.migration import sections as sections_module
+    from cmion_mesh.migration.ledger import Records
     from cmion_mesh.migration.manager import MigrationManager
+    from cmion_mesh.migration.sections import IncomingSection, SectionStore
     from cmion_mesh.transport import zenoh as zenoh_transport
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
@@ -125,7 +127,8 @@ def install() -> None:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(records_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
+    for module in (records_module, sections_module):  # the records' batches, and the sections' own
+        wrap(module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
     wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
     wrap(SectionStore, "write", "write+fsync:sections")
     wrap(IncomingSection, "add", "section chunk: copy+hash (write beside)")

@@ -55,7 +55,7 @@ sent (``transfer``).
 
 A target holds one upload (``have`` and its sections) per sender, at most ``MAX_UPLOADS``. Every
 byte received counts, before it is written, against what one sender may upload ahead of its
-prepare (``MAX_UPLOAD``) and against the section folder's bound (``records.MAX_CACHE``, making room
+prepare (``MAX_UPLOAD``) and against the section folder's bound (``sections.MAX_CACHE``, making room
 by evicting the cache); a chunk over either is refused naming its sender. An upload that never
 becomes a prepare is deleted when its sender's next ``have`` replaces it, when its prepare is
 refused or aborted, and once idle for ``UPLOAD_IDLE`` seconds.
@@ -109,7 +109,8 @@ from cmion_mesh.migration import custody, handshake, signing
 from cmion_mesh.migration.bounds import Quiet, TokenBucket, env_limit
 from cmion_mesh.migration.handshake import POLICY_SECTION, Claim, refuses
 from cmion_mesh.migration.identity import Bytes, Identity, Packed, SectionMemo, SectionRef, max_section, sha256_hex
-from cmion_mesh.migration.ledger import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records
+from cmion_mesh.migration.ledger import HOSTING, Record, Records
+from cmion_mesh.migration.sections import MAX_CACHE_ENV, IncomingSection
 from cmion_mesh.migration.signing import SignatureRefused
 from cmion_mesh.mind import Mind
 from cmion_mesh.storage import Store
@@ -128,7 +129,7 @@ CHUNK = 4 * 1024 * 1024
 IN_FLIGHT = 2
 #: Target: most bytes of sections one sender may have uploaded here ahead of its prepare (``have``
 #: then ``migrate_sections``); ``CMION_MESH_MAX_UPLOAD`` changes it. Half the section cache
-#: (``records.MAX_CACHE``, which bounds all uploads together): no one sender takes all of it.
+#: (``sections.MAX_CACHE``, which bounds all uploads together): no one sender takes all of it.
 MAX_UPLOAD = 512 * 1024 * 1024
 MAX_UPLOAD_ENV = "CMION_MESH_MAX_UPLOAD"
 #: Target: seconds an upload may wait for its next chunk or its prepare before it expires (its
