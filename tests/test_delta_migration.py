@@ -25,7 +25,7 @@ from cmion_mesh.migration import identity, sections
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.migration.ledger import Record, Records
-from cmion_mesh.migration.manager import INLINE
+from cmion_mesh.migration.outgoing import INLINE
 from cmion_mesh.migration.sections import SectionStore
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for

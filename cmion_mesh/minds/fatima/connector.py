@@ -87,7 +87,8 @@ from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, ProtocolError, XmlError
 from cmion_mesh.ion import Simulation, Timer
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
-from cmion_mesh.migration.manager import SECTION_DEADLINE, MigrationCompetency, MigrationManager
+from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
+from cmion_mesh.migration.outgoing import SECTION_DEADLINE
 from cmion_mesh.mind import Mind
 from cmion_mesh.storage import Store
 
