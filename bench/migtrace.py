@@ -112,8 +112,13 @@ def install() -> None:
     from cmion_mesh.migration import custody, handshake, identity, signing
     from cmion_mesh.migration import ledger as records_module
     from cmion_mesh.migration import manager as migration
-    from cmion_mesh.migration.ledger import IncomingSection, Records, SectionStore
+    from cmion_mesh.migration import sections as sections_module
+    from cmion_mesh.migration.incoming import Incoming
+    from cmion_mesh.migration.ledger import Records
     from cmion_mesh.migration.manager import MigrationManager
+    from cmion_mesh.migration.outgoing import Outgoing
+    from cmion_mesh.migration.sections import IncomingSection, SectionStore
+    from cmion_mesh.migration.uploads import Uploads
     from cmion_mesh.transport import zenoh as zenoh_transport
 
     def write_label(_self: Any, name: str, _data: bytes) -> str:
@@ -125,7 +130,8 @@ def install() -> None:
         return f"send_request:{request_of(key)}"
 
     wrap(Records, "_write", write_label)
-    wrap(records_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
+    for module in (records_module, sections_module):  # the records' batches, and the sections' own
+        wrap(module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
     wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
     wrap(SectionStore, "write", "write+fsync:sections")
     wrap(IncomingSection, "add", "section chunk: copy+hash (write beside)")
@@ -144,14 +150,16 @@ def install() -> None:
          lambda _sim, component, query: f"on a worker:query {request_of(query.key)}")
     wrap(ion, "decode", lambda data, kind, **_: f"decode:{getattr(kind, '__name__', 'msg')}", min_ns=100_000)
     wrap(ion, "encode", lambda msg: f"encode:{type(msg).__name__}", min_ns=100_000)
-    for method, label in (("_start", "on loop:_start(checks)"), ("_maybe_pack", "on loop:_maybe_pack"),
-                          ("_refresh_sections", "on loop:mind.state()"), ("_on_prepare", "on loop:_on_prepare(target)"),
-                          ("_on_commit", "on loop:_on_commit(target)"), ("_inhabit", "on loop:_inhabit(restore+wake)"),
-                          ("_send", "on a worker:_send(source)"), ("_commit_until_acked", "on a worker:_commit(source)"),
-                          ("_ask_have", "on a worker:_ask_have"), ("_send_bulk", "on a worker:_send_bulk(chunks)"),
-                          ("_prepare", "on a worker:_prepare"),
-                          ("_on_have", "on loop:_on_have(target)"), ("_on_sections", "on loop:_on_sections(target)")):
-        wrap(MigrationManager, method, label)
+    parts: tuple[tuple[type, str, str], ...] = (
+        (Outgoing, "begin", "on loop:begin(source checks)"), (Outgoing, "_maybe_pack", "on loop:_maybe_pack"),
+        (MigrationManager, "refresh_sections", "on loop:mind.state()"), (Incoming, "on_prepare", "on loop:on_prepare(target)"),
+        (Incoming, "on_commit", "on loop:on_commit(target)"), (MigrationManager, "inhabit", "on loop:inhabit(restore+wake)"),
+        (Outgoing, "_send", "on a worker:_send(source)"), (Outgoing, "commit_until_acked", "on a worker:commit_until_acked(source)"),
+        (Outgoing, "_ask_have", "on a worker:_ask_have"), (Outgoing, "_send_bulk", "on a worker:_send_bulk(chunks)"),
+        (Outgoing, "_prepare", "on a worker:_prepare"),
+        (Incoming, "on_have", "on loop:on_have(target)"), (Uploads, "on_sections", "on loop:on_sections(target)"))
+    for owner, method, label in parts:
+        wrap(owner, method, label)
 
 
 def run(options: Options, groups: frozenset[str]) -> list[Row]:

@@ -21,12 +21,12 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
-from cmion_mesh.migration import identity
-from cmion_mesh.migration import ledger as records
+from cmion_mesh.migration import identity, sections
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
-from cmion_mesh.migration.ledger import Record, Records, SectionStore
-from cmion_mesh.migration.manager import INLINE
+from cmion_mesh.migration.ledger import Record, Records
+from cmion_mesh.migration.outgoing import INLINE
+from cmion_mesh.migration.sections import SectionStore
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
@@ -373,4 +373,4 @@ def test_manifest_faults_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
         max_section()
     monkeypatch.delenv("CMION_MESH_MAX_SECTION")
     assert max_section() == identity.MAX_SECTION == 256 * MIB
-    assert records.MAX_CACHE == 1024 * MIB
+    assert sections.MAX_CACHE == 1024 * MIB

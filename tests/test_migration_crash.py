@@ -112,7 +112,7 @@ def settle(client: MeshClient, expected: str | tuple[str, ...], notes: list[str]
     return home
 
 
-#: A note this long makes the identity larger than what travels inside the prepare (migration.INLINE):
+#: A note this long makes the identity larger than what travels inside the prepare (outgoing.INLINE):
 #: its sections go apart, in chunks, and the source writes its prepared record while they travel.
 LARGE = 300_000
 

@@ -23,7 +23,8 @@ from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, Outcome, SectionChunk
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity
-from cmion_mesh.migration.manager import INLINE, MigrationManager
+from cmion_mesh.migration.manager import MigrationManager
+from cmion_mesh.migration.outgoing import INLINE
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig

@@ -1,5 +1,5 @@
 """The migration handshake's decisions: pure functions from a durable record and a message to the
-next record and the answer. ``migration.MigrationManager`` runs them on real transports and disks;
+next record and the answer. ``manager.MigrationManager`` runs them on real transports and disks;
 ``tests/test_handshake_simulation.py`` runs the same functions through random schedules.
 
 The model (S the source, holder of the companion at epoch e; T the target)::

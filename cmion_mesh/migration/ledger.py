@@ -10,31 +10,28 @@ custody keeps the evidence in ``<companion>.fork.json`` (``custody.Freeze``) unt
 resolves it: a restart does not unfreeze it.
 
 A SchemaVersion 2 document is a manifest; the bytes of its sections are in ``sections/``, each
-named by its SHA-256 (``SectionStore``), written before any document names them. Sections no
-record names any more stay there, a cache for the companion's next visit (only what is missing
-crosses the network then), up to ``MAX_CACHE`` bytes (``CMION_MESH_MAX_CACHE``): beyond it, the
-least recently used of those nobody names go first. The bound holds when the folder grows, not
-only when a record is written: a section received from a peer is written only if it fits
-(``SectionStore.make_room``), and its bytes count from the first chunk on.
+named by its SHA-256 (``sections.SectionStore``: the cache of sections and its bound are there),
+written before any document names them.
 
 Every write is: temp file, fsync, rename, fsync the folder. The folder is 0700 and every file 0600
 (the documents are the companion's memory). A document is checked against the hash its record
 names and the record's seal (signed by the custody key) when it is read: a file edited at rest is
 refused with an error naming it, never run.
+
+Threads: ``Records`` is shared by the loop and the handshake threads; its records are under a lock,
+and each write is whole before the record that names it is renamed into place.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Literal
 
 import msgspec
 
@@ -42,7 +39,8 @@ from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.custody import Link
-from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, SectionRef, read_manifest
+from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, read_manifest
+from cmion_mesh.migration.sections import SECTIONS, SectionStore, fsync_folder, write_files
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)
@@ -55,411 +53,6 @@ MAX_RECORD = 4 * 1024 * 1024
 #: Records of companions only refused or dropped here, kept to refuse replays; the oldest go beyond this.
 MAX_STRANGERS = 64
 _DOCUMENT = re.compile(r"^(?P<companion>.+)\.(?P<digest>[0-9a-f]{64})\.identity\.xml$")
-_SHA256 = re.compile(r"^[0-9a-f]{64}$")
-#: Most bytes of sections kept that no record names (the cache for return visits, and sections
-#: received for a prepare still to come); ``CMION_MESH_MAX_CACHE`` changes it (``cache_bound``).
-MAX_CACHE = 1024 * 1024 * 1024
-MAX_CACHE_ENV = "CMION_MESH_MAX_CACHE"
-SECTIONS = "sections"
-#: Sections at least this large are read and checked on threads of their own (hashing frees the GIL).
-_PARALLEL_READ = 1024 * 1024
-T = TypeVar("T")
-
-
-def env_limit(name: str, default: float, *, low: float, high: float, unit: str = "seconds") -> float:
-    """The number in the environment variable ``name``, else ``default``; ``ConfigError`` naming
-    the variable and the range when it is not a number of ``unit`` between ``low`` and ``high``
-    (a whole number for bytes)."""
-    raw = os.environ.get(name, "").strip()
-    if not raw:
-        return default
-    try:
-        value = float(int(raw)) if unit == "bytes" else float(raw)
-    except ValueError:
-        value = float("nan")
-    if not low <= value <= high:  # NaN fails too
-        shown = [str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (low, high)]
-        raise ConfigError(f"{name}={raw[:40]!r}: not a number of {unit} between {shown[0]} and {shown[1]}")
-    return value
-
-
-def cache_bound() -> int:
-    """Most bytes of sections this process keeps that no record names: ``CMION_MESH_MAX_CACHE``, else ``MAX_CACHE``."""
-    return int(env_limit(MAX_CACHE_ENV, MAX_CACHE, low=1, high=2**50, unit="bytes"))
-
-
-def _fsync_folder(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _at_once(fn: Callable[[T], object], items: Sequence[T]) -> None:
-    """``fn`` on every item, on threads of their own when there are several: fsyncs of several
-    files wait for the disk together (the file system commits them as one)."""
-    if len(items) <= 1:
-        for item in items:
-            fn(item)
-        return
-    with ThreadPoolExecutor(min(4, len(items)), thread_name_prefix="fsync") as pool:
-        for _ in pool.map(fn, items):
-            pass
-
-
-def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | None = None) -> None:
-    """Write ``files`` durably, together, and then ``last`` (a record naming them): each through a
-    temporary file, fsync, rename; every folder holding one of ``files`` is fsynced before ``last``
-    is renamed, so a crash leaves ``last`` old, or new with all it names on disk. The temporary
-    names carry the process and thread, as ``statedir.write_atomic``'s do."""
-    entries = [*files, *([last] if last is not None else [])]
-    tmps = [path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp") for path, _ in entries]
-
-    def write(i: int) -> None:
-        fd = os.open(tmps[i], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            view = memoryview(entries[i][1])
-            while view:
-                view = view[os.write(fd, view):]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-    try:
-        _at_once(write, range(len(entries)))
-        for tmp, (path, _) in zip(tmps, files, strict=False):
-            os.replace(tmp, path)
-        _at_once(_fsync_folder, sorted({path.parent for path, _ in files}))
-        if last is not None:
-            os.replace(tmps[-1], last[0])
-            _fsync_folder(last[0].parent)
-    except BaseException:
-        for tmp in tmps:
-            tmp.unlink(missing_ok=True)
-        raise
-
-
-class SectionStore:
-    """Section bytes named by their SHA-256: ``<folder>/<sha256>``, checked against the name on every read.
-
-    Each write is a temporary file, fsync, rename; a batch ends with one fsync of the folder, so
-    what ``write`` returns from is on disk. ``pin`` keeps sections of a handshake in flight from
-    eviction before a record names them. ``size`` counts the bytes of sections being received
-    (``IncomingSection``) as they are written, so that ``make_room`` bounds the folder while it grows."""
-
-    def __init__(self, folder: Path, max_cache: int | None = None) -> None:
-        self.dir = folder
-        self.max_cache = cache_bound() if max_cache is None else max_cache
-        self._lock = threading.Lock()
-        self._pins: dict[str, frozenset[str]] = {}
-        self._bytes = 0  # sections stored under their name
-        self._receiving = 0  # bytes written so far of sections being received (temporary files)
-        self._made = self.dir.is_dir()  # made at the first write: a state folder that never held a section has none
-        for path in self.dir.iterdir() if self._made else ():
-            if _SHA256.match(path.name) and path.is_file():
-                self._bytes += path.stat().st_size
-            elif path.is_file() and (left_by_a_crash(path.name) or not path.name.startswith(".")):
-                log.info("removing %s, left by an interrupted write", path)
-                path.unlink(missing_ok=True)
-
-    def path(self, digest: str) -> Path:
-        if not _SHA256.match(digest):
-            raise ConfigError(f"{digest[:80]!r} is not a SHA-256 in hex", path=str(self.dir))
-        return self.dir / digest
-
-    @property
-    def size(self) -> int:
-        """Bytes of all sections kept here, and of those being received."""
-        return self._bytes + self._receiving
-
-    def holds(self, ref: SectionRef) -> bool:
-        """Whether a file of the section's name and size is here (its bytes are checked when read)."""
-        try:
-            return self.path(ref.sha256).stat().st_size == ref.size
-        except OSError:
-            return False
-
-    def read(self, ref: SectionRef, known: Bytes | None = None) -> Bytes:
-        """The section's bytes, checked against its hash; ``ConfigError`` naming the file and the
-        component if it is missing, unreadable or altered. ``known``: bytes already checked against
-        that hash (kept in memory since): the file is compared with them, cheaper than hashing it."""
-        path = self.path(ref.sha256)
-        try:
-            with open(path, "rb") as f:
-                data = f.read(ref.size + 1)
-        except FileNotFoundError:
-            raise ConfigError(f"section {ref.component!r} ({ref.size} bytes) is missing", path=str(path)) from None
-        except OSError as exc:
-            raise ConfigError(f"section {ref.component!r}: unreadable: {exc.strerror or exc}", path=str(path)) from None
-        if len(data) != ref.size:
-            raise ConfigError(f"section {ref.component!r} was altered at rest: {len(data)} bytes, its manifest says "
-                              f"{ref.size}", path=str(path))
-        same = data == known if known is not None and len(known) == ref.size else None
-        if not (same if same is not None else hashlib.sha256(data).hexdigest() == ref.sha256):
-            raise ConfigError(f"section {ref.component!r} was altered at rest (its bytes do not hash to its name)",
-                              path=str(path))
-        try:
-            os.utime(path)  # recently used: evicted last
-        except OSError:
-            pass
-        return data
-
-    def read_many(self, refs: Iterable[SectionRef], known: Mapping[str, Bytes] | None = None,
-                  ) -> tuple[dict[str, Bytes], dict[str, str]]:
-        """The sections of ``refs`` that are here and intact (sha256 -> bytes), and why each other one
-        is not; ``known`` as for ``read`` (sha256 -> bytes)."""
-        wanted = list({ref.sha256: ref for ref in refs}.values())
-        found: dict[str, Bytes] = {}
-        errors: dict[str, str] = {}
-
-        def one(ref: SectionRef) -> None:
-            try:
-                found[ref.sha256] = self.read(ref, known.get(ref.sha256) if known else None)
-            except ConfigError as exc:
-                errors[ref.sha256] = str(exc)
-
-        large = [ref for ref in wanted if ref.size >= _PARALLEL_READ]
-        if len(large) > 1:
-            with ThreadPoolExecutor(min(4, len(large)), thread_name_prefix="section-read") as pool:
-                list(pool.map(one, large))
-        else:
-            for ref in large:
-                one(ref)
-        for ref in wanted:
-            if ref.size < _PARALLEL_READ:
-                one(ref)
-        return found, errors
-
-    def write(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[str]:
-        """Store each section (sha256 -> bytes, hashed by the caller) not here yet; with ``replace``,
-        also those whose file here holds other bytes (it is damaged: they came for that). Return
-        those written."""
-        files = self.files(sections, replace=replace)
-        write_files(files)
-        return [path.name for path, _ in files]
-
-    def files(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[tuple[Path, Bytes]]:
-        """The (path, bytes) of the sections to write for ``write`` (those not here yet), counted as
-        stored: for a caller that writes them with other files (``write_files``)."""
-        if sections:
-            self._make()
-        files: list[tuple[Path, Bytes]] = []
-        for digest, data in sections.items():
-            path = self.path(digest)
-            try:
-                size = path.stat().st_size
-                if size == len(data) and (not replace or self._holds_bytes(path, data)):
-                    os.utime(path)  # recently used: evicted last
-                    continue
-            except FileNotFoundError:
-                size = 0
-            files.append((path, data))
-            self._added(len(data) - size)
-        return files
-
-    @staticmethod
-    def _holds_bytes(path: Path, data: Bytes) -> bool:
-        try:
-            with open(path, "rb") as f:
-                return f.read(len(data) + 1) == data
-        except OSError:
-            return False
-
-    def receive(self, ref: SectionRef) -> IncomingSection:
-        """A section to be received in chunks (``IncomingSection``)."""
-        self._make()
-        return IncomingSection(self, ref)
-
-    def _make(self) -> None:
-        if not self._made:
-            self.dir.mkdir(exist_ok=True, mode=0o700)
-            _fsync_folder(self.dir.parent)
-            self._made = True
-
-    def _added(self, size: int, receiving: int = 0) -> None:
-        with self._lock:
-            self._bytes += size
-            self._receiving += receiving
-
-    def sync(self) -> None:
-        """Make the names given to sections by ``IncomingSection.finish`` durable."""
-        _fsync_folder(self.dir)
-
-    def pin(self, owner: str, digests: Iterable[str]) -> None:
-        with self._lock:
-            self._pins[owner] = frozenset(digests)
-
-    def unpin(self, owner: str) -> None:
-        with self._lock:
-            self._pins.pop(owner, None)
-
-    def pinned(self) -> frozenset[str]:
-        with self._lock:
-            return frozenset().union(*self._pins.values())
-
-    def make_room(self, size: int, keep: Callable[[], Iterable[str]]) -> bool:
-        """Whether ``size`` more bytes fit within ``max_cache``, after removing as many of the least
-        recently used sections as needed that are neither in ``keep()`` (called only then) nor pinned."""
-        if self.size + size <= self.max_cache:
-            return True
-        self.evict(keep(), room=size)
-        return self.size + size <= self.max_cache
-
-    def discard(self, digests: Iterable[str], keep: Iterable[str]) -> int:
-        """Remove the sections ``digests`` but those in ``keep`` or pinned (received for a prepare that
-        never came); the bytes removed."""
-        spared = set(keep) | self.pinned()
-        removed = 0
-        for digest in set(digests) - spared:
-            path = self.path(digest)
-            try:
-                size = path.stat().st_size
-                path.unlink()
-            except FileNotFoundError:
-                continue
-            removed += size
-        if removed:
-            self._added(-removed)
-        return removed
-
-    def evict(self, keep: Iterable[str], room: int = 0) -> list[str]:
-        """Beyond ``max_cache`` (less ``room`` bytes about to be written), remove the least recently
-        used sections not in ``keep`` nor pinned."""
-        if self.size + room <= self.max_cache:
-            return []
-        with self._lock:
-            kept = set(keep).union(*self._pins.values())
-        entries = []
-        total = 0
-        for path in self.dir.iterdir() if self._made else ():
-            if _SHA256.match(path.name):
-                try:
-                    st = path.stat()
-                except FileNotFoundError:
-                    continue
-                total += st.st_size
-                if path.name not in kept:
-                    entries.append((st.st_mtime_ns, path.name, st.st_size))
-        removed: list[str] = []
-        for _mtime, name, size in sorted(entries):
-            if total + self._receiving + room <= self.max_cache:
-                break
-            (self.dir / name).unlink(missing_ok=True)
-            total -= size
-            removed.append(name)
-        with self._lock:
-            self._bytes = total
-        if removed:
-            log.info("section cache over %d bytes: removed %d unused sections", self.max_cache - room, len(removed))
-        return removed
-
-
-class IncomingSection:
-    """A section received in chunks, in any order: each is written at its offset of a temporary
-    file at once (on a thread of its own, while the bytes are hashed as far as they are contiguous),
-    and the kernel is asked to start writing it out, so that the fsync at the end has little left
-    to do. ``finish`` checks the hash, fsyncs and gives the file its name; the bytes stay at hand
-    in ``data``. ``finish`` or ``abandon`` ends it (its file and thread)."""
-
-    def __init__(self, store: SectionStore, ref: SectionRef) -> None:
-        self.store = store
-        self.ref = ref
-        self.data: Bytes = b""  # the whole section, once finished
-        self._chunks: dict[int, Bytes] = {}  # offset -> chunk
-        self._hasher = hashlib.sha256()
-        self._hashed = 0
-        self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
-        self._path = store.path(ref.sha256)
-        self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
-        self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        self._writer: ThreadPoolExecutor | None = None
-        self._written = 0  # bytes in the temporary file, counted in the store's size
-
-    @property
-    def written(self) -> int:
-        return self._written
-
-    @property
-    def complete(self) -> bool:
-        return self._hashed == self.ref.size
-
-    def add(self, offset: int, data: Bytes, room: Callable[[int], str] | None = None) -> str:
-        """Take a chunk; "" or why it does not fit. A chunk received before (sent again when its
-        answer was lost) is ignored: the hash of the whole says whether the bytes are right.
-        ``room(n)``: "" if ``n`` new bytes may be written, else why not (asked only for new bytes)."""
-        end = offset + len(data)
-        if end > self.ref.size:
-            return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
-        if not data or end <= self._hashed or (offset in self._ahead and len(self._ahead[offset]) == len(data)):
-            return ""
-        if offset < self._hashed or any(offset < o + len(c) and o < end for o, c in self._ahead.items()):
-            return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
-        refused = room(len(data)) if room is not None else ""
-        if refused:
-            return refused
-        fd = self._fd
-        assert fd is not None
-        self._written += len(data)
-        self.store._added(0, receiving=len(data))
-        if self._writer is None:
-            self._writer = ThreadPoolExecutor(1, thread_name_prefix="section-write")
-        written = self._writer.submit(self._write_out, fd, offset, data)
-        self._chunks[offset] = data
-        self._ahead[offset] = data
-        while self._hashed in self._ahead:
-            chunk = self._ahead.pop(self._hashed)
-            self._hasher.update(chunk)
-            self._hashed += len(chunk)
-        written.result()
-        return ""
-
-    def _write_out(self, fd: int, offset: int, data: Bytes) -> None:
-        os.pwrite(fd, data, offset)
-        try:
-            os.posix_fadvise(fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
-        except (AttributeError, OSError):
-            pass
-
-    def finish(self) -> str:
-        """Once complete: "" with the section stored under its name (fsync; the folder is the
-        caller's to fsync), or why not (its bytes hash to something else: nothing is kept)."""
-        digest = self._hasher.hexdigest()
-        if digest != self.ref.sha256:
-            self.abandon()
-            return f"the {self.ref.size} bytes received hash to {digest}, not {self.ref.sha256}"
-        self._stop_writer()
-        assert self._fd is not None
-        fd, self._fd = self._fd, None
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        try:
-            replaced = self._path.stat().st_size
-        except FileNotFoundError:
-            replaced = 0
-        os.replace(self._tmp, self._path)
-        written, self._written = self._written, 0
-        self.store._added(self.ref.size - replaced, receiving=-written)
-        chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
-        self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
-        self._chunks.clear()
-        return ""
-
-    def _stop_writer(self) -> None:
-        writer, self._writer = self._writer, None
-        if writer is not None:
-            writer.shutdown(wait=True)
-
-    def abandon(self) -> None:
-        self._stop_writer()
-        fd, self._fd = self._fd, None
-        if fd is not None:
-            os.close(fd)
-            self._tmp.unlink(missing_ok=True)
-        written, self._written = self._written, 0
-        self.store._added(0, receiving=-written)
 
 
 class Record(msgspec.Struct, frozen=True):
@@ -720,7 +313,7 @@ class Records:
             path = self.dir / f"{keys.check_name(companion, 'companion')}.fork.json"
             if path.exists():
                 path.unlink()
-                _fsync_folder(self.dir)
+                fsync_folder(self.dir)
 
     def put_key(self, companion: str, private: bytes) -> None:
         with self._lock:

@@ -207,7 +207,7 @@ class World:
             self._backed[memo] = backed
         return backed
 
-    # --- the source side, as MigrationManager._send / _commit_until_acked ----------------------------
+    # --- the source side, as outgoing.Outgoing._send / commit_until_acked ----------------------------
 
     def start(self, node: Node, target: str) -> None:
         record = node.record
@@ -316,7 +316,7 @@ class World:
         node.ops[op.oid] = op
 
     def _expire(self, node: Node, op: Op) -> None:
-        """The incoming attempt's bound has passed, whatever else is under way (MigrationManager._expire_incoming)."""
+        """The incoming attempt's bound has passed, whatever else is under way (incoming.Incoming._expire)."""
         del node.ops[op.oid]
         current = node.record
         if current is None or current.state != "incoming" or current.attempt != op.record.attempt:
@@ -409,7 +409,7 @@ class World:
                   + (" (bare)" if chain is None else f" with a chain to epoch {chain[-1].epoch}"))
         self.tokens = [*self.tokens[-2:], (epoch, chain, key)]  # a few at a time; older ones withdrawn
 
-    # --- every holder judges the claims it sees, as MigrationManager._check_conflict ----------------------
+    # --- every holder judges the claims it sees, as forks.Forks.check_conflict -----------------------------
 
     def settle(self) -> None:
         for node in self.nodes.values():

@@ -28,7 +28,7 @@ import msgspec
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import MeshError, ProtocolError
-from cmion_mesh.migration.manager import SECTION_DEADLINE
+from cmion_mesh.migration.outgoing import SECTION_DEADLINE
 
 DEFAULT_PORT = 46874
 #: The port a connector listens on when its parameters name none (instead of ``DEFAULT_PORT``).

@@ -1,0 +1,311 @@
+"""The target side of a migration: a companion arrives here (``Incoming``).
+
+A source's ``have`` (before the prepare of a large identity) and its prepare are decided by
+``handshake`` on what is recorded here, this embodiment's admission list and the custody claims
+backed in the mesh (``claims``): a target refuses an offer that a backed claim shows stale (its
+chain extends the offer) or forked (reported by ``forks``). While claims on the companion are
+still being checked, the offer waits for them (``CLAIM_WAIT`` at most, ``MAX_WAITING`` offers),
+so that the true holder's token is never raced by a fork. The sections a ``have`` leads to are the
+uploads' (``uploads``).
+
+An accepted prepare is recorded ``incoming`` (its document and sections on disk, the custody key
+made here for the attempt) before the answer, and this embodiment declares its custody token at
+once: no moment passes in which nobody claims the companion. The commit makes the record
+``active`` at the next epoch and the companion lives here (``MigrationOccurred``); an abort drops
+the attempt (``MigrationDropped``). If neither comes, this side asks the source (``status``), as
+after a restart in ``incoming``; an attempt still undecided ``handshake.INCOMING_BOUND`` seconds
+after its prepare's record (``CMION_MESH_INCOMING_TIMEOUT``; counted across restarts) is dropped,
+so a source that vanished cannot occupy this embodiment for good.
+
+A handshake message counts only from the embodiment it names as its source (``sent_by_source``);
+each sender's prepares and ``have``s take from its budget (``bounds.TokenBucket``).
+
+Threads:
+
+* the loop runs every request handler, the offers' wait for claims, activation, and the timer that
+  drops an attempt at its bound (``_expire``);
+* one handshake thread per undecided attempt asks its source (``resolve_incoming``); it only reads
+  the records and posts what it learnt to the loop (``_settle``).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from cmion_mesh.errors import MeshError, OutcomeUnknown
+from cmion_mesh.ion import IncomingRequest
+from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus
+from cmion_mesh.migration import handshake
+from cmion_mesh.migration.bounds import TokenBucket
+from cmion_mesh.migration.claims import Claims
+from cmion_mesh.migration.forks import Forks
+from cmion_mesh.migration.host import Host, crash_point
+from cmion_mesh.migration.identity import Bytes, Identity
+from cmion_mesh.migration.ledger import Record
+from cmion_mesh.migration.uploads import Uploads
+
+log = logging.getLogger(__name__)
+
+#: ``CMION_MESH_INCOMING_TIMEOUT`` changes ``handshake.INCOMING_BOUND``, the seconds after its
+#: prepare at which an attempt its source has neither committed nor aborted is dropped.
+INCOMING_TIMEOUT_ENV = "CMION_MESH_INCOMING_TIMEOUT"
+#: Longest wait of a prepare or a ``have`` for the claims on its companion to be checked.
+CLAIM_WAIT = 3.0
+#: Requests waiting for claims to be checked, beyond which a new one is decided at once.
+MAX_WAITING = 32
+
+
+def sent_by_source(request: IncomingRequest, source: str, what: str) -> bool:
+    """A handshake message counts only from the embodiment it names as its source."""
+    if request.requester == source:
+        return True
+    request.reject(f"{request.requester!r} cannot send {what} on behalf of {source!r}")
+    return False
+
+
+@dataclass(eq=False)
+class _Waiting:
+    """A prepare or ``have`` waiting for the claims on its companion to be checked (loop)."""
+
+    request: IncomingRequest
+    message: MigratePrepare | MigrateHave
+    deadline: float
+
+
+class Incoming:
+    """The target side: offers decided, attempts recorded, activated, settled or dropped."""
+
+    def __init__(self, host: Host, claims: Claims, forks: Forks, uploads: Uploads, *, timeout: float) -> None:
+        self.host = host
+        self.claims = claims
+        self.forks = forks
+        self.uploads = uploads
+        self.timeout = timeout  # seconds after its prepare at which an undecided attempt is dropped
+        self._prepared: dict[str, Identity] = {}  # attempt -> identity parsed at prepare, for its commit (loop)
+        self._buckets: dict[str, TokenBucket] = {}  # sender -> prepare budget (loop)
+        self._waiting: list[_Waiting] = []  # offers waiting for claims to be checked (loop)
+
+    def close(self) -> None:
+        """Refuse the offers still waiting: the component detaches."""
+        waiting, self._waiting = self._waiting, []
+        for wait in waiting:
+            wait.request.reject(f"embodiment {self.host.sim.embodiment!r} is shutting down", Code.SHUTTING_DOWN)
+
+    # --- offers (loop) ----------------------------------------------------------------------------
+
+    def on_have(self, request: IncomingRequest, msg: MigrateHave, waited: bool = False) -> None:
+        """Which sections of the offered manifest are here already (each read and checked against its
+        hash: a damaged one is missing, and fetched again)."""
+        host = self.host
+        record = host.records.get(msg.companion)
+        early = handshake.precheck(msg, record, me=host.sim.embodiment, held=host.records.hosting(), admit=host.admit)
+        if early is not None:
+            request.answer(early.outcome)
+            return
+        if not waited and self._wait_for_claims(request, msg):
+            return
+        if self.uploads.staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
+            request.reject(f"busy: too many prepares from {msg.source!r}; try again later", Code.BUSY)
+            return
+        busy = self.uploads.full(msg.source)
+        if busy:
+            request.reject(busy, Code.BUSY)
+            return
+        decision = handshake.on_have(msg, record, me=host.sim.embodiment,
+                                     held=host.records.hosting(), admit=host.admit, claims=self.claims.backed(msg.companion))
+        if decision.fork is not None:
+            self.forks.seen_fork(decision.fork, msg.source)
+        if decision.manifest is None:
+            request.answer(decision.outcome)
+            return
+        self.uploads.begin(request, msg, decision.manifest)
+
+    def on_prepare(self, request: IncomingRequest, msg: MigratePrepare, waited: bool = False) -> None:
+        host = self.host
+        me = host.sim.embodiment
+        record = host.records.get(msg.companion)
+        repeat = record is not None and record.state == "incoming" and record.attempt == msg.attempt
+        # Only offers that would cost this embodiment custody checks, XML and disk take from the budget.
+        early = handshake.precheck(msg, record, me=me, held=host.records.hosting(), admit=host.admit)
+        if early is not None:
+            request.answer(early.outcome)
+            return
+        if not repeat and not waited and self._wait_for_claims(request, msg):
+            return
+        if not repeat and self.uploads.staged(msg.attempt, msg.source) is None and not self._take_token(msg.source):
+            request.reject(f"busy: too many prepares from {msg.source!r}; try again later")
+            return
+        carried: dict[str, Bytes] = {}
+        decision = handshake.on_prepare(msg, record, me=me, held=host.records.hosting(), admit=host.admit,
+                                        claims=self.claims.backed(msg.companion),
+                                        sections=self.uploads.sections_for(msg, carried), values=host.memo.values())
+        if decision.fork is not None:
+            self.forks.seen_fork(decision.fork, msg.source)
+        if decision.record is None:
+            if decision.outcome.code != Code.MISSING_SECTIONS:
+                self.uploads.end(msg.source, msg.attempt)
+            request.answer(decision.outcome)
+            return
+        assert decision.key is not None and decision.identity is not None and decision.manifest is not None
+        # The sections it carried were sent because they are missing here, or damaged: written anew.
+        incoming = host.records.put(msgspec.structs.replace(decision.record, since=time.time()), document=decision.document,
+                                    sections=carried, key=decision.key, replace=True)
+        crash_point("target:incoming")
+        host.step(incoming)
+        self.uploads.end(msg.source, prepared=True)
+        for ref in decision.manifest.refs:
+            if decision.sections is not None:
+                host.memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
+                                   decision.identity.sections.get(ref.component))
+        host.claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
+        self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
+        request.answer(decision.outcome)
+        # The commit (or abort) normally follows at once. If the link fails now, the source's one
+        # abort may be lost for good: once overdue, ask the source, as after a restart.
+        host.spawn(f"resolve-{msg.companion}", self.resolve_incoming, incoming, host.retry[1])
+        self.expire_later(incoming)
+
+    def _take_token(self, source: str) -> bool:
+        bucket = self._buckets.setdefault(source, TokenBucket())
+        if len(self._buckets) > 1024:
+            self._buckets = {source: bucket}  # bounded: forget strangers, keep the one asking
+        return bucket.take()
+
+    # --- offers waiting for claims to be checked (loop) ----------------------------------------------
+
+    def _wait_for_claims(self, request: IncomingRequest, msg: MigratePrepare | MigrateHave) -> bool:
+        """Whether the offer waits (deferred) for the claims on its companion still being checked, so that
+        the true holder's token is never raced by a fork. Bounded: ``CLAIM_WAIT``, ``MAX_WAITING``."""
+        if not self.claims.pending(msg.companion) or len(self._waiting) >= MAX_WAITING:
+            return False
+        request.defer()
+        self._waiting.append(_Waiting(request, msg, time.monotonic() + CLAIM_WAIT))
+        self.host.sim.call_later(CLAIM_WAIT, functools.partial(self.claims_settled, msg.companion))
+        return True
+
+    def claims_settled(self, companion: str) -> None:
+        """Decide the offers that wait for claims on ``companion``: all once none is pending, else
+        those that waited ``CLAIM_WAIT`` (a claim still unchecked then counts as not backed)."""
+        pending = self.claims.pending(companion)
+        now = time.monotonic()
+        ready = [w for w in self._waiting if w.message.companion == companion and (not pending or w.deadline <= now)]
+        if not ready:
+            return
+        self._waiting = [w for w in self._waiting if w not in ready]
+        for wait in ready:
+            try:
+                match wait.message:
+                    case MigratePrepare() as prepare:
+                        self.on_prepare(wait.request, prepare, waited=True)
+                    case MigrateHave() as have:
+                        self.on_have(wait.request, have, waited=True)
+            except MeshError as exc:
+                wait.request.reject(str(exc))
+            if not wait.request.answered:
+                wait.request.reject(f"component {self.host.name!r} gave no answer", Code.UNANSWERED)
+
+    # --- the attempt decided (loop) ------------------------------------------------------------------
+
+    def on_commit(self, request: IncomingRequest, msg: MigrateCommit) -> None:
+        decision = handshake.on_commit(msg, self.host.records.get(msg.companion), me=self.host.sim.embodiment)
+        if decision.record is not None:
+            self._activate(decision.record)
+        request.answer(decision.outcome)
+
+    def on_abort(self, request: IncomingRequest, msg: MigrateAbort) -> None:
+        host = self.host
+        decision = handshake.on_abort(msg, host.records.get(msg.companion), requester=request.requester)
+        self.uploads.end(request.requester, msg.attempt)
+        if decision.record is not None:
+            host.records.put(decision.record)
+            self._prepared.pop(msg.attempt, None)
+            if host.identity is None:
+                host.withdraw_claim()
+            host.raise_event("MigrationDropped", {"companion": msg.companion, "attempt": msg.attempt,
+                                                  "source": request.requester})
+        request.answer(decision.outcome)
+
+    def _activate(self, active: Record) -> None:
+        host = self.host
+        active = host.records.put(active)
+        crash_point("target:active")
+        host.step(active)
+        self.forks.clear()  # a frozen holder accepts no prepare: any evidence here was of a copy long gone
+        identity = self._prepared.pop(active.attempt, None)
+        if identity is None:  # restarted since the prepare: the stored document is the truth
+            identity = host.records.identity(active.companion, host.memo) or Identity(active.companion, active.epoch, {})
+        identity.epoch = active.epoch
+        host.inhabit(identity, "MigrationOccurred", f"arrived from {active.peer}")
+
+    # --- an attempt left undecided -------------------------------------------------------------------
+
+    def resolve_incoming(self, record: Record, overdue: float = 0.0) -> None:
+        """Handshake thread: ask the source until it says committed or aborted: after a restart in
+        ``incoming``, and ``overdue`` seconds after a prepare if neither a commit nor an abort has come."""
+        host = self.host
+        if overdue and host.stopping.wait(overdue):
+            return
+        delay = host.retry[0]
+        status = MigrateStatus(record.companion, record.attempt, record.epoch, "source")
+        while not host.stopping.is_set():
+            current = host.records.get(record.companion)
+            if current is None or current.state != "incoming" or current.attempt != record.attempt:
+                return  # a commit or abort arrived meanwhile
+            try:
+                reply = host.ask(record.peer, "status", status)
+                if reply.status == "accepted" and handshake.settle_incoming(current, reply.value, me=host.sim.embodiment):
+                    host.post(self._settle, record, reply.value)
+                    return
+            except OutcomeUnknown as exc:
+                log.info("asking %s about %s: %s", record.peer, record.attempt, exc)
+            if host.stopping.wait(delay):
+                return
+            delay = min(host.retry[1] * 2, delay * 2)
+
+    def _settle(self, record: Record, answer: Any) -> None:
+        current = self.host.records.get(record.companion)
+        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+            return
+        settled = handshake.settle_incoming(current, answer, me=self.host.sim.embodiment)
+        if settled is None:
+            return
+        if settled.state == "active":
+            self._activate(settled)
+        else:
+            self._drop(settled, f"{record.peer!r} aborted it")
+
+    def expire_later(self, record: Record) -> None:
+        """Loop: drop ``record``'s attempt at its deadline if it is still undecided then."""
+        due = handshake.incoming_deadline(record, self.timeout)
+        self.host.sim.call_later(max(0.0, due - time.time()), functools.partial(self._expire, record))
+
+    def _expire(self, record: Record) -> None:
+        current = self.host.records.get(record.companion)
+        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+            return  # decided meanwhile
+        expired = handshake.expire_incoming(current, now=time.time(), bound=self.timeout)
+        if expired is None:  # the clock went back since the timer was set
+            self.expire_later(current)
+            return
+        reason = (f"{current.peer!r} neither committed nor aborted attempt {current.attempt} of {current.companion!r} "
+                  f"within {self.timeout:g} s of its prepare")
+        log.warning("dropping the incoming migration: %s", reason)
+        self._drop(expired, reason)
+
+    def _drop(self, dropped: Record, reason: str) -> None:
+        """Loop: the attempt ``dropped`` ends here, durably first (the source is told ``dropped`` from
+        this record on); the embodiment is free for the next migration."""
+        host = self.host
+        host.records.put(dropped)
+        self._prepared.pop(dropped.attempt, None)
+        self.uploads.end(dropped.peer, dropped.attempt)
+        if host.identity is None:
+            host.withdraw_claim()
+        host.raise_event("MigrationDropped", {"companion": dropped.companion, "attempt": dropped.attempt,
+                                              "source": dropped.peer, "reason": reason})
