@@ -249,8 +249,9 @@ def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(t
 
 def test_answers_are_told_only_while_someone_listens() -> None:
     from cmion_mesh import keys
-    from cmion_mesh.ion import Component, Simulation, send_request
+    from cmion_mesh.ion import Component, Simulation
     from cmion_mesh.messages import Describe, RequestAnswered, decode
+    from cmion_mesh.requests import send_request
 
     class Asked(Component):
         requests = {"describe": Describe}

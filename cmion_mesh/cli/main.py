@@ -164,8 +164,8 @@ def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
 
 
 def cmd_store(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
     from cmion_mesh.messages import RemoveContainer, RemoveProperty
+    from cmion_mesh.requests import require_accepted
 
     store = args.store
     stop = Stopper() if args.action == "watch" else None  # before any thread starts
@@ -515,7 +515,7 @@ class Spinner:
 
 
 def cmd_act(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
+    from cmion_mesh.requests import require_accepted
 
     stop = Stopper()  # Ctrl-C is collected by the main thread, whichever thread the signal reaches
     with session(args) as client:
@@ -554,7 +554,7 @@ def cmd_act(args: argparse.Namespace) -> int:
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
+    from cmion_mesh.requests import require_accepted
 
     with session(args) as client:
         client.join(args.embodiment, timeout=args.join_timeout)

@@ -88,7 +88,7 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError, OutcomeUnknown
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer, send_request
+from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer
 from cmion_mesh.messages import (
     Code,
     CustodyResume,
@@ -111,6 +111,7 @@ from cmion_mesh.migration.identity import Bytes, Identity, Packed, SectionMemo, 
 from cmion_mesh.migration.ledger import HOSTING, MAX_CACHE_ENV, IncomingSection, Record, Records, env_limit
 from cmion_mesh.migration.signing import SignatureRefused
 from cmion_mesh.mind import Mind
+from cmion_mesh.requests import send_request
 from cmion_mesh.storage import Store
 from cmion_mesh.transport.base import Closeable
 

@@ -16,7 +16,7 @@ and any MCAP reader open these files. What is recorded, one MCAP channel per key
   ``cmion/<mesh>/<embodiment>/@outcome/<component>/<request>`` (schema ``cmion_mesh.RequestAnswered``:
   status, code, reason, sender). Requests are zenoh queries, which a passive subscriber never
   sees; each embodiment publishes how it answered one only while some session subscribes there
-  (``ion.Simulation``: one attribute read per request otherwise).
+  (``requests.Answers``: one attribute read per request otherwise).
 * anything else under the recorded keys, and every payload that does not decode as what its key
   should carry, goes to ``raw:<key pattern>`` (schema ``cmion_mesh.RawSample``: the key and the
   bytes in base64), never lost.
