@@ -642,7 +642,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record_info(files: list[str], as_json: bool) -> int:
-    from cmion_mesh.tools.recording import format_info, info
+    from cmion_mesh.tools.recording_reader import format_info, info
 
     if not files:
         raise ConfigError("record info: name the recording (cmion-mesh record info FILE.mcap)")
