@@ -54,6 +54,13 @@ def events_in(path: Path) -> list[dict[str, Any]]:
         return [m.decoded() for m in reader.messages() if m.schema == EVENT_SCHEMA]
 
 
+def metadata_in(path: Path) -> list[str]:
+    with RecordingReader(path) as reader:
+        for _ in reader.messages():
+            pass
+        return [name for name, _ in reader.metadata]
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     """The demo's story, recorded by two recorders: one stopped with Ctrl-C, one killed with SIGKILL."""
@@ -371,6 +378,22 @@ def test_a_split_recording_makes_no_empty_part(tmp_path: Path) -> None:
         files = recorder.stats.files
     assert [Path(f).name for f in files] == ["q-0000.mcap", "q-0001.mcap"]
     assert [len(events_in(Path(f))) for f in files] == [1, 1]
+
+
+def test_a_part_holding_no_message_is_never_full(tmp_path: Path) -> None:
+    """A part's header and metadata pass any split size: only a message fills it, so the first
+    message goes to the first part however long the recorder waited for it."""
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        # flush_interval 0: the writer checks the part's size on every pass, so it has checked it
+        # (metadata only, past 1 byte) before the tick can come.
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.0) as recorder:
+            recorder.describe([{"name": "robot"}])
+            wait_for(lambda: any("embodiment:robot" in metadata_in(Path(f)) for f in recorder.stats.files), 10,
+                     "the description on disk")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: sum(len(events_in(Path(f))) for f in recorder.stats.files) == 1, 10, "the tick on disk")
+        files = recorder.stats.files
+    assert [(Path(f).name, len(events_in(Path(f)))) for f in files] == [("q-0000.mcap", 1)]
 
 
 def test_bad_input_is_named(tmp_path: Path) -> None:

@@ -332,7 +332,9 @@ class Recorder:
                 self.stats.dropped = dropped
                 self._part.flush()
                 next_flush = now + self.flush_interval
-                if self._split and not self._split_due and (
+                # Only a message fills a part: its header and metadata alone pass a small split size,
+                # and a part that waited long for its first message is old, yet it holds none.
+                if self._split and not self._split_due and self._part.messages and (
                         (self.split_bytes and self._part.size() >= self.split_bytes)
                         or (self.split_seconds and now - self._part.started >= self.split_seconds)):
                     self._split_due = True  # not now: an idle mesh would leave a trail of empty files
