@@ -938,7 +938,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
-    from cmion_mesh.tools import launch
+    from cmion_mesh.tools import launch, launcher
 
     plan = launch.load(launch.resolve_file(args.file), mesh=args.mesh)
     if args.check:
@@ -954,7 +954,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
             print(f"  {item['name']} ({item['kind']}{after}{ready}): {' '.join(item['command'])}")
         return ExitCode.OK
     stop = Stopper()  # before any thread: the launcher collects Ctrl-C and SIGTERM itself, then stops its children
-    return launch.Launcher(plan, stop).run()
+    return launcher.Launcher(plan, stop).run()
 
 
 def cmd_router(args: argparse.Namespace) -> int:
