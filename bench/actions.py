@@ -42,9 +42,9 @@ from bench.stats import summarize
 from cmion_mesh import keys
 from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.ion import send_request
 from cmion_mesh.messages import Act, ActionReport, Event, MindMessage
 from cmion_mesh.procs import unique_mesh
+from cmion_mesh.requests import send_request
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.zenoh import ZenohTransport
 

@@ -61,8 +61,9 @@ from bench.registry import Options, Row
 from bench.stats import summarize
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.ion import IncomingRequest, Simulation
+from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import Event, SetProperty
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.storage import Store
 from cmion_mesh.transport import zenoh as zenoh_transport
 from cmion_mesh.transport.base import Sample

@@ -28,9 +28,9 @@ from bench.stats import summarize
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, OutcomeUnknown
-from cmion_mesh.ion import send_request
 from cmion_mesh.messages import Act
 from cmion_mesh.procs import unique_mesh
+from cmion_mesh.requests import send_request
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 FLOOD = 20_000

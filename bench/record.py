@@ -32,7 +32,9 @@ from bench.harness import loopback_config, loopback_endpoint, start_child, stop_
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
 from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
-from cmion_mesh.tools import recording as record
+from cmion_mesh.tools.recording import FLUSH_INTERVAL
+from cmion_mesh.tools.recording_format import EVENT_SCHEMA
+from cmion_mesh.tools.recording_reader import RecordingReader, info
 
 LABELS = {
     "record_raw": "raw zenoh events/s, 1 subscriber (baseline)",
@@ -135,7 +137,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         lag = _caught_up(output, time.monotonic())
         log(f"recorder caught up {lag:.2f} s after the last burst reached the subscriber")
         code = recorder.stop(signal.SIGINT, grace=120.0)
-        summary = record.info(output)
+        summary = info(output)
         in_file = summary["channels"].get(f"cmion/{mesh}/fan-pub/ev/src/burst{RECORDED}", 0)
         rates["record_recorder_rate"] = _recorder_rates(output, count)
         size = output.stat().st_size
@@ -158,7 +160,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
     return rows
 
 
-def _caught_up(path: Path, since: float, quiet: float = 4 * record.FLUSH_INTERVAL, timeout: float = 120.0) -> float:
+def _caught_up(path: Path, since: float, quiet: float = 4 * FLUSH_INTERVAL, timeout: float = 120.0) -> float:
     """Seconds from ``since`` until ``path`` last grew, once it has not grown for ``quiet`` seconds."""
     size, grew = path.stat().st_size, since
     for _ in range(int(timeout / 0.05)):  # bounded in time
@@ -184,17 +186,17 @@ def _file_holds(path: Path, events: int, timeout: float) -> bool:
 
 
 def _recorded(path: Path) -> int:
-    with record.RecordingReader(path) as reader:
-        return sum(1 for m in reader.messages() if m.schema == record.EVENT_SCHEMA)
+    with RecordingReader(path) as reader:
+        return sum(1 for m in reader.messages() if m.schema == EVENT_SCHEMA)
 
 
 def _recorder_rates(path: Path, count: int) -> list[float]:
     """Per measured burst (``count`` events, then its end marker), events / its span of log times."""
     out: list[float] = []
     times: list[int] = []
-    with record.RecordingReader(path) as reader:
+    with RecordingReader(path) as reader:
         for message in reader.messages():
-            if message.schema != record.EVENT_SCHEMA:
+            if message.schema != EVENT_SCHEMA:
                 continue
             if isinstance(message.decoded().get("data"), dict):  # the end marker
                 if len(times) == count and times[-1] > times[0]:

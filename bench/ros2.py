@@ -41,6 +41,7 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.ros2 import wire as ros2
+from cmion_mesh.ros2.interfaces import Types
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 EMBODIMENT = "ros_robot"
@@ -61,7 +62,7 @@ class Nav2Node:
     """The measuring process as a Nav2 node: goals are accepted and succeed at once; the moment each
     send_goal request arrives and each result is sent is recorded (``time.perf_counter``)."""
 
-    def __init__(self, session: zenoh.Session, types: ros2.Types, domain: int = 0, name: str = "bench_nav2") -> None:
+    def __init__(self, session: zenoh.Session, types: Types, domain: int = 0, name: str = "bench_nav2") -> None:
         self.session, self.types = session, types
         zid = str(session.zid())
         self.goals: queue.SimpleQueue[float] = queue.SimpleQueue()
@@ -136,7 +137,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         stack.callback(raw_session.close)
         robot_session = open_session(loopback_config(connect=node.listen))
         stack.callback(robot_session.close)
-        robot = Nav2Node(robot_session, ros2.Types())
+        robot = Nav2Node(robot_session, Types())
         stack.callback(robot.close)
         transport = stack.enter_context(ZenohTransport(loopback_config(connect=node.listen)))
         client = stack.enter_context(MeshClient(transport, mesh))

@@ -31,8 +31,9 @@ from bench.harness import StopSignal, loopback_config, loopback_endpoint, start_
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
-from cmion_mesh.ion import Component, IncomingRequest
+from cmion_mesh.ion import Component
 from cmion_mesh.messages import Message, Property, SetProperty, encode
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.storage import Blackboard
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.zenoh import ZenohTransport

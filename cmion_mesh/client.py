@@ -34,7 +34,6 @@ from cmion_mesh.errors import (
     StorageError,
     Vanished,
 )
-from cmion_mesh.ion import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.messages import (
     Act,
     ActionReport,
@@ -62,6 +61,7 @@ from cmion_mesh.messages import (
     tag,
 )
 from cmion_mesh.presence import Presence
+from cmion_mesh.requests import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
 from cmion_mesh.transport.base import Closeable, Handle, Sample, Transport
 
 Entry = Property | Container

@@ -109,8 +109,8 @@ class RunContext:
     def write(self, store: str, message: StorageWrite, timeout: float = 10.0) -> None:
         """Send a write request to a local store and wait for its outcome; ``RequestRejected``
         (whose ``code`` says why) unless accepted."""
-        from cmion_mesh.ion import require_accepted
         from cmion_mesh.messages import tag
+        from cmion_mesh.requests import require_accepted
 
         require_accepted(self.competency.sim.request(store, tag(type(message)), message).result(timeout), store)
 

@@ -28,13 +28,16 @@ its semantics and drive them from arriving work instead of a fixed-rate timer:
   between components of one simulation are delivered directly, in order, and still published.
   A remote event reaches each subscription whose pattern its key matches once (each ``on_event``
   has its own zenoh subscriber), and only if its fields name the key it was published on.
+
+Here: ``Component``, ``Simulation`` (the loop, its events, how requests reach components) and
+``serve``. A request and its answers (``IncomingRequest``, ``send_request``, ``require_accepted``,
+the answers told on ``@outcome``) are in ``requests``; ``call_later``'s timers in ``timers``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
-import heapq
 import itertools
 import logging
 import queue
@@ -46,9 +49,13 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from cmion_mesh import keys
-from cmion_mesh.errors import ClosedError, InvalidName, MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
-from cmion_mesh.messages import Code, Event, Message, Outcome, RequestAnswered, check_value, decode, decoder, encode, tag
-from cmion_mesh.transport.base import Closeable, Handle, IncomingQuery, Matching, Sample, Transport
+from cmion_mesh.errors import ClosedError, InvalidName, MeshError, OutcomeUnknown, ProtocolError
+from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, decoder, encode, tag
+from cmion_mesh.requests import DEFAULT_REQUEST_TIMEOUT, Answers, send_request
+from cmion_mesh.requests import IncomingRequest as IncomingRequest  # named by components written before it moved
+from cmion_mesh.timers import Timer as Timer  # call_later's, named by components written before it moved
+from cmion_mesh.timers import Timers
+from cmion_mesh.transport.base import Closeable, Handle, IncomingQuery, Sample, Transport
 
 log = logging.getLogger(__name__)
 
@@ -66,58 +73,6 @@ MAX_CACHED_KEYS = 4096
 #: Work waiting for the loop beyond which new requests are answered ``busy`` at once, on the
 #: transport's worker: a flood costs the flooder an answer, not this embodiment's memory.
 MAX_QUEUED = 4096
-DEFAULT_REQUEST_TIMEOUT = 10.0
-#: Longest timer delay: queue.get cannot wait past threading.TIMEOUT_MAX, and a later timer is 'never'.
-MAX_TIMER_DELAY = 30 * 24 * 3600.0
-
-
-class IncomingRequest:
-    """One request handed to a component; answer it with ``accept``, ``reject`` or ``conflict``."""
-
-    __slots__ = ("_answer", "component", "deferred", "name", "outcome", "payload", "requester")
-
-    def __init__(
-        self, component: str, name: str, payload: Any, requester: str, answer: Callable[[Outcome], None]
-    ) -> None:
-        self.component = component
-        self.name = name
-        self.payload = payload
-        self.requester = requester
-        self._answer = answer
-        self.outcome: Outcome | None = None
-        self.deferred = False
-
-    @property
-    def answered(self) -> bool:
-        return self.outcome is not None
-
-    def _send(self, outcome: Outcome) -> None:
-        if self.outcome is not None:
-            return  # first answer stands; repeated answers are ignored
-        self.outcome = outcome
-        try:
-            self._answer(outcome)
-        except MeshError:  # the requester vanished, or we are closing: its outcome is its own to recover
-            log.debug("could not deliver outcome of %s/%s", self.component, self.name, exc_info=True)
-
-    def defer(self) -> None:
-        """The handler answers later, from the loop (it waits for something that must not block the
-        loop): the request is not refused as unanswered at the end of this update. The handler must
-        then answer it, within the requester's timeout."""
-        self.deferred = True
-
-    def answer(self, outcome: Outcome) -> None:
-        """Send a ready-made outcome (a decision taken elsewhere)."""
-        self._send(outcome)
-
-    def accept(self, value: Any = None) -> None:
-        self._send(Outcome("accepted", "", check_value(value)))
-
-    def reject(self, reason: str, code: Code = Code.INVALID) -> None:
-        self._send(Outcome("rejected", reason, code=code))
-
-    def conflict(self, reason: str) -> None:
-        self._send(Outcome("conflict", reason, code=Code.CONFLICT))
 
 
 class Component:
@@ -175,27 +130,6 @@ class Component:
                 "per_sender": sorted(self.sender_requests)}
 
 
-class Timer:
-    """A pending ``call_later``; ``cancel`` must be called on the loop (as timers are armed there)."""
-
-    __slots__ = ("due", "fn", "id", "sim")
-
-    def __init__(self, sim: Simulation, due: float, timer_id: int, fn: Callable[[], None]) -> None:
-        self.sim = sim
-        self.due = due
-        self.id = timer_id
-        self.fn: Callable[[], None] | None = fn
-
-    def cancel(self) -> None:
-        if self.fn is not None:
-            self.fn = None
-            self.sim._timer_cancelled()
-
-    def fire(self) -> Callable[[], None] | None:
-        fn, self.fn = self.fn, None
-        return fn
-
-
 class _RequestItem:
     __slots__ = ("component", "request")
 
@@ -247,9 +181,7 @@ class Simulation:
         self._event_keys: dict[tuple[str, str, str], str] = {}
         # events to dispatch: (event, key, the one subscription of a remote event or None = all matching)
         self._events: deque[tuple[Event, str, _Subscription | None]] = deque()
-        self._timers: list[tuple[float, int, Timer]] = []
-        self._cancelled_timers = 0
-        self._timer_ids = itertools.count()
+        self._timers = Timers()
         self._seq = itertools.count(1)
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
@@ -266,12 +198,7 @@ class Simulation:
         #: Events this simulation raised (published) / received from other sessions, so far.
         self.events_raised = 0
         self.events_received = 0
-        self._answered: dict[tuple[str, str], int] = {}
-        self._answered_lock = threading.Lock()
-        # Whether someone (a recorder) listens to this embodiment's answers: followed from the first
-        # queryable on, so that a request costs one attribute read when nobody does.
-        self._outcome_tap: Matching | None = None
-        self._outcome_keys: dict[tuple[str, str], str] = {}
+        self._answers = Answers(transport, self.mesh, self.embodiment)
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -322,7 +249,7 @@ class Simulation:
             self._components[component.name] = component
         component._sim = self
         if component.requests:
-            self._follow_outcome_listeners()
+            self._answers.follow_listeners()
             tail = "**" if component.sender_requests else "*"
             selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/{tail}"
             self._queryables[component.name] = self.transport.declare_queryable(
@@ -330,15 +257,6 @@ class Simulation:
             )
         self.call(lambda: component.attach(self))
         return component
-
-    def _follow_outcome_listeners(self) -> None:
-        with self._lock:
-            if self._outcome_tap is not None:
-                return
-            try:
-                self._outcome_tap = self.transport.matching(keys.outcome_pattern(self.mesh, self.embodiment))
-            except MeshError as exc:  # answers are then not told; requests are served all the same
-                log.warning("cannot follow who listens to %s's answers: %s", self.embodiment, exc)
 
     def remove(self, name: str) -> None:
         with self._lock:
@@ -386,48 +304,33 @@ class Simulation:
     @property
     def armed_timers(self) -> int:
         """Timers armed and not cancelled; read it on the loop (or from ``call``)."""
-        return sum(1 for entry in self._timers if entry[2].fn is not None)
+        return self._timers.armed
 
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         """Run ``fn`` on the loop after ``delay`` seconds (the loop sleeps until then, it does not poll).
 
         ``cancel()`` on the returned timer drops ``fn`` at once, so a long deadline for work that
         ended early holds nothing (a plan's deadline, for instance)."""
-        timer = Timer(self, time.monotonic() + min(max(0.0, delay), MAX_TIMER_DELAY), next(self._timer_ids), fn)  # NaN -> 0
-
-        def arm() -> None:
-            if timer.fn is not None:
-                heapq.heappush(self._timers, (timer.due, timer.id, timer))
-
+        timer = self._timers.timer(delay, fn)
         if self.on_loop():
-            arm()
+            self._timers.arm(timer)
         else:
-            self.call(arm)
+            self.call(lambda: self._timers.arm(timer))
         return timer
-
-    def _timer_cancelled(self) -> None:
-        # Cancelled timers stay in the heap until due; rebuild it when they are most of it.
-        self._cancelled_timers += 1
-        if self._cancelled_timers > 64 and self._cancelled_timers * 2 > len(self._timers):
-            self._timers = [t for t in self._timers if t[2].fn is not None]
-            heapq.heapify(self._timers)
-            self._cancelled_timers = 0
 
     def _on_query(self, component: Component, query: IncomingQuery) -> None:
         # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
         # component state are answered here so a bad request never costs an update.
         name, _, sender = query.key[self._rq_prefix_len + len(component.name) + 1:].partition("/")
 
-        tap = self._outcome_tap
+        answers = self._answers
 
         def answer(outcome: Outcome) -> None:
             try:
                 query.reply(query.key, encode(outcome))
             finally:
                 query.finish()
-                self._count_answer(outcome)
-                if tap is not None and tap.matching:
-                    self._tell(component.name, name, sender, outcome)
+                answers.given(component.name, name, sender, outcome)
 
         if self._inbox.qsize() >= MAX_QUEUED:
             answer(Outcome("rejected", f"busy: embodiment {self.embodiment!r} has {MAX_QUEUED} requests and events waiting; "
@@ -454,32 +357,9 @@ class Simulation:
             return
         self._inbox.put(_RequestItem(component, IncomingRequest(component.name, name, payload, sender, answer)))
 
-    def _count_answer(self, outcome: Outcome) -> None:
-        # Answers come from the loop and from transport workers (refusals): the lock keeps the count exact.
-        counted = (outcome.status, outcome.code)
-        with self._answered_lock:
-            self._answered[counted] = self._answered.get(counted, 0) + 1
-
     def answered(self) -> dict[tuple[str, str], int]:
         """Requests answered over the mesh so far, by (status, code): a copy, from any thread."""
-        with self._answered_lock:
-            return dict(self._answered)
-
-    def _tell(self, component: str, request: str, sender: str, outcome: Outcome) -> None:
-        """Publish how a request was answered, for whoever listens (only called while someone does).
-        Dropped rather than waited for under congestion: a slow listener never slows a request."""
-        key = self._outcome_keys.get((component, request))
-        try:
-            if key is None:
-                key = keys.outcome_key(self.mesh, self.embodiment, component, request)
-                if len(self._outcome_keys) >= MAX_CACHED_KEYS:
-                    self._outcome_keys.clear()
-                self._outcome_keys[(component, request)] = key
-            told = RequestAnswered(self.embodiment, component, request, outcome.status, outcome.code, outcome.reason,
-                                   sender, time.time())
-            self.transport.publish(key, encode(told), block=False)
-        except (MeshError, ValueError) as exc:  # a request name no key can carry, a closing session
-            log.debug("could not tell the answer to %s/%s: %s", component, request, exc)
+        return self._answers.counts()
 
     def _on_remote_events(self, sub: _Subscription, batch: list[Sample]) -> None:
         # Runs on the subscription's transport worker: decodes what arrived and hands it to the loop
@@ -650,8 +530,9 @@ class Simulation:
         """The work of one update: wait up to ``timeout`` (or the next timer) for a first item,
         then take what else is queued. Also says whether ``close`` asked the loop to stop."""
         inbox = self._inbox
-        if self._timers:
-            due = max(0.0, self._timers[0][0] - time.monotonic())
+        next_due = self._timers.next_due()
+        if next_due is not None:
+            due = max(0.0, next_due - time.monotonic())
             timeout = due if timeout is None else min(timeout, due)
         items: list[Any] = []
         try:
@@ -680,13 +561,8 @@ class Simulation:
 
     def _update(self, items: list[Any]) -> None:
         self.updates += 1
-        timers = self._timers
-        if timers:
-            now = time.monotonic()
-            while timers and timers[0][0] <= now:
-                fn = heapq.heappop(timers)[2].fire()
-                if fn is not None:
-                    items.insert(0, fn)
+        for fn in self._timers.pop_due():
+            items.insert(0, fn)
         batches: dict[str, list[IncomingRequest]] = {}
         events = self._events
         for item in items:
@@ -747,8 +623,7 @@ class Simulation:
         for queryable in list(self._queryables.values()):
             queryable.close()
         self._queryables.clear()
-        if self._outcome_tap is not None:
-            self._outcome_tap.close()
+        self._answers.close()
         while True:
             try:
                 item = self._inbox.get_nowait()
@@ -760,40 +635,6 @@ class Simulation:
             sub.close()
         for component in reversed(list(self._components.values())):
             self._guard(f"{component.name}.detach", component.detach)
-
-
-def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:
-    """Send one request as a zenoh query and return its ``Outcome``.
-
-    Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable;
-    ``NotReached`` when no component was reached at all (not delivered: safe to send again).
-    """
-    started = time.monotonic()
-    try:
-        replies = transport.get(key, encode(payload), timeout=timeout)
-    except MeshError as exc:
-        raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
-    if not replies:
-        waited = time.monotonic() - started
-        if waited < timeout * 0.9:  # zero replies before the deadline: no queryable was reached at all
-            raise NotReached(f"no component answered {key}: nobody reached (after {waited:.2f} s)", key=key)
-        raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
-    reply = replies[0]
-    if not reply.ok:
-        raise OutcomeUnknown(f"{key}: error reply {reply.payload[:200]!r}", key=key)
-    try:
-        outcome: Outcome = decode(reply.payload, Outcome, where=key)
-    except ProtocolError as exc:
-        raise OutcomeUnknown(str(exc), key=key) from None
-    return outcome
-
-
-def require_accepted(outcome: Outcome, key: str) -> Any:
-    """The outcome's value if accepted, else ``RequestRejected`` naming the key and reason."""
-    if outcome.status != "accepted":
-        raise RequestRejected(f"{key}: {outcome.status}: {outcome.reason}", key=key, status=outcome.status,
-                              reason=outcome.reason, code=outcome.code)
-    return outcome.value
 
 
 @contextlib.contextmanager

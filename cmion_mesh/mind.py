@@ -35,7 +35,7 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, RequestRejected
-from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
     Act,
     ActionReport,
@@ -49,6 +49,7 @@ from cmion_mesh.messages import (
     StorageChange,
     Wake,
 )
+from cmion_mesh.requests import IncomingRequest
 
 log = logging.getLogger(__name__)
 

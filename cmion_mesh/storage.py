@@ -44,7 +44,7 @@ import msgspec
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import ConfigError, InvalidName, StorageError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
     STORAGE_WRITES,
     AddContainer,
@@ -60,6 +60,7 @@ from cmion_mesh.messages import (
     encode,
     tag,
 )
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.statedir import write_atomic
 from cmion_mesh.transport.base import IncomingQuery
 

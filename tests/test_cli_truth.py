@@ -24,9 +24,9 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, NotReached, Refused
-from cmion_mesh.ion import send_request
 from cmion_mesh.messages import ActionStatus, Describe
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.requests import send_request
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.tools.demo import Scenario, start_bodies, stop_bodies
 from cmion_mesh.transport.base import TransportConfig

@@ -25,7 +25,6 @@ from cmion_mesh import keys
 from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import OutcomeUnknown
-from cmion_mesh.ion import send_request
 from cmion_mesh.messages import (
     Act,
     ActionStatus,
@@ -43,6 +42,7 @@ from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.identity import Identity
 from cmion_mesh.migration.ledger import Record, Records
 from cmion_mesh.procs import Daemon, cli_argv, free_port
+from cmion_mesh.requests import send_request
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import certs
 from cmion_mesh.transport.base import TransportConfig

@@ -11,9 +11,10 @@ from typing import Any
 import pytest
 
 from cmion_mesh.errors import ClosedError, MeshError, RequestRejected
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Code, Event, Message, MindMessage, MindState, Outcome, decode
 from cmion_mesh.mind import Mind
+from cmion_mesh.requests import IncomingRequest, send_request
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 

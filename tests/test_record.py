@@ -18,9 +18,11 @@ from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import Event, decode, encode
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.tools import recording as record
+from cmion_mesh.tools import recording
 from cmion_mesh.tools.demo import Timeline, run_scenario, start_bodies, stop_bodies
-from cmion_mesh.tools.recording import Recorder, RecordingReader
+from cmion_mesh.tools.recording import OPEN_END, Recorder, parse_size
+from cmion_mesh.tools.recording_format import EVENT_SCHEMA, RAW_SCHEMA, mesh_filter
+from cmion_mesh.tools.recording_reader import RecordingReader, format_info, info
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
@@ -49,7 +51,14 @@ class Session:
 
 def events_in(path: Path) -> list[dict[str, Any]]:
     with RecordingReader(path) as reader:
-        return [m.decoded() for m in reader.messages() if m.schema == record.EVENT_SCHEMA]
+        return [m.decoded() for m in reader.messages() if m.schema == EVENT_SCHEMA]
+
+
+def metadata_in(path: Path) -> list[str]:
+    with RecordingReader(path) as reader:
+        for _ in reader.messages():
+            pass
+        return [name for name, _ in reader.metadata]
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +147,7 @@ def test_record_info_summarises_the_migrations(session: Session) -> None:
     assert summary["duration"] > 0 and summary["messages"] == sum(summary["channels"].values())
     # Described as they were when recording began: the companion on the robot, the others empty.
     assert {n: d["inhabitant"] for n, d in summary["described"].items()} == {"robot": "spirit", "screen": "", "phone": ""}
-    text = record.format_info(record.info(session.clean))
+    text = format_info(info(session.clean))
     assert "migrations: 3" in text and "TRUNCATED" not in text and "inhabitant null" not in text
     assert "inhabitant -" in text
 
@@ -153,10 +162,10 @@ def test_a_killed_recorder_leaves_a_file_the_reader_opens(session: Session) -> N
                 got.append(json.loads(message.data))
     steps = {ident(_builtins(e)) for e in session.seen if e.name == "MigrationStep"}
     assert steps <= {ident(e) for e in got}
-    summary = record.info(session.killed)
+    summary = info(session.killed)
     assert summary["truncated"] and summary["truncation"]
     assert len(summary["migrations"]) == 3
-    assert "TRUNCATED" in record.format_info(summary)
+    assert "TRUNCATED" in format_info(summary)
 
 
 def test_replay_into_a_fresh_mesh_shows_a_listener_the_same_events(session: Session) -> None:
@@ -230,14 +239,14 @@ def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(t
     still publishes each on its own key."""
     from cmion_mesh.tools.replay import replay
 
-    monkeypatch.setattr(record, "MAX_CHANNELS", 2)
+    monkeypatch.setattr(recording, "MAX_CHANNELS", 2)
     network = MemoryNetwork()
     sent = [Event("robot", "c", f"E{i}", {"i": i}, i, 1.0 + i) for i in range(5)]
     with MemoryTransport(network, "mesh") as t, Recorder(t, "m", tmp_path / "o.mcap") as recorder:
         for event in sent:
             t.publish(f"cmion/m/robot/ev/c/{event.name}", encode(event))
         wait_for(lambda: _count(recorder) == 5, 10, "five events written")
-    assert "cmion/m/*/ev/**" in record.info(tmp_path / "o.mcap")["channels"]
+    assert "cmion/m/*/ev/**" in info(tmp_path / "o.mcap")["channels"]
     heard: list[tuple[str, Event]] = []
     with MemoryTransport(network, "listener") as listener_t, MemoryTransport(network, "replay") as replay_t, \
             listener_t.subscribe("cmion/fresh/**", lambda s: heard.append((s.key, decode(s.payload, Event)))):
@@ -249,8 +258,9 @@ def test_replay_publishes_the_events_of_the_overflow_channel_on_their_own_keys(t
 
 def test_answers_are_told_only_while_someone_listens() -> None:
     from cmion_mesh import keys
-    from cmion_mesh.ion import Component, Simulation, send_request
+    from cmion_mesh.ion import Component, Simulation
     from cmion_mesh.messages import Describe, RequestAnswered, decode
+    from cmion_mesh.requests import send_request
 
     class Asked(Component):
         requests = {"describe": Describe}
@@ -298,13 +308,13 @@ def test_undecodable_payloads_go_to_a_raw_channel_and_drops_are_counted(tmp_path
             for i in range(5):
                 t.publish(f"cmion/m/robot/ev/manager/E{i}", encode(event))
             wait_for(lambda: dropping.dropped >= 5, 10, "five drops")
-    summary = record.info(tmp_path / "r.mcap")
+    summary = info(tmp_path / "r.mcap")
     assert summary["channels"] == {"cmion/m/robot/ev/manager/Ping": 1, "raw:cmion/m/robot/ev/**": 1, "raw:cmion/m/robot/other/**": 1}
     with RecordingReader(tmp_path / "r.mcap") as reader:
-        raw = [m.decoded() for m in reader.messages() if m.schema == record.RAW_SCHEMA]
+        raw = [m.decoded() for m in reader.messages() if m.schema == RAW_SCHEMA]
     assert {r["key"] for r in raw} == {"cmion/m/robot/ev/manager/ActionStarted", "cmion/m/robot/other/thing"}
     assert all(r["payload_base64"] for r in raw) and "malformed" in raw[0]["error"]
-    assert record.info(tmp_path / "dropped.mcap")["dropped"] >= 5
+    assert info(tmp_path / "dropped.mcap")["dropped"] >= 5
     assert any("dropped" in line for line in said)
 
 
@@ -324,7 +334,7 @@ def test_split_by_size_makes_parts_that_each_open(tmp_path: Path) -> None:
     assert len(files) > 1 and files[0].endswith("s-0000.mcap")
     ticks = []
     for path in files:
-        summary = record.info(path)
+        summary = info(path)
         assert not summary["truncated"]
         ticks += [e["data"]["i"] for e in events_in(Path(path))]
     assert ticks == list(range(200))
@@ -345,13 +355,13 @@ def test_what_a_killed_recorder_leaves_opens_in_any_mcap_reader(tmp_path: Path) 
         reader = make_reader(f)
         assert reader.get_summary() is None
         assert [json.loads(m.data)["data"]["i"] for _, _, m in reader.iter_messages()] == list(range(30))
-    summary = record.info(tmp_path / "killed.mcap")
+    summary = info(tmp_path / "killed.mcap")
     assert summary["truncated"] and summary["messages"] >= 30
-    (tmp_path / "cut.mcap").write_bytes(left[: len(left) - len(record.OPEN_END) - 5])  # killed while writing
-    cut = record.info(tmp_path / "cut.mcap")
+    (tmp_path / "cut.mcap").write_bytes(left[: len(left) - len(OPEN_END) - 5])  # killed while writing
+    cut = info(tmp_path / "cut.mcap")
     assert cut["truncated"] and cut["mesh"] == "m"
     # Closed, the file has its real end: a summary, nothing of an open end left after it.
-    assert not record.info(live)["truncated"]
+    assert not info(live)["truncated"]
     with open(live, "rb") as f:
         assert make_reader(f).get_summary() is not None
 
@@ -370,17 +380,33 @@ def test_a_split_recording_makes_no_empty_part(tmp_path: Path) -> None:
     assert [len(events_in(Path(f))) for f in files] == [1, 1]
 
 
+def test_a_part_holding_no_message_is_never_full(tmp_path: Path) -> None:
+    """A part's header and metadata pass any split size: only a message fills it, so the first
+    message goes to the first part however long the recorder waited for it."""
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        # flush_interval 0: the writer checks the part's size on every pass, so it has checked it
+        # (metadata only, past 1 byte) before the tick can come.
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.0) as recorder:
+            recorder.describe([{"name": "robot"}])
+            wait_for(lambda: any("embodiment:robot" in metadata_in(Path(f)) for f in recorder.stats.files), 10,
+                     "the description on disk")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: sum(len(events_in(Path(f))) for f in recorder.stats.files) == 1, 10, "the tick on disk")
+        files = recorder.stats.files
+    assert [(Path(f).name, len(events_in(Path(f)))) for f in files] == [("q-0000.mcap", 1)]
+
+
 def test_bad_input_is_named(tmp_path: Path) -> None:
     (tmp_path / "not.mcap").write_bytes(b"hello, this is not mcap at all")
     with pytest.raises(ConfigError, match=r"not\.mcap"):
-        record.info(tmp_path / "not.mcap")
+        info(tmp_path / "not.mcap")
     with pytest.raises(ConfigError, match=r"missing\.mcap"):
-        record.info(tmp_path / "missing.mcap")
+        info(tmp_path / "missing.mcap")
     with pytest.raises(ConfigError, match="size"):
-        record.parse_size("lots")
-    assert record.parse_size("100M") == 100 * 1024**2
+        parse_size("lots")
+    assert parse_size("100M") == 100 * 1024**2
     with pytest.raises(ConfigError, match="filter"):
-        record.mesh_filter("m", "/abs")
+        mesh_filter("m", "/abs")
 
 
 def test_a_recording_is_never_overwritten_unless_asked(tmp_path: Path) -> None:
@@ -391,6 +417,6 @@ def test_a_recording_is_never_overwritten_unless_asked(tmp_path: Path) -> None:
         assert (tmp_path / "kept.mcap").read_bytes() == b"evidence"
         with Recorder(t, "m", tmp_path / "kept.mcap", overwrite=True):
             pass
-    assert not record.info(tmp_path / "kept.mcap")["truncated"]
+    assert not info(tmp_path / "kept.mcap")["truncated"]
     with MemoryTransport(MemoryNetwork(), "mesh") as t, pytest.raises(ConfigError, match="is a folder"):
         Recorder(t, "m", tmp_path, overwrite=True)

@@ -16,6 +16,7 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.ros2 import wire as ros2
+from cmion_mesh.ros2.interfaces import Types
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Sample
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -49,7 +50,7 @@ class Robot:
 
 
 @pytest.fixture
-def body(tmp_path: Path, mesh: str) -> Iterator[tuple[MeshClient, Robot, ros2.Types]]:
+def body(tmp_path: Path, mesh: str) -> Iterator[tuple[MeshClient, Robot, Types]]:
     library = tmp_path / "CompetencyLibrary.xml"
     library.write_text(LIBRARY)
     network = MemoryNetwork()
@@ -57,10 +58,10 @@ def body(tmp_path: Path, mesh: str) -> Iterator[tuple[MeshClient, Robot, ros2.Ty
             MemoryTransport(network, "tool") as tool_side, \
             Embodiment("ros_robot", mesh=mesh, transport=daemon_side, rules=ROS_ROBOT / "CompetencyManagerRules.xml",
                        library=library, world_model_init=ROS_ROBOT / "WorldModel.xml"):
-        yield MeshClient(tool_side, mesh), Robot(robot_side), ros2.Types()
+        yield MeshClient(tool_side, mesh), Robot(robot_side), Types()
 
 
-def test_a_subscriber_of_another_definition_is_no_subscriber(body: tuple[MeshClient, Robot, ros2.Types]) -> None:
+def test_a_subscriber_of_another_definition_is_no_subscriber(body: tuple[MeshClient, Robot, Types]) -> None:
     client, robot, types = body
     twist = "geometry_msgs/msg/Twist"
     robot.entity("MS", "/cmd_vel", twist, OTHER_HASH)
@@ -82,7 +83,7 @@ def test_a_subscriber_of_another_definition_is_no_subscriber(body: tuple[MeshCli
     assert types.decode(twist, received[0].payload).linear.x == pytest.approx(0.2)
 
 
-def test_an_action_server_of_another_definition_is_no_server(body: tuple[MeshClient, Robot, ros2.Types]) -> None:
+def test_an_action_server_of_another_definition_is_no_server(body: tuple[MeshClient, Robot, Types]) -> None:
     client, robot, _ = body
     send_goal = "nav2_msgs/action/NavigateToPose_SendGoal"
     robot.entity("SS", "/navigate_to_pose/_action/send_goal", send_goal, OTHER_HASH)

@@ -2,7 +2,7 @@
 
 Separate processes over real zenoh on loopback: one ``ros_robot`` daemon for the module, and a
 stand-in robot (tests/ros2_robot_standin.py: rmw_zenoh's wire format written independently of
-cmion_mesh/ros2/wire.py) started per behaviour it must show (succeeding, hanging, malformed), each
+cmion_mesh/ros2/wire.py and interfaces.py) started per behaviour it must show (succeeding, hanging, malformed), each
 connecting to the daemon. The test process sends mind actions with a ``MeshClient`` and reads
 what the stand-in received from its JSON lines.
 """

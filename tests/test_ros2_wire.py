@@ -11,6 +11,7 @@ import pytest
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.ros2 import wire as ros2
 from cmion_mesh.ros2.competencies import Ros2Navigation, Ros2SensorBridge, Ros2Speech, Ros2Velocity
+from cmion_mesh.ros2.interfaces import Types, plain
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Sample
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -20,13 +21,13 @@ ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf303
 
 
 @pytest.fixture(scope="module")
-def types() -> ros2.Types:
-    found = ros2.Types()
+def types() -> Types:
+    found = Types()
     found.register_service("example_interfaces/srv/AddTwoInts", "int64 a\nint64 b", "int64 sum")
     return found
 
 
-def test_type_hashes_are_rosidl_ones(types: ros2.Types) -> None:
+def test_type_hashes_are_rosidl_ones(types: Types) -> None:
     assert types.hash("std_msgs/msg/String") == STRING_HASH
     assert types.hash("geometry_msgs/msg/Twist") == "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
     # A service's hash covers request, response and the synthesized event (whose ServiceEventInfo
@@ -38,7 +39,7 @@ def test_type_hashes_are_rosidl_ones(types: ros2.Types) -> None:
         assert types.hash(name).startswith("RIHS01_") and len(types.hash(name)) == 7 + 64
 
 
-def test_data_keys_match_the_design_examples(types: ros2.Types) -> None:
+def test_data_keys_match_the_design_examples(types: Types) -> None:
     assert ros2.topic_key(0, ros2.qualify("chatter"), "std_msgs/msg/String", STRING_HASH) == \
         f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
     assert ros2.topic_key(0, ros2.qualify("chatter", "/robot1"), "std_msgs/msg/String", STRING_HASH) == \
@@ -85,14 +86,14 @@ def test_attachments() -> None:
             ros2.decode_attachment(bad)
 
 
-def test_cdr_round_trips_and_refuses_malformed(types: ros2.Types) -> None:
+def test_cdr_round_trips_and_refuses_malformed(types: Types) -> None:
     assert types.encode("std_msgs/msg/String", {"data": "hi"})[:11] == bytes.fromhex("00010000030000006869 00".replace(" ", ""))
     goal_id = bytes(range(16))
     request = {"goal_id": {"uuid": list(goal_id)},
                "goal": {"pose": {"header": {"frame_id": "map"},
                                  "pose": {"position": {"x": 4.0, "y": 2.5}, "orientation": ros2.yaw_quaternion(1.5708)}}}}
     data = types.encode("nav2_msgs/action/NavigateToPose_SendGoal_Request", request)
-    back = ros2.plain(types.decode("nav2_msgs/action/NavigateToPose_SendGoal_Request", data))
+    back = plain(types.decode("nav2_msgs/action/NavigateToPose_SendGoal_Request", data))
     assert back["goal_id"]["uuid"] == list(goal_id)
     assert back["goal"]["pose"]["header"]["frame_id"] == "map"
     assert back["goal"]["pose"]["pose"]["position"] == {"x": 4.0, "y": 2.5, "z": 0.0}

@@ -18,9 +18,10 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
-from cmion_mesh.web import view
+from cmion_mesh.web import view_model
 from cmion_mesh.web.server import WebServer
-from cmion_mesh.web.view import MeshView, Model, Page
+from cmion_mesh.web.view import MeshView
+from cmion_mesh.web.view_model import Model, Page
 
 
 def event(embodiment: str, component: str, name: str, data: Any = None, seq: int = 1) -> Event:
@@ -29,16 +30,16 @@ def event(embodiment: str, component: str, name: str, data: Any = None, seq: int
 
 def test_a_page_queue_drops_the_oldest_events_and_counts_them() -> None:
     page = Page(1)
-    for i in range(view.PAGE_EVENTS + 25):
+    for i in range(view_model.PAGE_EVENTS + 25):
         page.event({"seq": i})
-    assert len(page.events) == view.PAGE_EVENTS
+    assert len(page.events) == view_model.PAGE_EVENTS
     assert page.dropped == 25
     assert page.events[0] == {"seq": 25}
 
 
 def test_a_page_too_far_behind_on_state_gets_a_snapshot_instead() -> None:
     page = Page(1)
-    for i in range(view.PAGE_CHANGES + 1):
+    for i in range(view_model.PAGE_CHANGES + 1):
         page.change({"n": i})
     assert page.resync and page.changes == []
     page.change({"n": "more"})
@@ -68,16 +69,16 @@ def test_migration_steps_are_put_together_from_both_sides() -> None:
 
 def test_plans_follow_execution_events_and_only_so_many_finished_ones_are_kept() -> None:
     model = Model("m")
-    for i in range(view.PLANS_KEPT + 10):
+    for i in range(view_model.PLANS_KEPT + 10):
         run = {"run_id": f"plan-{i}"}
         model.plan_event(event("robot", "execution", "PlanStarted", {**run, "action": "Greet", "steps": 1}))
         model.plan_event(event("robot", "execution", "StepStarted", {**run, "step": "s1", "type": "Speech", "competency": "say"}))
         model.plan_event(event("robot", "execution", "StepSucceeded", {**run, "step": "s1", "type": "Speech"}))
         model.plan_event(event("robot", "execution", "PlanSucceeded", run))
     model.plan_event(event("robot", "execution", "PlanStarted", {"run_id": "running", "action": "Wave", "steps": 2}))
-    assert len(model.plans) == view.PLANS_KEPT + 1
+    assert len(model.plans) == view_model.PLANS_KEPT + 1
     assert model.plans["robot/running"]["state"] == "running"
-    last = model.plans[f"robot/plan-{view.PLANS_KEPT + 9}"]
+    last = model.plans[f"robot/plan-{view_model.PLANS_KEPT + 9}"]
     assert last["state"] == "succeeded" and last["steps"]["s1"]["status"] == "succeeded"
     model.alive("robot", False)
     assert model.plans["robot/running"]["state"] == "vanished"
@@ -102,7 +103,7 @@ def test_a_page_that_does_not_read_holds_up_neither_the_mesh_nor_another_page(
     served: tuple[MeshView, str, MemoryTransport], mesh: str
 ) -> None:
     mesh_view, url, robot = served
-    count = 6 * view.PAGE_EVENTS  # 12 MB: more than the sockets' buffers and the queue hold
+    count = 6 * view_model.PAGE_EVENTS  # 12 MB: more than the sockets' buffers and the queue hold
     # The page that does not read: a small receive buffer, and a client that stops reading its
     # socket once one message waits, so the view's writes to it soon block.
     small = socket.create_connection(("127.0.0.1", int(url.split(":")[2].split("/")[0])))
@@ -124,8 +125,8 @@ def test_a_page_that_does_not_read_holds_up_neither_the_mesh_nor_another_page(
         assert seen == count, f"the reading page saw events up to {seen} of {count}"
         (slow_page,) = [p for p in mesh_view.pages if p.number == 1]
         wait_for(lambda: slow_page.dropped > 0, 10, "the page that does not read losing its oldest events")
-        assert len(slow_page.events) <= view.PAGE_EVENTS
-        assert len(mesh_view.model.ring) == view.RING
+        assert len(slow_page.events) <= view_model.PAGE_EVENTS
+        assert len(mesh_view.model.ring) == view_model.RING
     print(f"{count} events published in {published:.2f} s while one page read nothing")
 
 

@@ -29,13 +29,14 @@ from cmion_mesh.body.standin import summary as standin_summary
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, load_library
 from cmion_mesh.errors import MeshError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import Joining, NameClaim, Presence, claim_name
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.transport.base import Closeable, Transport, TransportConfig

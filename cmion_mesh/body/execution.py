@@ -29,9 +29,11 @@ from cmion_mesh.body.rules import MindAction, Plan, Step, substitute_step
 from cmion_mesh.body.standin import StandIn, unavailable_reason
 from cmion_mesh.competency import Competency, RunResult
 from cmion_mesh.errors import MeshError, PlanError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, Timer
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import ExecutionStatus, RunStatus
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.storage import Store
+from cmion_mesh.timers import Timer
 from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)

@@ -33,8 +33,9 @@ from cmion_mesh import keys
 from cmion_mesh.body.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
 from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet
 from cmion_mesh.errors import MeshError
-from cmion_mesh.ion import Component, IncomingRequest
+from cmion_mesh.ion import Component
 from cmion_mesh.messages import Act, ActionReport, ActionState, ActionStatus, CancelAction, Code, RunStatus
+from cmion_mesh.requests import IncomingRequest
 
 
 @dataclass(eq=False)

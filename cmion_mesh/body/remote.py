@@ -29,8 +29,9 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext, RunResult
 from cmion_mesh.errors import MeshError, OutcomeUnknown, ProtocolError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import CancelRun, Code, Event, RunEnded, RunStatus, StartRun, decode
+from cmion_mesh.requests import IncomingRequest, send_request
 from cmion_mesh.transport.base import Closeable, Sample
 
 log = logging.getLogger(__name__)

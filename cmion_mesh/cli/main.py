@@ -164,8 +164,8 @@ def _print_entries(entries: dict[str, Any], prefix: str, as_json: bool) -> None:
 
 
 def cmd_store(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
     from cmion_mesh.messages import RemoveContainer, RemoveProperty
+    from cmion_mesh.requests import require_accepted
 
     store = args.store
     stop = Stopper() if args.action == "watch" else None  # before any thread starts
@@ -515,7 +515,7 @@ class Spinner:
 
 
 def cmd_act(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
+    from cmion_mesh.requests import require_accepted
 
     stop = Stopper()  # Ctrl-C is collected by the main thread, whichever thread the signal reaches
     with session(args) as client:
@@ -554,7 +554,7 @@ def cmd_act(args: argparse.Namespace) -> int:
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
-    from cmion_mesh.ion import require_accepted
+    from cmion_mesh.requests import require_accepted
 
     with session(args) as client:
         client.join(args.embodiment, timeout=args.join_timeout)
@@ -642,7 +642,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record_info(files: list[str], as_json: bool) -> int:
-    from cmion_mesh.tools.recording import format_info, info
+    from cmion_mesh.tools.recording_reader import format_info, info
 
     if not files:
         raise ConfigError("record info: name the recording (cmion-mesh record info FILE.mcap)")
@@ -938,7 +938,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
-    from cmion_mesh.tools import launch
+    from cmion_mesh.tools import launch, launcher
 
     plan = launch.load(launch.resolve_file(args.file), mesh=args.mesh)
     if args.check:
@@ -954,7 +954,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
             print(f"  {item['name']} ({item['kind']}{after}{ready}): {' '.join(item['command'])}")
         return ExitCode.OK
     stop = Stopper()  # before any thread: the launcher collects Ctrl-C and SIGTERM itself, then stops its children
-    return launch.Launcher(plan, stop).run()
+    return launcher.Launcher(plan, stop).run()
 
 
 def cmd_router(args: argparse.Namespace) -> int:

@@ -36,7 +36,6 @@ from collections.abc import Callable, Iterable
 
 from cmion_mesh import keys
 from cmion_mesh.errors import OutcomeUnknown
-from cmion_mesh.ion import IncomingRequest
 from cmion_mesh.messages import Code, MigrateChain
 from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.bounds import TokenBucket
@@ -44,6 +43,7 @@ from cmion_mesh.migration.handshake import Claim
 from cmion_mesh.migration.host import Host
 from cmion_mesh.migration.ledger import HOSTING
 from cmion_mesh.migration.signing import SignatureRefused
+from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)

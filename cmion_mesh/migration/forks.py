@@ -30,7 +30,6 @@ from collections.abc import Sequence
 from typing import Any
 
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.ion import IncomingRequest
 from cmion_mesh.messages import Code, CustodyResume, CustodyStandDown
 from cmion_mesh.migration import custody, handshake, signing
 from cmion_mesh.migration.claims import Claims
@@ -38,6 +37,7 @@ from cmion_mesh.migration.handshake import Claim
 from cmion_mesh.migration.host import Host
 from cmion_mesh.migration.ledger import HOSTING, Record
 from cmion_mesh.migration.signing import SignatureRefused
+from cmion_mesh.requests import IncomingRequest
 
 log = logging.getLogger(__name__)
 

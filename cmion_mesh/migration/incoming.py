@@ -39,7 +39,6 @@ from typing import Any
 import msgspec
 
 from cmion_mesh.errors import MeshError, OutcomeUnknown
-from cmion_mesh.ion import IncomingRequest
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus
 from cmion_mesh.migration import handshake
 from cmion_mesh.migration.bounds import TokenBucket
@@ -49,6 +48,7 @@ from cmion_mesh.migration.host import Host, crash_point
 from cmion_mesh.migration.identity import Bytes, Identity
 from cmion_mesh.migration.ledger import Record
 from cmion_mesh.migration.uploads import Uploads
+from cmion_mesh.requests import IncomingRequest
 
 log = logging.getLogger(__name__)
 

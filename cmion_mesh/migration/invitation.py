@@ -40,13 +40,14 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, RequestRejected
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Code, Event, Invite, Outcome, SendInvitations
 from cmion_mesh.migration.bounds import TokenBucket
 from cmion_mesh.migration.devices import DeviceTable
 from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.mind import Mind
 from cmion_mesh.presence import Presence
+from cmion_mesh.requests import IncomingRequest, send_request
 from cmion_mesh.transport.base import Closeable
 
 log = logging.getLogger(__name__)

@@ -63,7 +63,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.ion import Component, IncomingRequest, Simulation, send_request
+from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
     Code,
     CustodyResume,
@@ -90,6 +90,7 @@ from cmion_mesh.migration.ledger import HOSTING, Record, Records
 from cmion_mesh.migration.outgoing import SECTION_DEADLINE, Outgoing, WaitToken
 from cmion_mesh.migration.uploads import MAX_UPLOAD, MAX_UPLOAD_ENV, UPLOAD_IDLE, UPLOAD_IDLE_ENV, Uploads
 from cmion_mesh.mind import Mind
+from cmion_mesh.requests import IncomingRequest, send_request
 from cmion_mesh.storage import Store
 from cmion_mesh.transport.base import Closeable
 

@@ -48,7 +48,6 @@ import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, OutcomeUnknown
-from cmion_mesh.ion import IncomingRequest
 from cmion_mesh.messages import (
     Code,
     Migrate,
@@ -67,6 +66,7 @@ from cmion_mesh.migration.handshake import refuses
 from cmion_mesh.migration.host import Host, crash_point
 from cmion_mesh.migration.identity import Identity, Packed, SectionRef
 from cmion_mesh.migration.ledger import Record
+from cmion_mesh.requests import IncomingRequest
 
 log = logging.getLogger(__name__)
 

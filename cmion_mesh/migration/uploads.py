@@ -26,12 +26,13 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from cmion_mesh.ion import IncomingRequest, Timer
 from cmion_mesh.messages import Code, MigrateHave, MigratePrepare, MigrateSections
 from cmion_mesh.migration import handshake
 from cmion_mesh.migration.host import Host
 from cmion_mesh.migration.identity import Bytes, Manifest, SectionRef, sha256_hex
 from cmion_mesh.migration.sections import MAX_CACHE_ENV, IncomingSection
+from cmion_mesh.requests import IncomingRequest
+from cmion_mesh.timers import Timer
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,8 @@ import threading
 import time
 from typing import Self
 
-from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.ion import Simulation
+from cmion_mesh.timers import Timer
 from cmion_mesh.transport.base import Handle
 
 #: Default time between two beats (an idle loop wakes this often for the heartbeat, and no more).

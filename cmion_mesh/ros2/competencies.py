@@ -52,6 +52,7 @@ from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Simulation
 from cmion_mesh.ros2 import wire as ros2
+from cmion_mesh.ros2.interfaces import Types, plain, split_type
 from cmion_mesh.transport.base import QueryCancel
 
 __all__ = ["Ros2Competency", "Ros2Navigation", "Ros2SensorBridge", "Ros2Speech", "Ros2Velocity"]
@@ -62,14 +63,14 @@ log = logging.getLogger(__name__)
 
 _nodes: dict[tuple[int, int, str, str], tuple[ros2.Node, int]] = {}
 _nodes_lock = threading.Lock()
-_types: ros2.Types | None = None
+_types: Types | None = None
 
 
-def _shared_types() -> ros2.Types:
+def _shared_types() -> Types:
     global _types
     with _nodes_lock:
         if _types is None:
-            _types = ros2.Types()
+            _types = Types()
         return _types
 
 
@@ -154,7 +155,7 @@ class Ros2Competency(Competency):
     def check_type(self, type_name: str, what: str) -> str:
         """``type_name`` if it is a ROS 2 type this library knows; else ``ConfigError`` (at load
         time, so that the library file's line is named, not a failure when the daemon starts)."""
-        if ros2.split_type(type_name)[1] == "action" and _shared_types().known(f"{type_name}_SendGoal"):
+        if split_type(type_name)[1] == "action" and _shared_types().known(f"{type_name}_SendGoal"):
             raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is an action, not a message type")
         if not _shared_types().known(type_name):
             raise ConfigError(f"{type(self).__name__}: {what} {type_name!r} is not a ROS 2 Jazzy type known here "
@@ -388,8 +389,8 @@ class Ros2Navigation(Ros2Competency):
 
     def _feedback(self, ctx: RunContext, feedback: Any) -> None:
         position = feedback.current_pose.pose.position
-        summary = {"distance_remaining": ros2.plain(float(feedback.distance_remaining)),
-                   "x": ros2.plain(float(position.x)), "y": ros2.plain(float(position.y)),
+        summary = {"distance_remaining": plain(float(feedback.distance_remaining)),
+                   "x": plain(float(position.x)), "y": plain(float(position.y)),
                    "number_of_recoveries": int(feedback.number_of_recoveries),
                    "estimated_time_remaining": feedback.estimated_time_remaining.sec
                    + feedback.estimated_time_remaining.nanosec / 1e9}
@@ -580,9 +581,9 @@ class Ros2SensorBridge(Ros2Competency):
             for alias, message in due.items():
                 written[alias] = now
                 if self.store == "blackboard":
-                    _quietly(f"sensor {alias}", _bb_set, ctx, f"{self.container}/{alias}", ros2.plain(message))
+                    _quietly(f"sensor {alias}", _bb_set, ctx, f"{self.container}/{alias}", plain(message))
                 else:
-                    _quietly(f"sensor {alias}", _wm_set, ctx, self.container, alias, ros2.plain(message))
+                    _quietly(f"sensor {alias}", _wm_set, ctx, self.container, alias, plain(message))
             if waiting:
                 # Something arrived too soon after its last write: come back when it is due.
                 if not ctx.wait(self.interval):

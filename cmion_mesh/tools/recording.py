@@ -1,30 +1,9 @@
-"""``cmion-mesh record``: everything a mesh says, written to an MCAP file (and read back).
+"""``cmion-mesh record``: everything a mesh says, written to an MCAP file.
 
 MCAP (https://mcap.dev) is the open log format of robotics: Foxglove, the ``mcap`` command line
-and any MCAP reader open these files. What is recorded, one MCAP channel per key pattern:
-
-* events: one channel per event key ``cmion/<mesh>/<embodiment>/ev/<component>/<event>``
-  (schema ``cmion_mesh.Event``). The migration handshake is here: each side's
-  ``MigrationStep`` after every durable record, with ``MigrationStarting``/``Occurred``/
-  ``Succeeded``/``Failed``/``Dropped``; so are mind actions (the manager's ``Action*`` events).
-* storage changes: one channel per store, ``cmion/<mesh>/<embodiment>/bb/**`` and ``.../wm/**``
-  (schema ``cmion_mesh.StorageSample``: the key, the property or container put, or a delete).
-* liveliness: one channel per kind of token, ``cmion/<mesh>/@alive/*`` (embodiments),
-  ``@claim``, ``@competency``, ``@custody`` (schema ``cmion_mesh.Liveliness``: comings and goings;
-  the tokens alive when recording starts come first).
-* requests and their outcomes: one channel per request key,
-  ``cmion/<mesh>/<embodiment>/@outcome/<component>/<request>`` (schema ``cmion_mesh.RequestAnswered``:
-  status, code, reason, sender). Requests are zenoh queries, which a passive subscriber never
-  sees; each embodiment publishes how it answered one only while some session subscribes there
-  (``ion.Simulation``: one attribute read per request otherwise).
-* anything else under the recorded keys, and every payload that does not decode as what its key
-  should carry, goes to ``raw:<key pattern>`` (schema ``cmion_mesh.RawSample``: the key and the
-  bytes in base64), never lost.
-
-Messages are JSON (``message_encoding`` ``json``) with a JSON Schema generated from the wire
-Structs, so any reader shows their fields; JSON keeps every plain value a message can carry
-except non-finite floats (msgspec writes NaN and infinities as ``null``). ``log_time`` is when the
-recorder received the message, ``publish_time`` the event's own ``time`` (the publisher's clock).
+and any MCAP reader open these files. What goes in them (one channel per key pattern, JSON
+messages with their JSON Schemas): ``tools/recording_format.py``; reading them back and
+``record info``: ``tools/recording_reader.py``. Here: the ``Recorder`` and the file it writes.
 
 Bounded memory: the subscriptions' workers hand samples to a bounded inbox; the writer thread
 drains it into MCAP chunks of ``CHUNK_SIZE``, and writes the chunk in progress out at least every
@@ -38,9 +17,7 @@ the inbox is full, samples are dropped and counted, never silently: on stderr, a
 
 from __future__ import annotations
 
-import base64
 import contextlib
-import dataclasses
 import json
 import os
 import socket
@@ -49,22 +26,29 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import msgspec
-from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, DataEnd, Footer, Header, Metadata, Schema, Statistics
-from mcap.records import Message as McapMessage
-from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from cmion_mesh import __version__, keys
 from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
-from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, decoder
+from cmion_mesh.messages import Event, decoder
+from cmion_mesh.tools.recording_format import (
+    EVENT_SCHEMA,
+    PROFILE,
+    RAW_SCHEMA,
+    SCHEMAS,
+    TOKEN_KINDS,
+    Routed,
+    mesh_filter,
+    route,
+    route_token,
+)
 from cmion_mesh.transport.base import Closeable, Sample, Transport
 
 #: Uncompressed bytes of a chunk before it is compressed and written.
@@ -76,120 +60,15 @@ MAX_QUEUED_SAMPLES = 100_000
 MAX_QUEUED_BYTES = 64 * 1024 * 1024
 #: Channels in one file; events on keys beyond it share the overflow channel ``cmion/<mesh>/*/ev/**``.
 MAX_CHANNELS = 4096
-#: Requests not accepted that ``info`` lists (it counts them all).
-MAX_REFUSALS_LISTED = 20
 #: Most often a drop is reported on stderr.
 DROP_REPORT_INTERVAL = 1.0
 
-EVENT_SCHEMA = "cmion_mesh.Event"
-STORAGE_SCHEMA = "cmion_mesh.StorageSample"
-LIVELINESS_SCHEMA = "cmion_mesh.Liveliness"
-RAW_SCHEMA = "cmion_mesh.RawSample"
-ANSWER_SCHEMA = "cmion_mesh.RequestAnswered"
-#: Liveliness token kinds recorded, each one channel.
-TOKEN_KINDS = (keys.ALIVE, keys.CLAIM, keys.COMPETENCY, keys.CUSTODY)
-PROFILE = "cmion-mesh"
 #: The end a file gets after each write, until the next one overwrites it: ``DataEnd`` (no CRC),
 #: a ``Footer`` with no summary, the magic. A finished file's footer names its summary.
 OPEN_END = struct.pack("<BQI", Opcode.DATA_END, 4, 0) + struct.pack("<BQQQI", Opcode.FOOTER, 20, 0, 0, 0) + MCAP0_MAGIC
 
-
-class StorageSample(msgspec.Struct, frozen=True):
-    """A storage change as a plain subscriber sees it: ``entry`` put on ``key``, or a delete."""
-
-    key: str
-    deleted: bool = False
-    entry: Property | Container | None = None
-
-
-class Liveliness(msgspec.Struct, frozen=True):
-    """A liveliness token appearing (``alive``) or vanishing; ``name`` is the embodiment it is about."""
-
-    key: str
-    kind: str
-    name: str
-    alive: bool
-
-
-class RawSample(msgspec.Struct, frozen=True):
-    """A sample kept as bytes: not a cmion message, or not the one its key should carry (``error``)."""
-
-    key: str
-    deleted: bool = False
-    payload_base64: str = ""
-    error: str = ""
-
-
-def _schema(kind: Any, title: str) -> bytes:
-    schema = msgspec.json.schema(kind)
-    schema.setdefault("title", title)
-    return json.dumps(schema, sort_keys=True).encode()
-
-
-#: name -> JSON Schema bytes of every schema a recording uses.
-SCHEMAS: dict[str, bytes] = {
-    EVENT_SCHEMA: _schema(Event, EVENT_SCHEMA),
-    STORAGE_SCHEMA: _schema(StorageSample, STORAGE_SCHEMA),
-    LIVELINESS_SCHEMA: _schema(Liveliness, LIVELINESS_SCHEMA),
-    RAW_SCHEMA: _schema(RawSample, RAW_SCHEMA),
-    ANSWER_SCHEMA: _schema(RequestAnswered, ANSWER_SCHEMA),
-}
-
 _json = msgspec.json.Encoder()
 _decode_event = decoder(Event)
-_decode_answer = decoder(RequestAnswered)
-_Entry = Property | Container
-
-
-def mesh_filter(mesh: str, pattern: str) -> str:
-    """A filter as given on the command line: a key expression relative to ``cmion/<mesh>/``
-    (``robot/ev/**``), or absolute when it starts with ``cmion/``."""
-    if not pattern or pattern.startswith("/") or pattern.endswith("/"):
-        raise ConfigError(f"filter {pattern!r} is not a key expression (e.g. robot/ev/** or */wm/**)")
-    return pattern if pattern.startswith(f"{keys.ROOT}/") else f"{keys.mesh_prefix(mesh)}/{pattern}"
-
-
-# --- where a sample goes --------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class Routed:
-    """One sample as it goes into the file: its channel's topic and schema, and the JSON bytes."""
-
-    topic: str
-    schema: str
-    data: bytes
-    publish_ns: int = 0
-
-
-def route(sample: Sample) -> Routed:
-    """The channel and message of a published sample (never raises: what does not decode goes raw)."""
-    key, payload, deleted = sample.key, sample.payload, sample.deleted
-    chunks = key.split("/")
-    kind = chunks[3] if len(chunks) >= 4 and chunks[0] == keys.ROOT else ""
-    try:
-        if kind == keys.EVENTS and len(chunks) == 6 and not deleted:
-            event = _decode_event(payload, key)
-            return Routed(key, EVENT_SCHEMA, _json.encode(event), int(event.time * 1e9) if event.time > 0 else 0)
-        if kind == keys.OUTCOMES and len(chunks) == 6 and not deleted:
-            answer = _decode_answer(payload, key)
-            return Routed(key, ANSWER_SCHEMA, _json.encode(answer), int(answer.time * 1e9) if answer.time > 0 else 0)
-        if kind in (keys.BLACKBOARD, keys.WORLD_MODEL):
-            topic = "/".join((*chunks[:4], "**"))
-            entry = None if deleted else decode(payload, _Entry, where=key)
-            return Routed(topic, STORAGE_SCHEMA, _json.encode(StorageSample(key, deleted, entry)))
-        error = ""
-    except MeshError as exc:
-        error = str(exc)
-    topic = "raw:" + ("/".join((*chunks[:4], "**")) if kind else key)
-    return Routed(topic, RAW_SCHEMA, _json.encode(RawSample(key, deleted, base64.b64encode(payload).decode(), error)))
-
-
-def route_token(key: str, alive: bool) -> Routed:
-    chunks = key.split("/")
-    kind = chunks[2] if len(chunks) >= 4 else "?"
-    topic = "/".join((*chunks[:3], "*" if kind == keys.ALIVE else "**"))
-    return Routed(topic, LIVELINESS_SCHEMA, _json.encode(Liveliness(key, kind, chunks[3] if len(chunks) >= 4 else "", alive)))
 
 
 # --- the inbox between the subscriptions and the writer -------------------------------------------
@@ -453,7 +332,9 @@ class Recorder:
                 self.stats.dropped = dropped
                 self._part.flush()
                 next_flush = now + self.flush_interval
-                if self._split and not self._split_due and (
+                # Only a message fills a part: its header and metadata alone pass a small split size,
+                # and a part that waited long for its first message is old, yet it holds none.
+                if self._split and not self._split_due and self._part.messages and (
                         (self.split_bytes and self._part.size() >= self.split_bytes)
                         or (self.split_seconds and now - self._part.started >= self.split_seconds)):
                     self._split_due = True  # not now: an idle mesh would leave a trail of empty files
@@ -535,224 +416,6 @@ class Recorder:
 
 def _iso(t: float) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t * 1000) % 1000:03d}Z"
-
-
-# --- reading --------------------------------------------------------------------------------------
-
-#: What a truncated or damaged file raises while it is read: a record cut short (EndOfFile, short
-#: reads that ``struct`` cannot unpack), or a chunk cut short (its decompressor's error).
-_READ_ERRORS: tuple[type[BaseException], ...] = (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError)
-try:
-    import zstandard
-
-    _READ_ERRORS += (zstandard.ZstdError,)
-except ImportError:  # pragma: no cover - mcap requires it
-    pass
-
-
-@dataclass(frozen=True, slots=True)
-class Recorded:
-    """One message of a recording: its channel's topic and schema, times (ns) and JSON bytes."""
-
-    topic: str
-    schema: str
-    log_time: int
-    publish_time: int
-    data: bytes
-
-    def decoded(self) -> Any:
-        return json.loads(self.data)
-
-
-class RecordingReader:
-    """Reads a recording from its start, record by record, without its summary: a file whose
-    recorder was killed reads up to its last complete chunk (``truncated`` says so once read).
-    A context manager; ``close`` is idempotent."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        try:
-            self._stream: IO[bytes] = open(self.path, "rb")  # noqa: SIM115  (closed by close())
-        except OSError as exc:
-            raise ConfigError(f"cannot open recording: {exc.strerror}", path=str(self.path)) from None
-        self.header: Header | None = None
-        self.metadata: list[tuple[str, dict[str, str]]] = []
-        self.truncated = False
-        self.complete = False
-        self.error = ""
-        self._data_end = False
-        self.statistics: Statistics | None = None
-        self._schemas: dict[int, Schema] = {}
-        self._channels: dict[int, Channel] = {}
-
-    def __enter__(self) -> RecordingReader:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._stream.close()
-
-    def messages(self) -> Iterator[Recorded]:
-        """Every message, in the order written (that of arrival at the recorder)."""
-        reader = StreamReader(self._stream, skip_magic=False)
-        records = reader.records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                return
-            except _READ_ERRORS as exc:
-                if self.header is None and not isinstance(exc, EndOfFile):
-                    raise ConfigError(f"not an MCAP recording ({exc or type(exc).__name__})", path=str(self.path)) from None
-                self.truncated = True
-                self.error = str(exc) or type(exc).__name__
-                return
-            if isinstance(record, McapMessage):
-                channel = self._channels.get(record.channel_id)
-                if channel is None:
-                    continue
-                schema = self._schemas.get(channel.schema_id)
-                yield Recorded(channel.topic, schema.name if schema else "", record.log_time, record.publish_time, record.data)
-            elif isinstance(record, Channel):
-                self._channels[record.id] = record
-            elif isinstance(record, Schema):
-                self._schemas[record.id] = record
-            elif isinstance(record, Metadata):
-                self.metadata.append((record.name, dict(record.metadata)))
-            elif isinstance(record, Header):
-                self.header = record
-            elif isinstance(record, Statistics):
-                self.statistics = record
-            elif isinstance(record, DataEnd):
-                self._data_end = True
-            elif isinstance(record, Footer):
-                # A recorder's finished file names its summary; an open end (a killed recorder's) does not.
-                own = self.header is not None and self.header.profile == PROFILE
-                self.complete = self._data_end and (record.summary_start != 0 or not own)
-                return
-
-
-@dataclass
-class Migration:
-    """One migration attempt as the recording shows it."""
-
-    companion: str
-    attempt: str
-    source: str = ""
-    target: str = ""
-    steps: list[str] = field(default_factory=list)
-    outcome: str = ""
-
-
-def info(path: str | Path) -> dict[str, Any]:
-    """A summary of a recording: time span, counts per channel, migrations, embodiments, drops,
-    and whether it was truncated (its recorder killed: read up to its last complete chunk)."""
-    counts: dict[str, int] = {}
-    first = last = 0
-    embodiments: set[str] = set()
-    migrations: dict[str, Migration] = {}
-    answers: dict[str, int] = {}
-    refusals: list[dict[str, str]] = []
-    with RecordingReader(path) as reader:
-        for message in reader.messages():
-            counts[message.topic] = counts.get(message.topic, 0) + 1
-            first = message.log_time if not first else min(first, message.log_time)
-            last = max(last, message.log_time)
-            if message.schema == LIVELINESS_SCHEMA and message.topic.endswith(f"/{keys.ALIVE}/*"):
-                embodiments.add(message.decoded().get("name", ""))
-            elif message.schema == EVENT_SCHEMA:
-                _follow_migration(message, migrations, embodiments)
-            elif message.schema == ANSWER_SCHEMA:
-                answer = message.decoded()
-                status = str(answer.get("status"))
-                answers[status] = answers.get(status, 0) + 1
-                if status != "accepted" and len(refusals) < MAX_REFUSALS_LISTED:
-                    refusals.append({k: str(answer.get(k, "")) for k in ("embodiment", "component", "request", "sender",
-                                                                         "status", "code", "reason")})
-        meta = reader.metadata
-        truncated, error = reader.truncated or not reader.complete, reader.error
-    start = dict(next((m for n, m in meta if n == "cmion-mesh"), {}))
-    end = dict(next((m for n, m in reversed(meta) if n == "cmion-mesh.end"), {}))
-    drops = [int(m.get("dropped", "0")) for n, m in meta if n in ("cmion-mesh.drops", "cmion-mesh.end")]
-    described = {n.split(":", 1)[1]: m for n, m in meta if n.startswith("embodiment:")}
-    embodiments |= set(described)
-    embodiments.discard("")
-    return {
-        "file": str(path),
-        "mesh": start.get("mesh", ""),
-        "started": start.get("started", ""),
-        "ended": end.get("ended", ""),
-        "duration": (last - first) / 1e9 if last else 0.0,
-        "messages": sum(counts.values()),
-        "channels": dict(sorted(counts.items())),
-        "embodiments": sorted(embodiments),
-        # Values that were not strings are kept as JSON: an embodiment nobody inhabits says "null".
-        "described": {name: {k: "" if (v := described[name].get(k, "")) == "null" else v
-                             for k in ("version", "host", "pid", "inhabitant")}
-                      for name in sorted(described)},
-        "migrations": [dataclasses.asdict(m) for m in migrations.values()],
-        "requests": dict(sorted(answers.items())),
-        "refused": refusals,
-        "dropped": max(drops, default=0),
-        "truncated": truncated,
-        "truncation": error or ("no end: the recorder did not close the file" if truncated else ""),
-    }
-
-
-def _follow_migration(message: Recorded, migrations: dict[str, Migration], embodiments: set[str]) -> None:
-    name = message.topic.rsplit("/", 1)[-1]
-    if not name.startswith("Migration"):
-        return
-    try:
-        event = message.decoded()
-    except ValueError:
-        return
-    embodiments.add(str(event.get("embodiment", "")))
-    data = event.get("data") if isinstance(event.get("data"), dict) else {}
-    attempt = str(data.get("attempt", ""))
-    if not attempt:
-        return
-    where = str(event.get("embodiment", ""))
-    migration = migrations.setdefault(attempt, Migration(str(data.get("companion", "")), attempt))
-    if name == "MigrationStarting":
-        migration.source, migration.target = where, str(data.get("target", ""))
-    elif name == "MigrationStep":
-        migration.steps.append(f"{where}:{data.get('step')}")
-        if data.get("step") in ("prepared", "handed") and not migration.source:
-            migration.source, migration.target = where, str(data.get("peer", ""))
-    elif name in ("MigrationSucceeded", "MigrationFailed", "MigrationDropped"):
-        migration.outcome = name.removeprefix("Migration").lower()
-
-
-def format_info(summary: dict[str, Any]) -> str:
-    """``info`` for people."""
-    lines = [f"{summary['file']}: mesh {summary['mesh'] or '?'}, {summary['messages']} messages over {summary['duration']:.2f} s"
-             + (f" (started {summary['started']})" if summary["started"] else "")]
-    if summary["truncated"]:
-        lines.append(f"TRUNCATED: {summary['truncation']} (read up to the last complete chunk)")
-    if summary["dropped"]:
-        lines.append(f"DROPPED: {summary['dropped']} samples the recorder could not keep up with")
-    lines.append(f"embodiments: {', '.join(summary['embodiments']) or 'none'}")
-    for name, d in summary["described"].items():
-        lines.append(f"  {name}: version {d['version'] or '?'}, host {d['host'] or '?'}, pid {d['pid'] or '?'}, "
-                     f"inhabitant {d['inhabitant'] or '-'}")
-    lines.append(f"migrations: {len(summary['migrations'])}")
-    for m in summary["migrations"]:
-        lines.append(f"  {m['companion']} {m['source'] or '?'} -> {m['target'] or '?'} ({m['attempt']}): "
-                     f"{' '.join(m['steps']) or 'no step'}; {m['outcome'] or 'no end recorded'}")
-    if summary["requests"]:
-        counts = ", ".join(f"{n} {status}" for status, n in summary["requests"].items())
-        lines.append(f"requests answered: {sum(summary['requests'].values())} ({counts})")
-        for r in summary["refused"]:
-            lines.append(f"  {r['embodiment']} {r['component']}/{r['request']}{' from ' + r['sender'] if r['sender'] else ''}: "
-                         f"{r['status']} {r['code']}: {r['reason']}")
-    lines.append("channels:")
-    width = max((len(t) for t in summary["channels"]), default=0)
-    for topic, count in summary["channels"].items():
-        lines.append(f"  {topic:<{width}}  {count}")
-    return "\n".join(lines)
 
 
 def parse_size(text: str) -> int:

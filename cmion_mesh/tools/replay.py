@@ -31,7 +31,8 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Event, encode
-from cmion_mesh.tools.recording import EVENT_SCHEMA, Recorded, RecordingReader
+from cmion_mesh.tools.recording_format import EVENT_SCHEMA
+from cmion_mesh.tools.recording_reader import Recorded, RecordingReader
 
 #: Longest single sleep between two events: a stop request is seen within it.
 SLEEP_SLICE = 0.25

@@ -52,7 +52,7 @@ from cmion_mesh import keys, xmlsafe
 from cmion_mesh.body.manager import CompetencyManager
 from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, XmlError
-from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind
@@ -71,6 +71,7 @@ from cmion_mesh.minds.fatima.protocol import (
     property_changed_line,
 )
 from cmion_mesh.storage import Store
+from cmion_mesh.timers import Timer
 
 log = logging.getLogger(__name__)
 

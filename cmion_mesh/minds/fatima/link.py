@@ -39,8 +39,9 @@ from types import TracebackType
 from typing import Any
 
 from cmion_mesh.errors import MeshError
-from cmion_mesh.ion import Simulation, Timer
+from cmion_mesh.ion import Simulation
 from cmion_mesh.minds.fatima.protocol import MAX_LINE, ActionKey, Handshake, parse_handshake
+from cmion_mesh.timers import Timer
 
 log = logging.getLogger(__name__)
 
