@@ -22,13 +22,14 @@ from typing import Any
 from cmion_mesh import __version__, keys
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.manager import CompetencyManager
 from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.body.standin import StandIn
 from cmion_mesh.body.standin import summary as standin_summary
 from cmion_mesh.claim import Joining, NameClaim, claim_name
 from cmion_mesh.client import MeshClient
-from cmion_mesh.competency import Competency, load_library
+from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, IncomingRequest, Simulation
 from cmion_mesh.messages import Describe, Event

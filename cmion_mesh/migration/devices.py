@@ -226,7 +226,8 @@ def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics 
 def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
     """Where the library's Migration competency says its device table is (not read); None when it
     names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
-    from cmion_mesh.competency import read_library  # devices is read before the mesh is joined: kept light
+    # Upward (allowlisted in tests/test_boundaries.py): see LAYER_EXCEPTIONS there.
+    from cmion_mesh.body.library import read_library
 
     lib = os.fspath(library)
     found: tuple[Path, int | None] | None = None
