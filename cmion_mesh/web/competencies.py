@@ -23,7 +23,8 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
-from cmion_mesh.competencies.spirit import SELF, Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection, _seconds
+from cmion_mesh.competencies.common import SELF, parse_seconds
+from cmion_mesh.competencies.spirit import Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection
 from cmion_mesh.competency import RunContext
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.web.body import WebBody, WebSense, web_body
@@ -109,7 +110,7 @@ class WebGestureDetect(WebSense, GestureDetect):
     def __init__(self, timeout: str = "10", page_timeout: str = "120", *, name: str | None = None) -> None:
         super().__init__(timeout, name=name or "GestureDetect")
         self.constructor_parameters = (timeout, page_timeout)
-        self.page_timeout = _seconds(page_timeout, "WebGestureDetect: timeout on a page")
+        self.page_timeout = parse_seconds(page_timeout, "WebGestureDetect: timeout on a page")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
         body = _body(self)
