@@ -24,7 +24,7 @@ from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
 from cmion_mesh.body.library import load_library
 from cmion_mesh.body.manager import CompetencyManager
-from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.body.rules import Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.body.standin import StandIn
 from cmion_mesh.body.standin import summary as standin_summary
 from cmion_mesh.claim import Joining, NameClaim, claim_name
@@ -36,7 +36,7 @@ from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.presence import Presence
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel

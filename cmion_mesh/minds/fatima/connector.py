@@ -83,12 +83,11 @@ import msgspec
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.body.manager import CompetencyManager
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, ProtocolError, XmlError
 from cmion_mesh.ion import Simulation, Timer
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
 from cmion_mesh.migration.manager import SECTION_DEADLINE, MigrationCompetency, MigrationManager
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.storage import Store
 
 log = logging.getLogger(__name__)
