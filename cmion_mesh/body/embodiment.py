@@ -27,6 +27,7 @@ from cmion_mesh.body.manager import CompetencyManager
 from cmion_mesh.body.rules import Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.body.standin import StandIn
 from cmion_mesh.body.standin import summary as standin_summary
+from cmion_mesh.body.validate import check_embodiment
 from cmion_mesh.claim import Joining, NameClaim, claim_name
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency
@@ -172,7 +173,6 @@ class Embodiment:
         A device table named by the library's Migration competency (``devices``) gives the name,
         the companion's birth and, where ``transport_config`` leaves them empty, the endpoints;
         the arguments given here win over it."""
-        from cmion_mesh.body.validate import check_embodiment
 
         arch = load_architecture(path, name=name)
         table = table_for_library(arch.library) if arch.library is not None else None
