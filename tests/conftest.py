@@ -174,6 +174,7 @@ TIER_OF_TEST: dict[str, str] = {
     "test_boundaries::test_importing_the_library_does_not_load_argparse": "mesh",
     "test_boundaries::test_a_one_shot_command_loads_no_xml_crypto_or_planner": "mesh",
     "test_boundaries::test_a_daemon_without_certificates_or_companion_loads_no_crypto": "mesh",
+    "test_boundaries::test_importing_the_package_loads_none_of_the_modules_behind_its_face": "mesh",
     "test_cli_truth::test_every_argument_has_help_text": "unit",
     # daemons, or the components `up` builds (a zenoh session)
     "test_cmion_compat::test_validate_builds_the_components_as_up_does": "mesh",

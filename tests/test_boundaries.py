@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib
 import itertools
 import subprocess
 import sys
@@ -295,6 +296,43 @@ def test_relative_and_aliased_imports_are_seen(tmp_path: Path, statement: str) -
 def test_no_test_imports_bench() -> None:
     offenders = sorted(p.name for p in TESTS.glob("*.py") if any(m.split(".")[0] == "bench" for m in imported_modules(p)))
     assert offenders == [], f"tests run the benchmarks as a user does (python -m bench): {offenders} import bench/"
+
+
+# --- the face ---------------------------------------------------------------------------------
+
+#: What a user writes code against, on the package's face (``cmion_mesh/__init__.py``).
+FACE = ("MeshClient", "Component", "Simulation", "Competency", "RunContext", "Mind", "Embodiment", "MeshError")
+
+
+def test_the_face_gives_each_name_from_its_module() -> None:
+    import cmion_mesh
+    from cmion_mesh import errors
+
+    families = sorted(n for n, v in vars(errors).items() if isinstance(v, type) and issubclass(v, errors.MeshError))
+    assert set(FACE) | set(families) <= set(cmion_mesh.__all__), "each error family is on the face too"
+    for name in cmion_mesh.__all__:
+        value = getattr(cmion_mesh, name)
+        assert name in dir(cmion_mesh)
+        if name != "__version__":
+            assert value is getattr(importlib.import_module(value.__module__), name), name
+    assert cmion_mesh.Competency.__module__ == "cmion_mesh.competency" and cmion_mesh.MeshClient.__module__ == "cmion_mesh.client"
+    with pytest.raises(AttributeError, match="has no attribute 'Nothing'"):
+        cmion_mesh.Nothing  # noqa: B018  # the attribute read is the test
+
+
+def test_importing_the_package_loads_none_of_the_modules_behind_its_face() -> None:
+    code = ("import sys, cmion_mesh\n"
+            "listed = dir(cmion_mesh)\n"
+            "heavy = ('cmion_mesh.', 'zenoh', 'msgspec', 'lxml', 'cryptography', 'starlette', 'uvicorn')\n"
+            "print(sorted(m for m in sys.modules if m.startswith(heavy)))\n"
+            "print(listed)\n"
+            "from cmion_mesh import MeshClient, Competency\n"
+            "print('zenoh' in sys.modules)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    loaded, listed, zenoh = (ast.literal_eval(line) for line in result.stdout.splitlines())
+    assert loaded == []
+    assert set(FACE) <= set(listed)
+    assert zenoh is False, "the client and the competencies run on any transport: zenoh is loaded by its adapter only"
 
 
 # --- the edges ----------------------------------------------------------------------------------
