@@ -1,4 +1,4 @@
-"""Competencies: the units of work a body can do, and the library that loads them.
+"""Competencies: the units of work a body can do, and what a running one sees (``RunContext``).
 
 A competency has a unique name, a type (plans ask for types, several competencies may share
 one), an availability flag and the constructor parameters it was built with. Each competency owns
@@ -12,35 +12,29 @@ cancel is reported as cancelled whatever it returns.
 loads and run until it stops. One that crashes or returns is reported with a
 ``CompetencyCrashed`` event and restarted with exponential backoff; never silently dead.
 
-The library file uses CMION's ``CompetencyLibrary`` vocabulary with Python classes named
-``package.module:Class`` (or dotted ``package.module.Class``) and comma-separated constructor
-parameters, passed as strings.
+The library that names a body's competencies is read and built by ``body.library``.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import queue
-import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cmion_mesh import keys, xmlsafe
-from cmion_mesh.classes import construct, split_parameters
-from cmion_mesh.diagnostics import Diagnostics, load_xml
-from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh import keys
+from cmion_mesh.errors import MeshError
 
 if TYPE_CHECKING:
     from cmion_mesh.ion import Simulation
     from cmion_mesh.messages import RunStatus, StorageWrite
     from cmion_mesh.storage import Store
 
-# The client, the update loop, the stores and the messages (msgspec) are imported where they are
-# used: reading a library (``read_library``; ``up`` does, for the device table, before it opens
-# its session) needs none of them.
+# Start time: the client, the update loop, the stores and the messages (msgspec) are imported where
+# they are used. ``up`` reads the library (``body.library``, which names this class) for its device
+# table before it opens its session, and needs none of them for that.
 
 log = logging.getLogger(__name__)
 
@@ -279,74 +273,3 @@ class Competency:
 
 def type_name(obj: object) -> str:
     return type(obj).__name__
-
-
-# --- the library --------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class LibraryEntry:
-    class_name: str
-    parameters: tuple[str, ...]
-    line: int | None
-    #: A ``SamgarCompetency`` entry's ``Port``; None for a ``Competency`` entry.
-    samgar_port: str | None = None
-
-
-def read_library(path: str | os.PathLike[str], diagnostics: Diagnostics | None = None) -> list[LibraryEntry]:
-    """The entries of a library file, ``Competency`` and ``SamgarCompetency`` alike, in file order."""
-    tree = load_xml(path, "CompetencyLibrary.xsd", Diagnostics.raising() if diagnostics is None else diagnostics)
-    if tree is None:
-        return []
-    return [
-        LibraryEntry(element.get("ClassName", ""), split_parameters(element.get("ConstructorParameters")),
-                     xmlsafe.sourceline(element), element.get("Port") if element.tag == "SamgarCompetency" else None)
-        for element in tree.getroot() if element.tag in ("Competency", "SamgarCompetency")
-    ]
-
-
-def load_library(path: str | os.PathLike[str], diagnostics: Diagnostics | None = None) -> list[Competency]:
-    """Build the competencies a library file names, in file order; errors name file and line.
-
-    CMION class names go through the port map (``standin.resolve``): a class with no equivalent,
-    and every ``SamgarCompetency`` entry (cmion-mesh has no SAMGAR), is a stand-in, reported
-    unavailable (``validate.check_embodiment`` warns about each, with the rule types needing it).
-    With ``diagnostics`` every problem is reported there and the faulty entries are left out;
-    without, the first error raises its ``ConfigError``.
-    """
-    from cmion_mesh.body.standin import StandInCompetency, competency_types, resolve, unique
-
-    diag = Diagnostics.raising() if diagnostics is None else diagnostics
-    name = os.fspath(path)
-    competencies: list[Competency] = []
-    names: set[str] = set()
-    for entry in read_library(path, diag):
-        resolved = resolve(entry.class_name, entry.parameters, path=name, line=entry.line, diagnostics=diag)
-        if resolved is None:
-            continue
-        if resolved.target is None or entry.samgar_port is not None:
-            where = f"{name}:{entry.line}"
-            for competency_type in competency_types(resolved):
-                try:
-                    competencies.append(StandInCompetency(
-                        entry.class_name, resolved.port, name=unique(short_name(entry.class_name), names), type=competency_type,
-                        parameters=resolved.parameters, where=where, samgar_port=entry.samgar_port))
-                except MeshError as exc:  # a class name that cannot be a competency name
-                    diag.error(f"{entry.class_name}: {exc}", name, entry.line)
-            continue
-        try:
-            competency = construct(resolved.target, Competency, resolved.parameters, path=name, line=entry.line)
-        except ConfigError as exc:
-            diag.problem(exc)
-            continue
-        if competency.name in names:
-            diag.error(f"a competency named {competency.name!r} is already in the library", name, entry.line)
-            continue
-        names.add(competency.name)
-        competencies.append(competency)
-    return competencies
-
-
-def short_name(class_name: str) -> str:
-    """``GretaBMLSender`` for ``cmion.inTheWild.competencies.GretaBMLSender`` (or ``pkg.mod:GretaBMLSender``)."""
-    return re.split(r"[.:]", class_name)[-1] or class_name

@@ -28,12 +28,12 @@ from __future__ import annotations
 
 import itertools
 import logging
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, RequestRejected
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
@@ -52,6 +52,24 @@ from cmion_mesh.messages import (
 from cmion_mesh.requests import IncomingRequest
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class MindAction:
+    """An action sent by a mind for execution."""
+
+    name: str
+    parameters: tuple[str, ...] = ()
+    subject: str = ""
+
+    def __post_init__(self) -> None:
+        # Accept a list from callers but keep the instance hashable and immutable.
+        if not isinstance(self.parameters, tuple):
+            object.__setattr__(self, "parameters", tuple(self.parameters))
+
+    def describe(self) -> str:
+        """The action as one line of text: its name and parameters (as events and reasons show it)."""
+        return " ".join((self.name, *self.parameters))
 
 
 class Mind(Component):

@@ -1,4 +1,5 @@
-"""Starting and stopping daemon processes: used by the demo, ``launch``, the benchmarks and the tests.
+"""Starting and stopping daemon processes, and waiting on them: used by the demo, ``launch``, the
+benchmarks and the tests.
 
 Processes are started with ``subprocess`` (never ``fork`` after zenoh is open: the child hangs),
 always stopped (SIGTERM, then SIGKILL after a grace period), and their output is read by a
@@ -7,6 +8,8 @@ thread so that waiting for a line has a deadline.
 A parent that is itself SIGKILLed cannot stop its children: ``child_setup`` has the kernel send
 them SIGTERM when it dies (Linux's ``PR_SET_PDEATHSIG``), so a killed ``launch`` or ``demo``
 leaves no daemon running for ever.
+
+``wait_for`` waits, with a deadline, on a condition that nothing signals (another process's state).
 """
 
 from __future__ import annotations
@@ -23,9 +26,12 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 #: ``prctl`` option: the signal the kernel sends this process when its parent dies (linux/prctl.h).
 PR_SET_PDEATHSIG = 1
+
+T = TypeVar("T")
 
 
 #: Where ``free_port`` looks first, below the kernel's ephemeral range (see ``ephemeral_floor``).
@@ -194,3 +200,21 @@ class Daemon:
 
 def cli_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "cmion_mesh.cli.main", *args]
+
+
+def wait_for(condition: Callable[[], T], timeout: float, what: str, interval: float = 0.02) -> T:
+    """Return ``condition()``'s first truthy value, or raise ``TimeoutError`` naming ``what``.
+
+    For conditions that cannot be waited on directly (another process's state): bounded in
+    time, and each try is cheap.
+    """
+    deadline = time.monotonic() + timeout
+    tries = 0
+    while True:
+        tries += 1
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            raise TimeoutError(f"{what}: not true after {timeout:g} s ({tries} tries)")
+        threading.Event().wait(interval)

@@ -14,7 +14,6 @@ from pathlib import Path
 
 from cmion_mesh import keys
 from cmion_mesh.errors import Refused
-from cmion_mesh.transport.base import Handle
 
 LOCK_FILE = "daemon.lock"
 
@@ -25,8 +24,10 @@ def default_state_dir(mesh: str, embodiment: str) -> Path:
     return Path(base) / "cmion-mesh" / keys.check_name(mesh, "mesh") / keys.check_name(embodiment, "embodiment")
 
 
-class StateLock(Handle):
-    """Holds ``directory`` for this process; ``Refused`` naming the holder if another process does."""
+class StateLock:
+    """Holds ``directory`` for this process; ``Refused`` naming the holder if another process does.
+    A context manager whose ``close`` is idempotent (as ``transport.base.Handle``, which this ground
+    module does not import: it sits below the transport)."""
 
     def __init__(self, directory: str | os.PathLike[str]) -> None:
         self.directory = Path(directory)
@@ -51,6 +52,12 @@ class StateLock(Handle):
         fd, self._fd = self._fd, None
         if fd is not None:
             os.close(fd)  # releases the lock
+
+    def __enter__(self) -> StateLock:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
 
 def left_by_a_crash(name: str) -> bool:

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.library import load_library
 from cmion_mesh.classes import MOVED_MODULES, current_name, import_class
-from cmion_mesh.competency import load_library
 from cmion_mesh.migration.devices import MIGRATION_CLASSES, is_migration_class
 from cmion_mesh.resources import data_dir
 

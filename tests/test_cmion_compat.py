@@ -20,13 +20,13 @@ import pytest
 from cmion_mesh.body import java_classes as portmap
 from cmion_mesh.body.architecture import load_architecture, read_architecture
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.rules import load_rules
 from cmion_mesh.body.standin import StandInCompetency, StandInComponent
 from cmion_mesh.body.validate import check_embodiment, validate_paths
 from cmion_mesh.classes import split_parameters
 from cmion_mesh.cli import main as cli
 from cmion_mesh.client import MeshClient
-from cmion_mesh.competency import load_library
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh

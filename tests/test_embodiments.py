@@ -18,14 +18,13 @@ import pytest
 from cmion_mesh import keys
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.embodiment import Embodiment
-from cmion_mesh.body.rules import MindAction
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.validate import validate_file
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competencies.spirit import SpeechSynthesis
-from cmion_mesh.competency import load_library
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import ActionReport, AddContainer, Event, RemoveProperty, SetProperty
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

@@ -13,11 +13,12 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.body.execution import ExecutionSystem
-from cmion_mesh.body.rules import MindAction, Plan, Step
+from cmion_mesh.body.rules import Plan, Step
 from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ExecutionStatus, SetProperty
+from cmion_mesh.mind import MindAction
 from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryTransport

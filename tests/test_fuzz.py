@@ -37,9 +37,10 @@ from hypothesis import strategies as st
 from cmion_mesh import keys, messages
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.library import read_library
 from cmion_mesh.body.remote import CompetencyHost
 from cmion_mesh.body.rules import load_rules
-from cmion_mesh.competency import Competency, RunContext, read_library
+from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, ProtocolError
 from cmion_mesh.messages import (
     Act,

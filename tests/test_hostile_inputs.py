@@ -34,10 +34,11 @@ import pytest
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.remote import CompetencyHost
 from cmion_mesh.body.rules import load_rules
 from cmion_mesh.client import MeshClient
-from cmion_mesh.competency import Competency, RunContext, load_library
+from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, OutcomeUnknown, ProtocolError, XmlError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (

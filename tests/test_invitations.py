@@ -14,13 +14,12 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.body.embodiment import Embodiment
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import RequestRejected
 from cmion_mesh.messages import AddContainer, Code, Invite
 from cmion_mesh.migration import devices, invitation
 from cmion_mesh.migration.devices import DeviceTable
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.minds import supersimple
 from cmion_mesh.minds.planner.mind import PlannerMind
 from cmion_mesh.minds.planner.spec import InvitationPolicy

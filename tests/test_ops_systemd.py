@@ -17,11 +17,11 @@ from pathlib import Path
 import pytest
 
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.claim import claim_name
 from cmion_mesh.errors import ConfigError, InvalidName, Refused
 from cmion_mesh.ion import Component
 from cmion_mesh.ops import systemd
 from cmion_mesh.ops.heartbeat import Heartbeat
-from cmion_mesh.presence import claim_name
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 pytestmark = pytest.mark.timeout(60)

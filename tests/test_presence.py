@@ -1,4 +1,4 @@
-"""One name, one body: the claim a joining daemon makes on its name (``presence.NameClaim``).
+"""One name, one body: the claim a joining daemon makes on its name (``claim.NameClaim``).
 
 On the in-memory transport, so that the other claimant can be played exactly (a claim older or
 younger than the one joining, withdrawn or shown alive at a chosen moment); the real processes
@@ -14,8 +14,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import pytest
 
 from cmion_mesh import keys
+from cmion_mesh.claim import Joining, NameClaim
 from cmion_mesh.errors import Refused
-from cmion_mesh.presence import Joining, NameClaim
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import Closeable
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport

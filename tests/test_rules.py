@@ -9,8 +9,9 @@ from typing import Any
 import pytest
 
 from cmion_mesh import xmlsafe
-from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules, parse_rules, substitute, substitute_step
+from cmion_mesh.body.rules import Plan, Rule, RuleSet, Step, load_rules, parse_rules, substitute, substitute_step
 from cmion_mesh.errors import ConfigError, PlanError, StorageError, XmlError
+from cmion_mesh.mind import MindAction
 
 from .conftest import CMION_2011
 

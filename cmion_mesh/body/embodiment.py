@@ -4,7 +4,7 @@ The daemon (``cmion-mesh up``) runs one of these per device; tests and tools can
 process of their own. A context manager; ``close`` is idempotent and stops everything it started.
 
 With ``join`` (what the daemon passes) it first claims its name in the mesh and refuses to start
-when a live embodiment holds it (``presence.NameClaim``), and a companion it would give birth to
+when a live embodiment holds it (``claim.NameClaim``), and a companion it would give birth to
 is not born when a live embodiment already hosts it. With a ``state_dir`` it holds that folder
 (``statedir.StateLock``): two daemons never share one.
 """
@@ -22,20 +22,23 @@ from typing import Any
 from cmion_mesh import __version__, keys
 from cmion_mesh.body.architecture import load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.manager import CompetencyManager
-from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet, Step, load_rules
+from cmion_mesh.body.rules import Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.body.standin import StandIn
 from cmion_mesh.body.standin import summary as standin_summary
+from cmion_mesh.body.validate import check_embodiment
+from cmion_mesh.claim import Joining, NameClaim, claim_name
 from cmion_mesh.client import MeshClient
-from cmion_mesh.competency import Competency, load_library
+from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Describe, Event
 from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
-from cmion_mesh.mind import Mind
-from cmion_mesh.presence import Joining, NameClaim, Presence, claim_name
+from cmion_mesh.mind import Mind, MindAction
+from cmion_mesh.presence import Presence
 from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.statedir import StateLock
 from cmion_mesh.storage import Blackboard, WorldModel
@@ -70,7 +73,7 @@ class Embodiment:
     ) -> None:
         """``join``: claim the name in the mesh first, looking that many seconds for the rest of the
         mesh when nobody answers at once (0 when this session cannot find anyone by itself);
-        ``joined``: that claim, already under way on its own session (``presence.Joining``, what the
+        ``joined``: that claim, already under way on its own session (``claim.Joining``, what the
         daemon passes: it asks the mesh while the daemon loads), whose session this embodiment then owns;
         ``Refused`` if the name is taken or ``state_dir`` is held by another daemon. ``devices``: the
         device table (``devices``) whose embodiments this one takes invitations from and sends its
@@ -171,7 +174,6 @@ class Embodiment:
         A device table named by the library's Migration competency (``devices``) gives the name,
         the companion's birth and, where ``transport_config`` leaves them empty, the endpoints;
         the arguments given here win over it."""
-        from cmion_mesh.body.validate import check_embodiment
 
         arch = load_architecture(path, name=name)
         table = table_for_library(arch.library) if arch.library is not None else None

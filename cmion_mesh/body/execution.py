@@ -25,12 +25,13 @@ from typing import Any, Literal
 
 from cmion_mesh import keys
 from cmion_mesh.body.remote import RemoteCompetency
-from cmion_mesh.body.rules import MindAction, Plan, Step, substitute_step
+from cmion_mesh.body.rules import Plan, Step, substitute_step
 from cmion_mesh.body.standin import StandIn, unavailable_reason
 from cmion_mesh.competency import Competency, RunResult
 from cmion_mesh.errors import MeshError, PlanError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import ExecutionStatus, RunStatus
+from cmion_mesh.mind import MindAction
 from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.storage import Store
 from cmion_mesh.timers import Timer

@@ -31,10 +31,11 @@ import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.body.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
-from cmion_mesh.body.rules import MindAction, Plan, Rule, RuleSet
+from cmion_mesh.body.rules import Plan, Rule, RuleSet
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component
 from cmion_mesh.messages import Act, ActionReport, ActionState, ActionStatus, CancelAction, Code, RunStatus
+from cmion_mesh.mind import MindAction
 from cmion_mesh.requests import IncomingRequest
 
 

@@ -57,11 +57,11 @@ from lxml import etree
 
 from cmion_mesh import xmlsafe
 from cmion_mesh.errors import ConfigError, PlanError, StorageError
+from cmion_mesh.mind import MindAction
 
 __all__ = [
     "SCHEMA",
     "WILDCARD",
-    "MindAction",
     "Plan",
     "Rule",
     "RuleSet",
@@ -89,24 +89,6 @@ _TOKEN = re.compile(
 # Openers of the bracketed tokens: one left over after tokenising is an unterminated or nested
 # token, which would otherwise silently reach the competency as literal text.
 _OPENER = re.compile(r"\$(?:BB|WM)\(")
-
-
-@dataclass(frozen=True, slots=True)
-class MindAction:
-    """An action sent by a mind for execution."""
-
-    name: str
-    parameters: tuple[str, ...] = ()
-    subject: str = ""
-
-    def __post_init__(self) -> None:
-        # Accept a list from callers but keep the instance hashable and immutable.
-        if not isinstance(self.parameters, tuple):
-            object.__setattr__(self, "parameters", tuple(self.parameters))
-
-    def describe(self) -> str:
-        """The action as one line of text: its name and parameters (as events and reasons show it)."""
-        return " ".join((self.name, *self.parameters))
 
 
 @dataclass(frozen=True, slots=True)

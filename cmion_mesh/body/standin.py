@@ -21,6 +21,7 @@ replaced by a command, an abstract base: reported).
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +29,7 @@ from typing import Any
 from cmion_mesh.body import java_classes as portmap
 from cmion_mesh.body.java_classes import Port
 from cmion_mesh.classes import find_file
-from cmion_mesh.competency import Competency, Done, RunContext, RunResult, short_name
+from cmion_mesh.competency import Competency, Done, RunContext, RunResult
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.ion import Component, Simulation
 
@@ -179,3 +180,7 @@ def competency_types(resolved: Resolved) -> tuple[str, ...]:
         return resolved.port.types
     return (short_name(resolved.class_name),)
 
+
+def short_name(class_name: str) -> str:
+    """``GretaBMLSender`` for ``cmion.inTheWild.competencies.GretaBMLSender`` (or ``pkg.mod:GretaBMLSender``)."""
+    return re.split(r"[.:]", class_name)[-1] or class_name

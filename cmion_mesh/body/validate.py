@@ -27,12 +27,14 @@ from pathlib import Path
 from cmion_mesh import xmlsafe
 from cmion_mesh.body.architecture import Architecture, read_architecture
 from cmion_mesh.body.java_classes import DOC
+from cmion_mesh.body.library import load_library
 from cmion_mesh.body.rules import SCHEMA as RULES_SCHEMA
 from cmion_mesh.body.rules import RuleSet, parse_rules
 from cmion_mesh.body.standin import StandInCompetency, why_standin
-from cmion_mesh.competency import Competency, load_library
+from cmion_mesh.competency import Competency
 from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.migration.devices import embodiment_name, named_table, read_device_table, table_for_library
 from cmion_mesh.resources import data_dir
 from cmion_mesh.storage import load_world_model_init
 
@@ -82,8 +84,6 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
                      check_types=arch.library is not None)
     arch.build_components(diagnostics)  # built, not attached: a constructor refusing its parameters is found here
     if arch.library is not None:
-        from cmion_mesh.migration.devices import embodiment_name, table_for_library
-
         # The device table its Migration competency names, as ``up`` reads it (``validate_paths``
         # then does not check that file alone: each of its problems is reported once).
         table = table_for_library(arch.library, diagnostics)
@@ -94,8 +94,6 @@ def _architecture(path: str, diagnostics: Diagnostics, options: Options) -> None
 
 
 def _migrationconfig(path: str, diagnostics: Diagnostics, options: Options) -> None:
-    from cmion_mesh.migration.devices import read_device_table
-
     read_device_table(path, diagnostics)
 
 
@@ -249,8 +247,6 @@ def _referenced(arch: Architecture | None) -> list[Path]:
     """The files checked with a configuration: its rules, library, world model and device table."""
     if arch is None:
         return []
-    from cmion_mesh.migration.devices import named_table
-
     table = named_table(arch.library, Diagnostics()) if arch.library is not None else None
     return [p for p in (arch.rules, arch.library, arch.world_model, table) if p is not None]
 

@@ -338,7 +338,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> Any:
     """The daemon's session, opened now, and its name claim under way on it (``presence.Joining``);
     ``stack`` closes both unless the embodiment takes them (``pop_all``)."""
-    from cmion_mesh.presence import Joining
+    from cmion_mesh.claim import Joining
     from cmion_mesh.transport.zenoh import ZenohTransport
 
     transport = stack.enter_context(ZenohTransport(transport_config(args, name)))

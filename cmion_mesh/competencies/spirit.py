@@ -41,21 +41,33 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar
 
 from cmion_mesh import keys
+from cmion_mesh.competencies.common import (
+    BB_CONTAINER,
+    SELF,
+    SIM,
+    bb_remove,
+    bb_set,
+    ensure_container,
+    local_store,
+    parse_count,
+    parse_seconds,
+    quietly,
+    remove_property,
+    text_parameter,
+    truthy,
+    wm_set,
+)
 from cmion_mesh.competency import Competency, RunContext
-from cmion_mesh.errors import ConfigError, InvalidName, MeshError, RequestRejected
-from cmion_mesh.messages import AddContainer, Code, Event, RemoveProperty, SetProperty
-from cmion_mesh.storage import Store
+from cmion_mesh.errors import ConfigError
+from cmion_mesh.messages import Event
 
 __all__ = [
-    "SELF",
-    "SIM",
     "Animation",
     "CommandInput",
     "GestureDetect",
@@ -67,131 +79,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: The WM agent that stands for the companion on this body (CMION/FAtiMA call it SELF).
-SELF = "Self"
-#: The BB container through which tests and the demo simulate the world.
-SIM = "sim"
-#: Kind given to blackboard containers these competencies create.
-BB_CONTAINER = "container"
-
-_TRUE = {"true", "yes", "1"}
-
-
-# --- parsing ------------------------------------------------------------------------------------
-
-
-def _seconds(value: Any, what: str) -> float:
-    """A non-negative, finite number of seconds; ``ConfigError`` naming ``what`` otherwise.
-
-    ConfigError is a MeshError, so a bad constructor parameter is reported by the library loader
-    with the file and line of the entry.
-    """
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what}: {value!r} is not a number of seconds") from None
-    if not math.isfinite(number) or number < 0:
-        raise ConfigError(f"{what}: {value!r} must be a finite number of seconds, at least 0")
-    return number
-
-
-def _count(value: Any, what: str) -> int:
-    if isinstance(value, bool):  # bool is an int subclass, but True steps means nothing
-        raise ConfigError(f"{what}: {value!r} is not a whole number")
-    try:
-        number = int(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what}: {value!r} is not a whole number") from None
-    if number < 0:
-        raise ConfigError(f"{what}: {value!r} must be at least 0")
-    return number
-
-
-def _truthy(value: Any) -> bool:
-    # WM init files hold strings unless a property says Type="bool": accept both spellings.
-    return value is True or (isinstance(value, str) and value.strip().lower() in _TRUE)
-
-
-def _text(parameters: dict[str, Any], name: str) -> str:
-    value = parameters.get(name)
-    return "" if value is None else str(value).strip()
-
-
-def _valid_name(name: str) -> bool:
-    try:
-        keys.check_name(name)
-    except InvalidName:
-        return False
-    return True
-
-
-# --- store writes (work both in the embodiment and when hosted remotely: all go through ctx) ----
-
-
-def _local_store(ctx: RunContext, store: str) -> Store | None:
-    found = ctx.competency.sim.components_by_name().get(store)
-    return found if isinstance(found, Store) else None
-
-
-def _ensure_container(ctx: RunContext, store: str, path: str, kind: str) -> None:
-    """Create ``path`` (and its parents) if missing; someone else creating it first is fine."""
-    local = _local_store(ctx, store)
-    if local is not None and local.has_container(path):
-        return  # the common case costs no request
-    parent = ""
-    for chunk in keys.split_path(path):
-        try:
-            ctx.write(store, AddContainer(parent, chunk, kind))
-        except RequestRejected as exc:
-            # Created before, or by another writer in this same update (a conflict): both fine.
-            if exc.code not in (Code.EXISTS, Code.CONFLICT):
-                raise
-        parent = f"{parent}/{chunk}" if parent else chunk
-
-
-def _set(ctx: RunContext, store: str, container: str, name: str, value: Any, *, kind: str, persistent: bool = False) -> None:
-    """Set a property, creating its container (of ``kind``) on the first refusal for lack of it."""
-    write = SetProperty(container, name, value, persistent)
-    try:
-        ctx.write(store, write)
-    except RequestRejected as exc:
-        if not container or exc.code != Code.NOT_FOUND:  # a set refers to nothing but its container
-            raise
-        _ensure_container(ctx, store, container, kind)
-        ctx.write(store, write)
-
-
-def _remove(ctx: RunContext, store: str, container: str, name: str) -> None:
-    """Remove a property if it is there; already gone is fine."""
-    try:
-        ctx.write(store, RemoveProperty(container, name))
-    except RequestRejected as exc:
-        if exc.code != Code.NOT_FOUND:
-            raise
-
-
-def _bb_set(ctx: RunContext, path: str, value: Any) -> None:
-    container, _, name = path.rpartition("/")
-    _set(ctx, keys.BLACKBOARD, container, name, value, kind=BB_CONTAINER)
-
-
-def _bb_remove(ctx: RunContext, path: str) -> None:
-    container, _, name = path.rpartition("/")
-    _remove(ctx, keys.BLACKBOARD, container, name)
-
-
-def _wm_set(ctx: RunContext, entity: str, name: str, value: Any, *, kind: str = "agent", persistent: bool = False) -> None:
-    _set(ctx, keys.WORLD_MODEL, entity, name, value, kind=kind, persistent=persistent)
-
-
-def _quietly(what: str, fn: Callable[..., object], *args: Any) -> None:
-    """Clean-up after a cancel or a failure: it must not replace the run's own outcome."""
-    try:
-        fn(*args)
-    except MeshError as exc:  # e.g. the embodiment is shutting down
-        log.debug("%s skipped: %s", what, exc)
-
 
 # --- the base -------------------------------------------------------------------------------------
 
@@ -257,46 +144,46 @@ class Navigation(SimulatedCompetency):
 
     def __init__(self, step: str = "0.05", agent: str = SELF, steps: str = "4", *, name: str | None = None) -> None:
         super().__init__(step, agent, steps, name=name)
-        self.step = _seconds(step, "Navigation: seconds per step")
+        self.step = parse_seconds(step, "Navigation: seconds per step")
         self.agent = keys.check_name(agent, "Navigation: self agent")
-        self.steps = _count(steps, "Navigation: steps per trip")
+        self.steps = parse_count(steps, "Navigation: steps per trip")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        target = _text(parameters, "Location")
+        target = text_parameter(parameters, "Location")
         if not target:
             return ctx.fail("Navigation needs a Location parameter")
-        if not _valid_name(target) or not self._is_location(ctx, target):
+        if not keys.is_name(target) or not self._is_location(ctx, target):
             known = self._known_locations(ctx)
             listing = f" (known locations: {', '.join(known)})" if known else ""
             return ctx.fail(f"unknown location {target!r}: the world model has no object {target!r} with isLocation = true{listing}")
         here = ctx.wm_get(self.agent, "location")
         steps = 0 if here == target else self._steps_to(ctx, target)
-        _bb_set(ctx, "navigation/target", target)
-        _bb_set(ctx, "navigation/state", "moving")
+        bb_set(ctx, "navigation/target", target)
+        bb_set(ctx, "navigation/state", "moving")
         for done in range(1, steps + 1):
             if not ctx.wait(self.step):
-                _quietly("navigation/state", _bb_set, ctx, "navigation/state", "stopped")
+                quietly("navigation/state", bb_set, ctx, "navigation/state", "stopped")
                 return False
             ctx.progress({"location": target, "step": done, "steps": steps})
-        _wm_set(ctx, self.agent, "location", target)
-        _bb_set(ctx, "navigation/state", "arrived")
+        wm_set(ctx, self.agent, "location", target)
+        bb_set(ctx, "navigation/state", "arrived")
         return True
 
     def _is_location(self, ctx: RunContext, name: str) -> bool:
-        local = _local_store(ctx, keys.WORLD_MODEL)
+        local = local_store(ctx, keys.WORLD_MODEL)
         if local is not None:
             if not local.has_container(name) or local.node(name).kind != "object":
                 return False
-            return _truthy(local.get(name, "isLocation"))
-        return _truthy(ctx.wm_get(name, "isLocation"))  # hosted remotely: one read over the mesh
+            return truthy(local.get(name, "isLocation"))
+        return truthy(ctx.wm_get(name, "isLocation"))  # hosted remotely: one read over the mesh
 
     def _known_locations(self, ctx: RunContext) -> list[str]:
-        local = _local_store(ctx, keys.WORLD_MODEL)
+        local = local_store(ctx, keys.WORLD_MODEL)
         if local is None:
             return []  # listing would mean reading the whole remote world model for an error message
         children = local.tree()["children"]
         return sorted(
-            n for n, c in children.items() if c["kind"] == "object" and _truthy(c["properties"].get("isLocation", {}).get("value"))
+            n for n, c in children.items() if c["kind"] == "object" and truthy(c["properties"].get("isLocation", {}).get("value"))
         )
 
     def _steps_to(self, ctx: RunContext, target: str) -> int:
@@ -304,7 +191,7 @@ class Navigation(SimulatedCompetency):
         if raw is None:
             return self.steps
         try:
-            return _count(raw, f"{target}.travelSteps")
+            return parse_count(raw, f"{target}.travelSteps")
         except ConfigError as exc:
             log.warning("%s; using %d steps", exc, self.steps)
             return self.steps
@@ -334,12 +221,12 @@ class LanguageGeneration(SimulatedCompetency):
 
     def __init__(self, step: str = "0.02", agent: str = SELF, *, name: str | None = None) -> None:
         super().__init__(step, agent, name=name)
-        self.step = _seconds(step, "LanguageGeneration: seconds per sentence")
+        self.step = parse_seconds(step, "LanguageGeneration: seconds per sentence")
         self.agent = keys.check_name(agent, "LanguageGeneration: self agent")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        act = _text(parameters, "SpeechActID")
-        out = _text(parameters, "TextOutName")
+        act = text_parameter(parameters, "SpeechActID")
+        out = text_parameter(parameters, "TextOutName")
         if not out:
             return ctx.fail("LanguageGeneration needs a TextOutName parameter (the blackboard name to write the text to)")
         template = self.TEMPLATES.get(act)
@@ -347,16 +234,16 @@ class LanguageGeneration(SimulatedCompetency):
             return ctx.fail(f"no template for speech act {act!r} (known: {', '.join(sorted(self.TEMPLATES))})")
         if not ctx.wait(self.step):
             return False
-        addressee = self._display(ctx, _text(parameters, "Addressee"), "there")
+        addressee = self._display(ctx, text_parameter(parameters, "Addressee"), "there")
         text = template.format(addressee=addressee, self=self._display(ctx, self.agent, "the spirit of the building"))
-        _bb_set(ctx, out, text)
+        bb_set(ctx, out, text)
         return True
 
     @staticmethod
     def _display(ctx: RunContext, entity: str, fallback: str) -> str:
         if not entity:
             return fallback
-        if not _valid_name(entity):
+        if not keys.is_name(entity):
             return entity  # not a WM name, so it has no displayName: say it as given
         shown = ctx.wm_get(entity, "displayName")
         return str(shown) if shown not in (None, "") else entity
@@ -372,25 +259,25 @@ class SpeechSynthesis(SimulatedCompetency):
 
     def __init__(self, step: str = "0.05", agent: str = SELF, *, name: str | None = None) -> None:
         super().__init__(step, agent, name=name)
-        self.step = _seconds(step, "SpeechSynthesis: seconds per utterance")
+        self.step = parse_seconds(step, "SpeechSynthesis: seconds per utterance")
         self.agent = keys.check_name(agent, "SpeechSynthesis: self agent")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        source = _text(parameters, "TextInName")
+        source = text_parameter(parameters, "TextInName")
         if not source:
             return ctx.fail("SpeechSynthesis needs a TextInName parameter (the blackboard name of the text)")
         value = ctx.bb_get(source)
         if value is None or str(value).strip() == "":
             return ctx.fail(f"nothing to say: no text on the blackboard under {source!r}")
         text = str(value)
-        _bb_set(ctx, "speech/current", text)
+        bb_set(ctx, "speech/current", text)
         try:
             if not self._speak(text, ctx):
                 return False
         finally:
-            _quietly("speech/current", _bb_remove, ctx, "speech/current")
-        _bb_set(ctx, "speech/last", text)
-        _wm_set(ctx, self.agent, "lastUtterance", text)
+            quietly("speech/current", bb_remove, ctx, "speech/current")
+        bb_set(ctx, "speech/last", text)
+        wm_set(ctx, self.agent, "lastUtterance", text)
         ctx.raise_event("Spoke", {"text": text, "source": source})
         return True
 
@@ -410,22 +297,22 @@ class Animation(SimulatedCompetency):
 
     def __init__(self, step: str = "0.05", *animations: str, name: str | None = None) -> None:
         super().__init__(step, *animations, name=name)
-        self.step = _seconds(step, "Animation: seconds per animation")
+        self.step = parse_seconds(step, "Animation: seconds per animation")
         self.animations = tuple(a for a in animations if a)
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        animation = _text(parameters, "AnimationName")
+        animation = text_parameter(parameters, "AnimationName")
         if not animation:
             return ctx.fail("Animation needs an AnimationName parameter")
         if self.animations and animation not in self.animations:
             return ctx.fail(f"this body cannot play animation {animation!r} (it plays: {', '.join(self.animations)})")
-        _bb_set(ctx, "animation/current", animation)
+        bb_set(ctx, "animation/current", animation)
         try:
             if not self._play(animation, ctx):
                 return False
         finally:
-            _quietly("animation/current", _bb_remove, ctx, "animation/current")
-        _bb_set(ctx, "animation/last", animation)
+            quietly("animation/current", bb_remove, ctx, "animation/current")
+        bb_set(ctx, "animation/last", animation)
         return True
 
     def _play(self, animation: str, ctx: RunContext) -> bool:
@@ -453,24 +340,24 @@ class UserDetection(SimulatedCompetency):
 
     def __init__(self, interval: str = "0", agent: str = SELF, *, name: str | None = None) -> None:
         super().__init__(interval, agent, name=name)
-        self.interval = _seconds(interval, "UserDetection: re-check interval")
+        self.interval = parse_seconds(interval, "UserDetection: re-check interval")
         self.agent = keys.check_name(agent, "UserDetection: self agent")
         self._warned: set[str] = set()
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        _ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)
+        ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)
         present: set[str] = set()
         with self.watching([self.INPUT]):
             while self._rearm(ctx):
                 seen = self._users(ctx.bb_get(self.INPUT)) | self._sensed(ctx)
                 for user in sorted(present - seen):
-                    _wm_set(ctx, user, "present", False)
+                    wm_set(ctx, user, "present", False)
                     present.discard(user)
                 for user in sorted(seen - present):
-                    _wm_set(ctx, user, "present", True)
+                    wm_set(ctx, user, "present", True)
                     location = ctx.wm_get(self.agent, "location")
                     if location is not None:
-                        _wm_set(ctx, user, "location", location)
+                        wm_set(ctx, user, "location", location)
                     present.add(user)
                 self._wake.wait(self.interval or None)
         return True
@@ -487,7 +374,7 @@ class UserDetection(SimulatedCompetency):
         for item in (i.strip() for i in items):
             if not item:
                 continue
-            if _valid_name(item):
+            if keys.is_name(item):
                 users.add(item)
             elif item not in self._warned:  # once per name: the fallback re-check would repeat it
                 self._warned.add(item)
@@ -512,28 +399,28 @@ class GestureDetect(SimulatedCompetency):
 
     def __init__(self, timeout: str = "10", *, name: str | None = None) -> None:
         super().__init__(timeout, name=name)
-        self.timeout = _seconds(timeout, "GestureDetect: default timeout")
+        self.timeout = parse_seconds(timeout, "GestureDetect: default timeout")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        user = _text(parameters, "PersonID")
-        if not user or not _valid_name(user):
+        user = text_parameter(parameters, "PersonID")
+        if not user or not keys.is_name(user):
             return ctx.fail(f"GestureDetect needs a PersonID parameter that is a world-model agent name, got {user!r}")
         try:
-            timeout = _seconds(parameters.get("Timeout", self.timeout), "GestureDetect: Timeout")
+            timeout = parse_seconds(parameters.get("Timeout", self.timeout), "GestureDetect: Timeout")
         except ConfigError as exc:
             return ctx.fail(str(exc))
-        _ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)  # so the simulated user can answer
-        _remove(ctx, keys.WORLD_MODEL, user, "answer")  # a new question voids the last answer
-        _bb_set(ctx, "gesture/waitingFor", user)
+        ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)  # so the simulated user can answer
+        remove_property(ctx, keys.WORLD_MODEL, user, "answer")  # a new question voids the last answer
+        bb_set(ctx, "gesture/waitingFor", user)
         try:
             gesture = self._await(ctx, timeout)
         finally:
-            _quietly("gesture/waitingFor", _bb_remove, ctx, "gesture/waitingFor")
+            quietly("gesture/waitingFor", bb_remove, ctx, "gesture/waitingFor")
         if gesture is None:
             if ctx.cancelled.is_set():
                 return False
             return ctx.fail(f"no gesture from {user} within {timeout:g} s (nobody set the blackboard's {self.INPUT})")
-        _wm_set(ctx, user, "answer", gesture)
+        wm_set(ctx, user, "answer", gesture)
         ctx.raise_event("RemoteAction", {"name": "Gesture", "parameters": [gesture], "subject": user})
         return True
 
@@ -546,7 +433,7 @@ class GestureDetect(SimulatedCompetency):
                     return sensed
                 raw = ctx.bb_get(self.INPUT)
                 if raw is not None and str(raw).strip():
-                    _bb_remove(ctx, self.INPUT)
+                    bb_remove(ctx, self.INPUT)
                     return str(raw).strip()
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -580,10 +467,10 @@ class CommandInput(SimulatedCompetency):
 
     def __init__(self, interval: str = "0", *, name: str | None = None) -> None:
         super().__init__(interval, name=name)
-        self.interval = _seconds(interval, "CommandInput: re-check interval")
+        self.interval = parse_seconds(interval, "CommandInput: re-check interval")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        _ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)
+        ensure_container(ctx, keys.BLACKBOARD, SIM, BB_CONTAINER)
         previous = ctx.wm_get(self.ENTITY, "count")
         # Go on counting after a restart, so ``count`` never repeats a value a mind has seen.
         count = previous if isinstance(previous, int) and not isinstance(previous, bool) else 0
@@ -599,14 +486,14 @@ class CommandInput(SimulatedCompetency):
                     verb, _, obj = text.partition(" ")
                     count += 1
                     writes: list[tuple[str, Any]] = [("text", text), ("object", obj), ("count", count)]
-                    if verb not in self.FIELDS and _valid_name(verb):
+                    if verb not in self.FIELDS and keys.is_name(verb):
                         writes.append((verb, obj))
                     writes.append(("verb", verb))
                     for prop, value in writes:
-                        _wm_set(ctx, self.ENTITY, prop, value, kind="object")
+                        wm_set(ctx, self.ENTITY, prop, value, kind="object")
                 # A different command typed meanwhile stays for the next round.
                 if typed is None and ctx.bb_get(self.INPUT) == raw:
-                    _bb_remove(ctx, self.INPUT)
+                    bb_remove(ctx, self.INPUT)
         return True
 
     def _sensed(self, ctx: RunContext) -> str | None:

@@ -43,7 +43,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.body.architecture import Architecture
+from cmion_mesh.body.architecture import Architecture  # upward: see LAYER_EXCEPTIONS in tests/test_boundaries.py
 from cmion_mesh.classes import current_name
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName
@@ -226,7 +226,9 @@ def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics 
 def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
     """Where the library's Migration competency says its device table is (not read); None when it
     names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
-    from cmion_mesh.competency import read_library  # devices is read before the mesh is joined: kept light
+    # An upward import, listed in tests/test_boundaries.py's LAYER_EXCEPTIONS: this function reads the
+    # library, a body's file, and moves to body/library.py (start time: it stays out of the top).
+    from cmion_mesh.body.library import read_library
 
     lib = os.fspath(library)
     found: tuple[Path, int | None] | None = None

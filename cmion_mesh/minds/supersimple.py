@@ -25,12 +25,11 @@ import logging
 from typing import Any
 
 from cmion_mesh import keys
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ActionReport, Event
 from cmion_mesh.migration.invitation import INVITATION_ACTION, INVITE_EVENT
-from cmion_mesh.mind import Mind, storage_change
+from cmion_mesh.mind import Mind, MindAction, storage_change
 
 log = logging.getLogger(__name__)
 

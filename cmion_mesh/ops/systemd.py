@@ -14,7 +14,7 @@ with the standard library; without ``$NOTIFY_SOCKET`` (not run by systemd) every
 
 Wiring (the daemon, ``cli`` ``_run_daemon``): one context manager around the daemon's wait, entered
 right after ``with embodiment:`` (``Embodiment.start`` has returned: the claim on the name was
-decided in ``Embodiment.__init__``, through ``presence.Joining.result()``, and the ``@alive`` token
+decided in ``Embodiment.__init__``, through ``claim.Joining.result()``, and the ``@alive`` token
 is declared), exited before the embodiment closes::
 
     with embodiment, systemd.Service(embodiment) as service:

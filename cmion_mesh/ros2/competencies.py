@@ -47,7 +47,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from cmion_mesh import keys
-from cmion_mesh.competencies.spirit import SELF, _bb_set, _quietly, _seconds, _text, _valid_name, _wm_set
+from cmion_mesh.competencies.common import SELF, bb_set, parse_seconds, quietly, text_parameter, wm_set
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Simulation
@@ -163,7 +163,7 @@ class Ros2Competency(Competency):
         return type_name
 
     def seconds(self, key: str) -> float:
-        return _seconds(self.options[key], f"{type(self).__name__}: {key}")
+        return parse_seconds(self.options[key], f"{type(self).__name__}: {key}")
 
     def start(self, sim: Simulation) -> None:
         if self.node is None:
@@ -238,7 +238,7 @@ class Ros2Navigation(Ros2Competency):
     def _pose(self, ctx: RunContext, target: str) -> tuple[float, float, float] | None:
         if target in self.places:
             return self.places[target]
-        if not _valid_name(target):
+        if not keys.is_name(target):
             return None
         x, y = ctx.wm_get(target, "x"), ctx.wm_get(target, "y")
         if x is None or y is None:
@@ -249,7 +249,7 @@ class Ros2Navigation(Ros2Competency):
             return None
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
-        target = _text(parameters, "Location")
+        target = text_parameter(parameters, "Location")
         if not target:
             return ctx.fail("Ros2Navigation needs a Location parameter")
         pose = self._pose(ctx, target)
@@ -282,8 +282,8 @@ class Ros2Navigation(Ros2Competency):
         unfollow = client.follow(goal_id, lambda feedback: events.put(("feedback", feedback)),
                                  lambda reason: events.put(("malformed", reason)))
         try:
-            _bb_set(ctx, "navigation/target", target)
-            _bb_set(ctx, "navigation/state", "moving")
+            bb_set(ctx, "navigation/target", target)
+            bb_set(ctx, "navigation/state", "moving")
             x, y, yaw = pose
             goal = {"pose": {"header": {"frame_id": self.options["frame"]},
                              "pose": {"position": {"x": x, "y": y}, "orientation": ros2.yaw_quaternion(yaw)}},
@@ -301,7 +301,7 @@ class Ros2Navigation(Ros2Competency):
             self._events = None
 
     def _failed(self, ctx: RunContext, reason: str, state: str = "failed") -> bool:
-        _quietly("navigation state", _bb_set, ctx, "navigation/state", state)
+        quietly("navigation state", bb_set, ctx, "navigation/state", state)
         return ctx.fail(reason)
 
     def _follow(self, ctx: RunContext, client: ros2.ActionClient, goal_id: bytes, target: str, who: str,
@@ -350,7 +350,7 @@ class Ros2Navigation(Ros2Competency):
                 if cancel_deadline is not None:
                     return self._failed(ctx, f"{who} did not end the goal to {target} within "
                                              f"{self.seconds('cancel_timeout'):g} s of its cancel", "stopped")
-                _quietly("cancel on timeout", client.cancel, goal_id, self.seconds("cancel_timeout"))
+                quietly("cancel on timeout", client.cancel, goal_id, self.seconds("cancel_timeout"))
                 return self._failed(ctx, f"the goal to {target} did not end within {timeout:g} s (cancelled)")
             if kind != "feedback" and pending is not None:
                 self._feedback(ctx, pending)
@@ -394,13 +394,13 @@ class Ros2Navigation(Ros2Competency):
                    "number_of_recoveries": int(feedback.number_of_recoveries),
                    "estimated_time_remaining": feedback.estimated_time_remaining.sec
                    + feedback.estimated_time_remaining.nanosec / 1e9}
-        _quietly("navigation feedback", _bb_set, ctx, "navigation/feedback", summary)
-        _quietly("progress", ctx.progress, summary)
+        quietly("navigation feedback", bb_set, ctx, "navigation/feedback", summary)
+        quietly("progress", ctx.progress, summary)
 
     def _ended(self, ctx: RunContext, target: str, who: str, status: int, result: Any, *, cancelled: bool) -> bool:
         if status == ros2.STATUS_SUCCEEDED and not cancelled:
-            _bb_set(ctx, "navigation/state", "arrived")
-            _wm_set(ctx, self.agent, "location", target)
+            bb_set(ctx, "navigation/state", "arrived")
+            wm_set(ctx, self.agent, "location", target)
             return True
         name = ros2.STATUS_NAMES.get(status, str(status))
         detail = ""
@@ -466,7 +466,7 @@ class Ros2Velocity(Ros2Competency):
                 self._wake.wait(max(0.0, min(period, end - time.monotonic())))
         finally:
             # Stop the robot whatever ended the run: the duration, a cancel, a failure.
-            _quietly("zero Twist", publisher.publish, {})
+            quietly("zero Twist", publisher.publish, {})
         return not ctx.cancelled.is_set()
 
 
@@ -497,8 +497,8 @@ class Ros2Speech(Ros2Competency):
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
         publisher = self.publisher
         assert publisher is not None
-        text = _text(parameters, "Text")
-        source = _text(parameters, "TextInName")
+        text = text_parameter(parameters, "Text")
+        source = text_parameter(parameters, "TextInName")
         if not text and source:
             value = ctx.bb_get(source)
             text = "" if value is None else str(value).strip()
@@ -509,8 +509,8 @@ class Ros2Speech(Ros2Competency):
         if not self.wait_subscriber(ctx, publisher):
             return False
         publisher.publish({self.options["field"]: text})
-        _bb_set(ctx, "speech/last", text)
-        _wm_set(ctx, self.agent, "lastUtterance", text)
+        bb_set(ctx, "speech/last", text)
+        wm_set(ctx, self.agent, "lastUtterance", text)
         ctx.raise_event("Spoke", {"text": text, "topic": publisher.name})
         return True
 
@@ -581,9 +581,9 @@ class Ros2SensorBridge(Ros2Competency):
             for alias, message in due.items():
                 written[alias] = now
                 if self.store == "blackboard":
-                    _quietly(f"sensor {alias}", _bb_set, ctx, f"{self.container}/{alias}", plain(message))
+                    quietly(f"sensor {alias}", bb_set, ctx, f"{self.container}/{alias}", plain(message))
                 else:
-                    _quietly(f"sensor {alias}", _wm_set, ctx, self.container, alias, plain(message))
+                    quietly(f"sensor {alias}", wm_set, ctx, self.container, alias, plain(message))
             if waiting:
                 # Something arrived too soon after its last write: come back when it is due.
                 if not ctx.wait(self.interval):

@@ -34,8 +34,7 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Event, MindState
-from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
-from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh, wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 

@@ -48,7 +48,7 @@ import threading
 import time
 from collections import OrderedDict
 from importlib import resources
-from typing import TYPE_CHECKING, Any
+from typing import Any, ClassVar
 
 from starlette.applications import Starlette
 from starlette.requests import Request
@@ -62,9 +62,6 @@ from cmion_mesh.errors import InvalidName, MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
 from cmion_mesh.web.server import LOOPBACK_NAMES, WebServer, host_allowed, parse_bind, same_origin
-
-if TYPE_CHECKING:
-    from cmion_mesh.web.competencies import WebSense
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +79,19 @@ MIGRATION_EVENTS = frozenset({"MigrationOccurred", "CompanionResumed", "Migratio
 
 def static_dir() -> Any:
     return resources.files("cmion_mesh") / "web" / "static" / "body"
+
+
+class WebSense:
+    """What a competency fed by the page is to the body: ``sense`` names the input it takes (answer,
+    visitor, command), and the body calls ``poke`` (from the server's loop: it only sets an event)
+    when one arrives. The web competencies (``web/competencies.py``) are such senses; the body
+    finds them among the embodiment's competencies, and so needs no import of them."""
+
+    sense: ClassVar[str] = ""
+    _wake: Any
+
+    def poke(self) -> None:
+        self._wake.set()
 
 
 class _Page:
@@ -268,14 +278,10 @@ class WebBody(Component):
         return inhabitant if isinstance(inhabitant, str) else None
 
     def _senses(self) -> list[str]:
-        from cmion_mesh.web.competencies import WebSense
-
         execution = self.sim.components_by_name().get("execution")
         return sorted({c.sense for c in getattr(execution, "competencies", ()) if isinstance(c, WebSense)})
 
     def sensing(self) -> list[WebSense]:
-        from cmion_mesh.web.competencies import WebSense
-
         execution = self.sim.components_by_name().get("execution")
         return [c for c in getattr(execution, "competencies", ()) if isinstance(c, WebSense)]
 

@@ -23,12 +23,14 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
-from cmion_mesh.competencies.spirit import SELF, Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection, _seconds
+from cmion_mesh.competencies.common import SELF, parse_seconds
+from cmion_mesh.competencies.spirit import Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection
 from cmion_mesh.competency import RunContext
-from cmion_mesh.web.body import WebBody, web_body
+from cmion_mesh.errors import ConfigError
+from cmion_mesh.web.body import WebBody, WebSense, web_body
 from cmion_mesh.web.speech import SpeechUnavailable, duration, synthesize
 
-__all__ = ["WebAnimation", "WebCommandInput", "WebGestureDetect", "WebSense", "WebSpeechSynthesis", "WebUserDetection"]
+__all__ = ["WebAnimation", "WebCommandInput", "WebGestureDetect", "WebSpeechSynthesis", "WebUserDetection"]
 
 log = logging.getLogger(__name__)
 
@@ -36,17 +38,6 @@ log = logging.getLogger(__name__)
 ANIMATION_SECONDS: dict[str, float] = {"wave": 1.6, "nod": 1.0, "smile": 1.2, "happy": 1.5, "sad": 1.5, "curious": 1.2, "talk": 0.8}
 #: Reading speed used for a line shown without sound (characters per second).
 READING_SPEED = 15.0
-
-
-class WebSense:
-    """A competency fed by the page: ``sense`` names the input (answer, visitor, command), and the
-    body calls ``poke`` (from the server's loop: it only sets an event) when one arrives."""
-
-    sense: ClassVar[str] = ""
-    _wake: Any
-
-    def poke(self) -> None:
-        self._wake.set()
 
 
 def _body(competency: Any) -> WebBody | None:
@@ -69,8 +60,6 @@ class WebSpeechSynthesis(SpeechSynthesis):
         try:
             self.words_per_minute = max(80, min(450, int(words_per_minute)))
         except ValueError:
-            from cmion_mesh.errors import ConfigError
-
             raise ConfigError(f"WebSpeechSynthesis: words per minute {words_per_minute!r} is not a whole number") from None
 
     def _speak(self, text: str, ctx: RunContext) -> bool:
@@ -121,7 +110,7 @@ class WebGestureDetect(WebSense, GestureDetect):
     def __init__(self, timeout: str = "10", page_timeout: str = "120", *, name: str | None = None) -> None:
         super().__init__(timeout, name=name or "GestureDetect")
         self.constructor_parameters = (timeout, page_timeout)
-        self.page_timeout = _seconds(page_timeout, "WebGestureDetect: timeout on a page")
+        self.page_timeout = parse_seconds(page_timeout, "WebGestureDetect: timeout on a page")
 
     def run(self, parameters: dict[str, Any], ctx: RunContext) -> bool:
         body = _body(self)

@@ -50,12 +50,11 @@ from typing import Any
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.body.manager import CompetencyManager
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import MeshError, XmlError
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import ActionReport, AddContainer, Event, SetProperty
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.minds.fatima.link import MAX_HELD, FailureGate, Link, Listener, Switchboard
 from cmion_mesh.minds.fatima.protocol import (
     MAX_LINE,

@@ -29,11 +29,10 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.body.rules import MindAction
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import ActionReport
 from cmion_mesh.migration.invitation import INVITATION_ACTION
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.minds.planner.search import (
     Beliefs,
     GroundedOperator,
