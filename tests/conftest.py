@@ -117,6 +117,7 @@ TIERS: dict[str, str] = {
     "test_execution": "unit",
     "test_fatima": "mesh",
     "test_fatima_protocol": "unit",
+    "test_foxglove": "unit",
     "test_fuzz": "system",  # hundreds of random inputs a test: ~20 s of CPU, as much as the whole unit tier
     "test_handshake": "unit",
     "test_handshake_simulation": "unit",

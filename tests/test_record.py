@@ -309,7 +309,9 @@ def test_undecodable_payloads_go_to_a_raw_channel_and_drops_are_counted(tmp_path
                 t.publish(f"cmion/m/robot/ev/manager/E{i}", encode(event))
             wait_for(lambda: dropping.dropped >= 5, 10, "five drops")
     summary = info(tmp_path / "r.mcap")
-    assert summary["channels"] == {"cmion/m/robot/ev/manager/Ping": 1, "raw:cmion/m/robot/ev/**": 1, "raw:cmion/m/robot/other/**": 1}
+    # The log lines: the manager's event (an action's story) and the payload not understood.
+    assert summary["channels"] == {"cmion/m/robot/ev/manager/Ping": 1, "raw:cmion/m/robot/ev/**": 1, "raw:cmion/m/robot/other/**": 1,
+                                   "log:cmion/m": 2}
     with RecordingReader(tmp_path / "r.mcap") as reader:
         raw = [m.decoded() for m in reader.messages() if m.schema == RAW_SCHEMA]
     assert {r["key"] for r in raw} == {"cmion/m/robot/ev/manager/ActionStarted", "cmion/m/robot/other/thing"}

@@ -2,7 +2,8 @@
 
 MCAP (https://mcap.dev) is the open log format of robotics: Foxglove, the ``mcap`` command line
 and any MCAP reader open these files. What goes in them (one channel per key pattern, JSON
-messages with their JSON Schemas): ``tools/recording_format.py``; reading them back and
+messages with self-contained JSON Schemas that Foxglove reads, log lines as ``foxglove.Log``):
+``tools/recording_format.py``, shared with the live Foxglove connection; reading them back and
 ``record info``: ``tools/recording_reader.py``. Here: the ``Recorder`` and the file it writes.
 
 Bounded memory: the subscriptions' workers hand samples to a bounded inbox; the writer thread
@@ -31,7 +32,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import msgspec
 from mcap.opcode import Opcode
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
@@ -40,14 +40,18 @@ from cmion_mesh.errors import ConfigError, MeshError, ProtocolError
 from cmion_mesh.messages import Event, decoder
 from cmion_mesh.tools.recording_format import (
     EVENT_SCHEMA,
+    FORMAT,
     PROFILE,
-    RAW_SCHEMA,
     SCHEMAS,
-    TOKEN_KINDS,
     Routed,
-    mesh_filter,
+    event_line,
+    mesh_filters,
+    nanoseconds,
+    overflow_topic,
+    record_event,
     route,
     route_token,
+    token_patterns,
 )
 from cmion_mesh.transport.base import Closeable, Sample, Transport
 
@@ -58,7 +62,8 @@ FLUSH_INTERVAL = 0.5
 #: Samples and bytes waiting for the writer beyond which new ones are dropped (and counted).
 MAX_QUEUED_SAMPLES = 100_000
 MAX_QUEUED_BYTES = 64 * 1024 * 1024
-#: Channels in one file; events on keys beyond it share the overflow channel ``cmion/<mesh>/*/ev/**``.
+#: Channels in one file; events on keys beyond it share the overflow channel ``cmion/<mesh>/*/ev/**``
+#: (``recording_format.overflow_topic``).
 MAX_CHANNELS = 4096
 #: Most often a drop is reported on stderr.
 DROP_REPORT_INTERVAL = 1.0
@@ -67,15 +72,15 @@ DROP_REPORT_INTERVAL = 1.0
 #: a ``Footer`` with no summary, the magic. A finished file's footer names its summary.
 OPEN_END = struct.pack("<BQI", Opcode.DATA_END, 4, 0) + struct.pack("<BQQQI", Opcode.FOOTER, 20, 0, 0, 0) + MCAP0_MAGIC
 
-_json = msgspec.json.Encoder()
 _decode_event = decoder(Event)
 
 
 # --- the inbox between the subscriptions and the writer -------------------------------------------
 
 
-class _Inbox:
-    """Items waiting for the writer, bounded in samples and bytes; what does not fit is counted."""
+class Inbox:
+    """Items waiting for the writer (or the live server's worker), bounded in samples and bytes;
+    what does not fit is counted (``dropped``)."""
 
     def __init__(self, max_samples: int, max_bytes: int) -> None:
         self._items: deque[tuple[int, int, Any]] = deque()
@@ -163,9 +168,7 @@ class _Part:
     def add(self, routed: Routed, log_ns: int, mesh: str) -> None:
         topic = routed.topic
         if topic not in self.channels and len(self.channels) >= MAX_CHANNELS:
-            topic = f"{keys.ROOT}/{mesh}/*/{keys.EVENTS}/**" if routed.schema == EVENT_SCHEMA else f"raw:{keys.ROOT}/{mesh}/**"
-            if routed.schema not in (EVENT_SCHEMA, RAW_SCHEMA):
-                topic = f"{routed.schema}:{keys.ROOT}/{mesh}/**"
+            topic = overflow_topic(routed, mesh)
         self.messages += 1
         self.pending += 1
         self.writer.add_message(self.channel(topic, routed.schema), log_ns, routed.data, routed.publish_ns or log_ns, self.messages)
@@ -232,19 +235,18 @@ class Recorder:
     ) -> None:
         self.mesh = keys.check_name(mesh, "mesh")
         self.output = Path(output)
-        # ``**`` never matches ``@outcome`` (a verbatim chunk): the whole mesh is both patterns.
-        self.filters = [mesh_filter(mesh, f) for f in filters] or [f"{keys.mesh_prefix(mesh)}/**", keys.outcome_pattern(mesh)]
+        self.filters = mesh_filters(mesh, filters)
         self.split_bytes = split_bytes
         self.split_seconds = split_seconds
         self.flush_interval = flush_interval
         self.stats = RecorderStats()
         self._report = report or (lambda text: print(text, file=sys.stderr, flush=True))
-        self._inbox = _Inbox(max_queued, MAX_QUEUED_BYTES)
+        self._inbox = Inbox(max_queued, MAX_QUEUED_BYTES)
         self._split = bool(split_bytes or split_seconds)
         self._split_due = False  # the part is full or old: the next thing written starts a new one
         self._alive: set[str] = set()
         self._meta: dict[str, dict[str, str]] = {"cmion-mesh": {
-            "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}",
+            "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}", "format": str(FORMAT),
             "host": socket.gethostname(), "pid": str(os.getpid()), "started": _iso(time.time()),
         }}
         self._lock = threading.Lock()
@@ -259,8 +261,7 @@ class Recorder:
         try:
             for pattern in self.filters:
                 self._subscriptions.append(transport.subscribe_batches(pattern, self._on_samples))
-            for kind in TOKEN_KINDS:
-                pattern = f"{keys.mesh_prefix(mesh)}/{kind}/{'*' if kind == keys.ALIVE else '**'}"
+            for pattern in token_patterns(mesh):
                 self._subscriptions.append(transport.watch_liveliness(pattern, self._on_token))
         except BaseException:
             self.close()
@@ -351,21 +352,22 @@ class Recorder:
             self._part.writer.add_metadata(name, record)
             return
         key, alive = item
-        routed = route_token(key, alive)
         if key.split("/")[2:3] == [keys.ALIVE]:
             name = key.rsplit("/", 1)[-1]
             self.stats.embodiments.add(name)
             (self._alive.add if alive else self._alive.discard)(name)
-        self._part.add(routed, stamp, self.mesh)
+        for routed in route_token(key, alive, stamp):
+            self._part.add(routed, stamp, self.mesh)
         self.stats.messages += 1
 
     def _write_samples(self, stamp: int, batch: list[Sample]) -> None:
         # The hot path: an event on a key whose channel this file has (its topic is the key itself;
-        # no other channel's topic is a concrete key) goes straight in; the rest through ``route``.
+        # no other channel's topic is a concrete key) goes straight in (its log line, if it has one,
+        # after it); the rest through ``route``.
         part = self._part
         channels = part.channels
         add = part.writer.add_message
-        encode_json = _json.encode
+        mesh = self.mesh
         for sample in batch:
             key, payload, deleted = sample.key, sample.payload, sample.deleted
             channel = channels.get(key)
@@ -377,12 +379,15 @@ class Recorder:
                 else:
                     part.messages += 1
                     part.pending += 1
-                    add(channel, stamp, encode_json(event), int(event.time * 1e9) if event.time > 0 else stamp, part.messages)
+                    add(channel, stamp, record_event(event), nanoseconds(event.time) or stamp, part.messages)
+                    line = event_line(event, mesh, stamp)
+                    if line is not None:
+                        part.add(line, stamp, mesh)
                     continue
-            routed = route(sample)
-            if routed.schema == EVENT_SCHEMA:
-                self.stats.embodiments.add(key.split("/")[2])
-            part.add(routed, stamp, self.mesh)
+            for routed in route(sample, stamp):
+                if routed.schema == EVENT_SCHEMA:
+                    self.stats.embodiments.add(key.split("/")[2])
+                part.add(routed, stamp, mesh)
         self.stats.messages += len(batch)
 
     def _end_record(self) -> dict[str, str]:

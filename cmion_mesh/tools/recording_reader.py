@@ -21,7 +21,7 @@ from mcap.stream_reader import StreamReader
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.tools.recording_format import ANSWER_SCHEMA, EVENT_SCHEMA, LIVELINESS_SCHEMA, PROFILE
+from cmion_mesh.tools.recording_format import ANSWER_SCHEMA, EVENT_SCHEMA, LIVELINESS_SCHEMA, PROFILE, event_data
 
 #: Requests not accepted that ``info`` lists (it counts them all).
 MAX_REFUSALS_LISTED = 20
@@ -195,8 +195,12 @@ def _follow_migration(message: Recorded, migrations: dict[str, Migration], embod
         event = message.decoded()
     except ValueError:
         return
+    if not isinstance(event, dict):
+        return
     embodiments.add(str(event.get("embodiment", "")))
-    data = event.get("data") if isinstance(event.get("data"), dict) else {}
+    data = event_data(event)
+    if not isinstance(data, dict):
+        return
     attempt = str(data.get("attempt", ""))
     if not attempt:
         return

@@ -30,8 +30,8 @@ import msgspec
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.messages import Event, encode
-from cmion_mesh.tools.recording_format import EVENT_SCHEMA
+from cmion_mesh.messages import encode
+from cmion_mesh.tools.recording_format import EVENT_SCHEMA, recorded_event
 from cmion_mesh.tools.recording_reader import Recorded, RecordingReader
 
 #: Longest single sleep between two events: a stop request is seen within it.
@@ -40,7 +40,8 @@ SLEEP_SLICE = 0.25
 #: come a few milliseconds apart on one host: this leaves room for a LAN).
 SETTLE = 0.25
 
-_event_json = msgspec.json.Decoder(Event)
+#: What a recorded event that is not one raises (``recording_format.recorded_event``).
+_UNDECODABLE = (msgspec.DecodeError, msgspec.ValidationError, ValueError)
 
 
 @dataclass
@@ -74,8 +75,8 @@ def events(reader: RecordingReader, filters: Sequence[str] = ()) -> Iterator[tup
             # The overflow channel (a file with more event keys than ``record.MAX_CHANNELS``): its
             # topic is a pattern, each event's key is made of its own fields.
             try:
-                fields = _event_json.decode(message.data)
-            except (msgspec.DecodeError, msgspec.ValidationError):
+                fields = recorded_event(message.data)
+            except _UNDECODABLE:
                 continue
             rest = [fields.embodiment, keys.EVENTS, fields.component, fields.name]
             if not all(keys.is_name(chunk) for chunk in rest):
@@ -132,8 +133,8 @@ def replay(
             if stop.is_set():
                 break
             try:
-                event = _event_json.decode(message.data)
-            except (msgspec.DecodeError, msgspec.ValidationError):
+                event = recorded_event(message.data)
+            except _UNDECODABLE:
                 stats.undecodable += 1
                 continue
             key = "/".join((keys.ROOT, client.mesh, *rest))

@@ -1,0 +1,250 @@
+"""Foxglove opens what cmion-mesh shows it: recordings (self-contained JSON Schemas, log lines as
+``foxglove.Log``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+from mcap.reader import make_reader
+
+from cmion_mesh.client import MeshClient
+from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, encode
+from cmion_mesh.procs import cli_argv
+from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools.recording import Recorder
+from cmion_mesh.tools.recording_format import (
+    ERROR,
+    EVENT_SCHEMA,
+    INFO,
+    LOG_SCHEMA,
+    RAW_SCHEMA,
+    SCHEMAS,
+    STORAGE_SCHEMA,
+    WARNING,
+    plain_value,
+    recorded_event,
+)
+from cmion_mesh.tools.recording_reader import info
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from tests.conftest import DATA
+
+pytestmark = pytest.mark.timeout(180)
+
+#: A recording written by the recorder before this format (format 1: ``$ref`` schemas, ``data``
+#: and ``value`` as they were): 18 messages, a migration robot -> screen, events whose data is a
+#: map, null, a string and a list, world-model samples (a property, a container, a delete), two
+#: requests answered (one rejected), an undecodable payload, liveliness.
+FORMAT_1 = DATA / "recording-format-1.mcap"
+
+
+# --- Foxglove's JSON Schema reader, its rules -------------------------------------------------------
+#
+# Foxglove reads a channel whose schema encoding is ``jsonschema`` with ``parseJsonSchema``
+# (foxglove/studio, packages/mcap-support/src/parseJsonSchema.ts, at commit 9abf66535509): it
+# walks the schema once, from its root, and throws on the first thing it cannot turn into a
+# message definition. Its rules, each an error below:
+#
+# 1. every object schema, the root included, has ``"type": "object"`` (else it throws
+#    ``Expected "type": "object" for schema <name>, got <type>``); ``$ref`` is never followed;
+# 2. its ``properties`` is an object (``Object.entries`` of anything else throws);
+# 3. a field with ``oneOf``: every alternative has a number ``const`` (an enum of numbers, as
+#    ``foxglove.Log``'s level); anything else in a ``oneOf`` throws;
+# 4. otherwise a field's ``type`` is exactly one of ``boolean``, ``string``, ``number``,
+#    ``integer``, ``object``, ``array``: ``null``, a list of types or no type at all (a bare
+#    ``$ref``, an ``anyOf``, ``{}``) throws ``Unsupported type``;
+# 5. a string has no ``contentEncoding``, or ``base64``;
+# 6. an ``object`` field is read by rules 1-7 (its name ``<parent>.<field>``);
+# 7. an ``array`` has an ``items`` object whose ``type`` is ``boolean``, ``string`` (no
+#    ``contentEncoding``), ``number``, ``integer`` or ``object`` (read by rules 1-7); an array of
+#    arrays throws.
+
+SCALARS = ("boolean", "string", "number", "integer")
+
+
+def shown(schema: Any, key: str) -> str:
+    """``JSON.stringify(schema[key])`` as the reader words its errors (``undefined`` when absent)."""
+    return json.dumps(schema[key]) if isinstance(schema, dict) and key in schema else "undefined"
+
+
+def foxglove_problems(schema: Any, name: str) -> list[str]:
+    """What Foxglove's JSON Schema reader throws on ``schema`` (rules above); [] when it reads it."""
+    if not isinstance(schema, dict) or schema.get("type") != "object":
+        return [f'Expected "type": "object" for schema {name}, got {shown(schema, "type")}']
+    properties = schema.get("properties")
+    if not isinstance(properties, dict):
+        return [f"{name}: properties is not an object"]
+    problems: list[str] = []
+    for field, sub in properties.items():
+        where = f"{name}.{field}"
+        if not isinstance(sub, dict):
+            problems.append(f"{where}: not a schema")
+        elif isinstance(sub.get("oneOf"), list):
+            if not all(isinstance(a, dict) and isinstance(a.get("const"), int | float) for a in sub["oneOf"]):
+                problems.append(f"Unsupported type for {where}: oneOf alternatives must have number values")
+        elif sub.get("type") in SCALARS:
+            if sub["type"] == "string" and sub.get("contentEncoding") not in (None, "base64"):
+                problems.append(f"Unsupported contentEncoding {sub['contentEncoding']!r} in {where}")
+        elif sub.get("type") == "object":
+            problems += foxglove_problems(sub, where)
+        elif sub.get("type") == "array":
+            items = sub.get("items")
+            kind = items.get("type") if isinstance(items, dict) else None
+            if kind == "object":
+                problems += foxglove_problems(items, where)
+            elif kind not in SCALARS or (kind == "string" and items.get("contentEncoding") is not None):
+                problems.append(f"Unsupported type {shown(items, 'type')} for array item {where}")
+        else:
+            problems.append(f"Unsupported type {shown(sub, 'type')} for {where}")
+    return problems
+
+
+def check_channel_messages(schemas: dict[str, dict[str, Any]], messages: list[tuple[str, Any]]) -> None:
+    """Every schema read by Foxglove's rules and a valid JSON Schema; every message valid by its schema."""
+    for name, schema in schemas.items():
+        assert foxglove_problems(schema, name) == [], name
+        jsonschema.Draft202012Validator.check_schema(schema)
+    validators = {name: jsonschema.Draft202012Validator(schema) for name, schema in schemas.items()}
+    for name, message in messages:
+        errors = [e.message for e in validators[name].iter_errors(message)]
+        assert errors == [], (name, message)
+
+
+def read_recording(path: Path) -> tuple[dict[str, dict[str, Any]], list[tuple[str, str, Any]]]:
+    """A recording's schemas (name -> JSON Schema) and messages (topic, schema name, decoded)."""
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+        schemas = {s.name: json.loads(s.data) for s in summary.schemas.values()}
+        messages = [(channel.topic, schema.name, json.loads(message.data))
+                    for schema, channel, message in reader.iter_messages(log_time_order=False) if schema is not None]
+    return schemas, messages
+
+
+# --- the schemas ------------------------------------------------------------------------------------
+
+
+def test_the_rules_refuse_what_recordings_of_format_1_hold() -> None:
+    """The checks are Foxglove's: they throw on the schemas the recorder wrote before, as Foxglove did."""
+    with open(FORMAT_1, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    old = {s.name: json.loads(s.data) for s in summary.schemas.values()}
+    assert foxglove_problems(old[EVENT_SCHEMA], EVENT_SCHEMA) == ['Expected "type": "object" for schema cmion_mesh.Event, got undefined']
+    # With its $ref resolved by hand, the event's data, the entry and the status have no type still.
+    for name, field in ((EVENT_SCHEMA, "data"), (STORAGE_SCHEMA, "entry"), ("cmion_mesh.RequestAnswered", "status")):
+        resolved = old[name]["$defs"][name.split(".")[1]]
+        assert f"Unsupported type undefined for {name}.{field}" in foxglove_problems(resolved, name)
+
+
+def test_every_schema_is_self_contained_and_read_by_foxglove() -> None:
+    for name, data in SCHEMAS.items():
+        schema = json.loads(data)
+        assert "$ref" not in data.decode() and "$defs" not in schema, name
+        assert schema["title"] == name
+        assert foxglove_problems(schema, name) == [], name
+        jsonschema.Draft202012Validator.check_schema(schema)
+    log = json.loads(SCHEMAS[LOG_SCHEMA])
+    # foxglove.Log as Foxglove defines it (its Log panel reads these fields).
+    assert set(log["required"]) == {"timestamp", "level", "message", "name", "file", "line"}
+    assert [a["const"] for a in log["properties"]["level"]["oneOf"]] == [0, 1, 2, 3, 4, 5]
+
+
+PLAIN_VALUES: list[Any] = [None, {"k": [1, "a", None], "n": {"m": 2.5}}, "hello", 3, 2.5, True, False, 0, "", [0.5, 1.25], []]
+
+
+def test_every_kind_of_sample_is_recorded_valid_and_reads_back(tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    events = [Event("robot", "arm", f"E{i}", value, i + 1, 1.7e9 + i) for i, value in enumerate(PLAIN_VALUES)]
+    events += [Event("robot", "migration", "MigrationFailed", {"companion": "spirit", "reason": "no"}, 50, 1.7e9),
+               Event("robot", "migration", "CustodyFork", {"companion": "spirit"}, 51, 1.7e9),
+               Event("robot", "arm", "NotANumber", math.nan, 52, 1.7e9)]
+    with MemoryTransport(network, "mesh") as t:
+        token = t.declare_token("cmion/m/@custody/robot/spirit/4")
+        with Recorder(t, "m", tmp_path / "all.mcap") as recorder:
+            for event in events:
+                t.publish(f"cmion/m/robot/ev/{event.component}/{event.name}", encode(event))
+            for i, value in enumerate(PLAIN_VALUES):
+                t.publish(f"cmion/m/robot/wm/thing/p{i}", encode(Property(value, i % 2 == 0)))
+            t.publish("cmion/m/robot/bb/room", encode(Container("place")))
+            t.delete("cmion/m/robot/wm/thing/p0")
+            refused = RequestAnswered("robot", "manager", "act", "rejected", "not_found", "no")
+            t.publish("cmion/m/robot/@outcome/manager/act", encode(refused))
+            t.publish("cmion/m/robot/ev/arm/Broken", b"\xc1")
+            t.publish("cmion/m/robot/elsewhere", b"bytes")
+            wait_for(lambda: recorder.stats.messages >= len(events) + len(PLAIN_VALUES) + 6, 10, "every sample written")
+        token.close()
+    schemas, messages = read_recording(tmp_path / "all.mcap")
+    assert set(schemas) == set(SCHEMAS)
+    check_channel_messages(schemas, [(name, message) for _, name, message in messages])
+    recorded = {m["name"]: m for _, name, m in messages if name == EVENT_SCHEMA}
+    for event in events:
+        back = recorded_event(json.dumps(recorded[event.name]).encode())
+        want = None if isinstance(event.data, float) and math.isnan(event.data) else event.data
+        assert (back.data, type(back.data)) == (want, type(want)), event.name
+        assert back == Event(event.embodiment, event.component, event.name, want, event.seq, event.time)
+    entries = {m["key"].rsplit("/", 1)[-1]: m for _, name, m in messages if name == STORAGE_SCHEMA and not m["deleted"]}
+    for i, value in enumerate(PLAIN_VALUES):
+        entry = entries[f"p{i}"]["entry"]
+        assert (entry["type"], plain_value(entry, "value"), entry["persistent"]) == ("property", value, i % 2 == 0)
+    assert entries["room"]["entry"]["kind"] == "place"
+    deleted = [m for _, name, m in messages if name == STORAGE_SCHEMA and m["deleted"]]
+    assert deleted == [{"key": "cmion/m/robot/wm/thing/p0", "deleted": True}], "a delete has no entry (not null)"
+    lines = [(m["level"], m["name"], m["message"]) for topic, name, m in messages if name == LOG_SCHEMA]
+    assert {topic for topic, name, _ in messages if name == LOG_SCHEMA} == {"log:cmion/m"}
+    assert (INFO, "robot", "robot holds spirit (epoch 4)") in lines
+    assert (WARNING, "robot", "migration MigrationFailed: companion=spirit reason=no") in lines
+    assert (ERROR, "robot", "migration CustodyFork: companion=spirit") in lines
+    assert (WARNING, "robot", "manager/act: rejected not_found: no") in lines
+    assert any(level == WARNING and text.startswith("not understood: cmion/m/robot/ev/arm/Broken") for level, _, text in lines)
+    assert not any("E1" in text for _, _, text in lines), "events of other components are not the story"
+
+
+def test_a_recording_of_format_1_reads_as_before(tmp_path: Path) -> None:
+    from cmion_mesh.tools.replay import replay
+
+    summary = info(FORMAT_1)
+    assert summary["messages"] == 18 and summary["embodiments"] == ["robot", "screen"]
+    assert [(m["source"], m["target"], m["steps"], m["outcome"]) for m in summary["migrations"]] == \
+        [("robot", "screen", ["robot:prepared", "screen:incoming", "robot:handed", "screen:active"], "succeeded")]
+    assert summary["requests"] == {"accepted": 1, "rejected": 1} and not summary["truncated"]
+    network = MemoryNetwork()
+    heard: list[Event] = []
+    with MemoryTransport(network, "listener") as listener, MemoryTransport(network, "replay") as replaying, \
+            listener.subscribe("cmion/fresh/**", lambda s: heard.append(decode(s.payload, Event))):
+        stats = replay(MeshClient(replaying, "fresh"), FORMAT_1, rate=0)
+        wait_for(lambda: len(heard) == 9, 10, "nine replayed events")
+    assert stats.published == 9 and stats.undecodable == 0
+    data = {e.name: e.data for e in heard}
+    assert data["InviteMigration"] is None and data["Said"] == "hello" and data["Joints"] == [0.5, 1.25]
+    assert data["MigrationStarting"] == {"companion": "spirit", "target": "screen", "attempt": "ab12cd34"}
+
+
+# --- a real recording, a real mesh ------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("foxglove") / "demo.mcap"
+    result = subprocess.run(cli_argv("demo", "--record", str(path)), capture_output=True, text=True, timeout=150,
+                            stdin=subprocess.DEVNULL)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return path
+
+
+@pytest.mark.mesh
+def test_every_schema_of_the_demos_recording_is_read_by_foxglove_and_holds_its_messages(demo_recording: Path) -> None:
+    schemas, messages = read_recording(demo_recording)
+    assert set(schemas) == set(SCHEMAS) - {RAW_SCHEMA}, "every kind of message but raw ones (none in the demo)"
+    check_channel_messages(schemas, [(name, message) for _, name, message in messages])
+    lines = [m["message"] for _, name, m in messages if name == LOG_SCHEMA]
+    assert sum("MigrationSucceeded" in line for line in lines) == 3
+    assert any(line.startswith("screen holds spirit") for line in lines)
