@@ -179,6 +179,8 @@ TIER_OF_TEST: dict[str, str] = {
     "test_boundaries::test_importing_the_library_does_not_load_argparse": "mesh",
     "test_boundaries::test_a_one_shot_command_loads_no_xml_crypto_or_planner": "mesh",
     "test_boundaries::test_a_daemon_without_certificates_or_companion_loads_no_crypto": "mesh",
+    "test_boundaries::test_the_command_table_lists_every_verb_without_importing_one": "mesh",
+    "test_boundaries::test_a_verb_imports_its_own_module_only": "mesh",
     "test_cli_truth::test_every_argument_has_help_text": "unit",
     # daemons, or the components `up` builds (a zenoh session)
     "test_cmion_compat::test_validate_builds_the_components_as_up_does": "mesh",
