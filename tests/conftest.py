@@ -145,6 +145,7 @@ TIERS: dict[str, str] = {
     "test_rules": "unit",
     "test_security_mtls": "mesh",
     "test_speech": "unit",
+    "test_statedir": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
     "test_logs": "unit",
