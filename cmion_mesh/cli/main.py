@@ -39,6 +39,8 @@ class Command(NamedTuple):
 #: Every verb, in the order ``cmion-mesh --help`` lists them.
 COMMANDS: dict[str, Command] = {
     "up": Command("daemon", "up_arguments", "cmd_up", "run an embodiment daemon until SIGINT/SIGTERM"),
+    "service": Command("service", "service_arguments", "cmd_service",
+                       "the systemd unit that runs an embodiment daemon (service unit NAME)"),
     "bb": Command("stores", "bb_arguments", "cmd_store", "read, write and watch an embodiment's blackboard"),
     "wm": Command("stores", "wm_arguments", "cmd_store", "read, write and watch an embodiment's world model"),
     "serve-competency": Command("serve", "competency_arguments", "cmd_serve_competency",
@@ -118,6 +120,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(arguments)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
+        if getattr(args, "settings", None):
+            # up --settings FILE: the file gives what the command line does not. Imported only then:
+            # reading TOML is no other command's start-up cost.
+            from cmion_mesh.ops import settings
+
+            settings.apply(args, parser, arguments)
         return int(func(args))
     except MeshError as exc:
         print(f"error: {exc}", file=sys.stderr)
