@@ -159,6 +159,7 @@ TIERS: dict[str, str] = {
     "test_slow_subscriber": "mesh",
     "test_tiers": "unit",
     "test_transport": "mesh",
+    "test_up_service": "mesh",
     "test_view": "system",
     "test_view_server": "unit",
     "test_webbody": "system",
@@ -171,6 +172,7 @@ TIERS: dict[str, str] = {
 TIER_OF_TEST: dict[str, str] = {
     "test_ops_metrics::test_the_containerfile_health_check_as_written": "system",
     "test_ops_systemd::test_the_unit_file_passes_systemd_analyze_verify": "system",
+    "test_up_service::test_service_unit_prints_a_unit_systemd_accepts": "system",
     # `python -m bench report` in a child process
     "test_bench_targets::test_report_check_exits_1_naming_the_missed_target": "mesh",
     "test_bench_targets::test_report_check_exits_0_when_every_measured_target_is_met": "mesh",

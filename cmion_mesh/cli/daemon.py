@@ -1,28 +1,41 @@
 """``up``: an embodiment daemon, from its configuration to its clean stop.
 
 What ``up`` needs to know its name and endpoints is imported with this module; the embodiment
-itself (``body.embodiment``, ``body.validate``: most of the package) is imported while the mesh
-answers the name claim (``presence.Joining``), so that import and the mesh's answer overlap.
+itself (``body.embodiment``, ``body.validate``, ``ops.systemd``: most of the package) is imported
+while the mesh answers the name claim (``presence.Joining``), so that import and the mesh's
+answer overlap; the metrics (``prometheus_client``) only with ``--metrics``.
+
+Run for months (docs/deploy.md): ``--log-level``, ``--log-format``, ``--log-file`` (``logs``),
+``--settings FILE`` (``ops.settings``, merged by ``cli.main`` before the command runs),
+``--metrics HOST:PORT`` (``ops.metrics``), and under systemd ``READY=1`` once the name is held,
+the watchdog fed by the update loop and ``STOPPING=1`` on SIGTERM (``ops.systemd``). What cannot
+start for what it was given (a state folder that cannot be made, an address in use, a settings
+or log file it cannot read) is one line naming it, exit code 2, and nothing left behind.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
+import logging
 import os
 import secrets
+import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.body.architecture import read_architecture
 from cmion_mesh.cli.common import JOIN_WINDOW, mesh_options, transport_config
 from cmion_mesh.diagnostics import Diagnostics
-from cmion_mesh.errors import ConfigError, ExitCode
+from cmion_mesh.errors import ConfigError, ExitCode, WebServerError
 from cmion_mesh.migration import devices
 from cmion_mesh.migration.signing import decode_public
+from cmion_mesh.ops import settings
 from cmion_mesh.presence import Joining
 from cmion_mesh.resources import data_dir
 from cmion_mesh.signals import Stopper
@@ -33,6 +46,10 @@ from cmion_mesh.transport.zenoh import ZenohTransport
 if TYPE_CHECKING:
     from cmion_mesh.body.embodiment import Embodiment
     from cmion_mesh.ion import Component
+    from cmion_mesh.ops.metrics import MetricsServer
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def up_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,7 +72,12 @@ def up_arguments(p: argparse.ArgumentParser) -> None:
                         "it carries a key, without which the page only watches)")
     p.add_argument("--admit", action="append", metavar="NAME[=KEY]",
                    help="a companion allowed to migrate in, with its public key (see `peers --json`); default: any")
+    p.add_argument("--metrics", metavar="[HOST:]PORT",
+                   help="serve Prometheus metrics on /metrics and a health check on /healthz at this address, loopback "
+                        "unless HOST says otherwise, e.g. 127.0.0.1:9464 (see docs/deploy.md)")
+    settings.add_argument(p)
     mesh_options(p, json_output=False)
+    logs.add_arguments(p)
 
 
 def resolve_config(path: str) -> str:
@@ -99,6 +121,24 @@ def _existing(path: str | None, option: str) -> str | None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    logs.configure(args.log_level, args.log_format, args.log_file)
+    try:
+        return _up(args)  # a clean stop leaves the process from within (os._exit)
+    finally:
+        # Refused or failed: the lines written, and the process's logging as it was (main may be
+        # called in a process that goes on, as the tests do).
+        logs.shutdown()
+        logs.set_embodiment(None)
+        logs.unconfigure()
+
+
+def _up(args: argparse.Namespace) -> int:
+    metrics_server: MetricsServer | None = None
+    if args.metrics:
+        # Only with --metrics: prometheus_client is no other daemon's start-up cost.
+        from cmion_mesh.ops import metrics
+
+        metrics.parse_address(args.metrics)  # a malformed address is refused before the session opens
     stop = Stopper()
     rules, library, world_model = (_existing(args.rules, "--rules"), _existing(args.library, "--library"),
                                    _existing(args.world_model, "--world-model"))
@@ -136,6 +176,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         filled = devices.with_table_endpoints(TransportConfig(connect=tuple(args.connect or ()), listen=tuple(args.listen or ()),
                                                               config_file=args.config), table)
         args.connect, args.listen = list(filled.connect), list(filled.listen)
+    if name:
+        logs.set_embodiment(name)
+    if args.settings:
+        logs.event(log, "settings read", file=str(Path(args.settings).resolve()))
     with contextlib.ExitStack() as joining_stack:
         joined = None
         if name and not found.errors and keys.is_name(name) and keys.is_name(args.mesh):
@@ -143,6 +187,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         # Imported now, while the mesh answers the claim: most of the package's import time overlaps it.
         from cmion_mesh.body.embodiment import Embodiment
         from cmion_mesh.body.validate import check_embodiment, render
+        from cmion_mesh.ops import systemd
         from cmion_mesh.statedir import default_state_dir
 
         ruleset, competencies = check_embodiment(rules, library, world_model, remote_types=args.remote_type or (), diagnostics=found,
@@ -157,21 +202,30 @@ def cmd_up(args: argparse.Namespace) -> int:
         pages = contextlib.ExitStack()
         web = _web_bodies(args, components)
         with pages:
-            # Pages are served before the embodiment is announced: an address in use is refused before
-            # anything but the name claim is on the mesh.
+            # Pages and metrics are served before the embodiment is announced: an address in use is
+            # refused before anything but the name claim is on the mesh.
             for body in web:
-                pages.enter_context(body)
+                _listening(functools.partial(pages.enter_context, body))
+            if args.metrics:
+                metrics_server = pages.enter_context(_listening(functools.partial(metrics.MetricsServer, args.metrics)))
             joining_stack.pop_all()  # from here on the embodiment owns the session and the claim
             embodiment = Embodiment(name, mesh=args.mesh, transport_config=None if joined else transport_config(args, name),
                                     world_model_init=world_model, rules=ruleset, competencies=competencies,
                                     components=components, state_dir=state, companion=companion, admit=admitted,
                                     joined=joined, devices=table)
-            _run_daemon(args, embodiment, table, companion, state, stop, web)
+            with embodiment, systemd.Service(embodiment) as service:
+                # READY=1 said (under systemd): joined, the name held, the loop turning. Leaving says STOPPING=1.
+                if metrics_server is not None:
+                    metrics_server.attach(metrics.Metrics(embodiment, heartbeat=service.heartbeat))
+                _run_daemon(args, embodiment, table, companion, state, stop, web, metrics_server)
     left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
     if left:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
+        logs.event(log, "embodiment stopped, threads still running", level=logging.ERROR, threads=left)
         return ExitCode.FAILED
     print(f"embodiment {embodiment.name!r} stopped cleanly (no thread left)", flush=True)
+    logs.event(log, "embodiment stopped cleanly")
+    logs.shutdown()
     sys.stderr.flush()
     # Said only when it is true: everything is closed and on disk, so leave now rather than let
     # the interpreter's finalization (zenoh's runtime among it) keep the process alive after it.
@@ -185,6 +239,17 @@ def _join(args: argparse.Namespace, name: str, stack: contextlib.ExitStack) -> J
     joining = Joining(transport, args.mesh, name, window=join_window(args))
     stack.enter_context(joining)
     return joining
+
+
+def _listening(bind: Callable[[], T]) -> T:
+    """``bind()``, a server taking its address; one it cannot listen on (in use, not this host's) is
+    a configuration error: the address given is at fault, and starting again would not help."""
+    try:
+        return bind()
+    except WebServerError as exc:
+        if "cannot listen on" in str(exc):
+            raise ConfigError(str(exc)) from None
+        raise
 
 
 def _web_bodies(args: argparse.Namespace, components: list[Component]) -> list[Any]:
@@ -212,30 +277,42 @@ def _web_bodies(args: argparse.Namespace, components: list[Component]) -> list[A
 
 
 def _run_daemon(args: argparse.Namespace, embodiment: Embodiment, table: devices.DeviceTable | None, companion: str | None,
-                state: str, stop: Stopper, web: list[Any]) -> None:
+                state: str, stop: Stopper, web: list[Any], metrics_server: MetricsServer | None) -> None:
+    """What the started embodiment says of itself, then its wait for SIGINT or SIGTERM."""
     name = embodiment.name
-    with embodiment:
-        mode = security.describe(certs_dir=args.certs, identity=args.identity, name=embodiment.name)
-        print(mode, file=sys.stderr if mode.startswith("plain") else sys.stdout, flush=True)
-        if args.no_multicast and not args.connect and not args.listen:
-            print("warning: no multicast and no endpoints: no peer can find this embodiment", file=sys.stderr)
-        if table is not None:
-            print(f"device table {table.path}: embodiment {name!r}, knows {', '.join(table.names) or 'no device'}; "
-                  f"listen {', '.join(args.listen) or '-'}; connect {', '.join(args.connect) or '-'}"
-                  + (f"; companion {companion!r} born here" if companion and table.born_here else ""), flush=True)
-        if embodiment.companion_elsewhere:
-            print(f"companion {companion!r} already lives on {embodiment.companion_elsewhere!r}: it is not born here",
-                  file=sys.stderr, flush=True)
-        standins = embodiment.standins()
-        if standins:
-            print(f"stand-ins, reported unavailable (see docs/portmap.md): {len(standins)}", flush=True)
-            for s in standins:
-                typed = f"; types {', '.join(s['types'])}" if s.get("types") else ""
-                print(f"  {s['class']} ({s['kind']}{typed}) at {s['where']}", flush=True)
-        for body in web:
-            print(f"web body of {embodiment.name!r} at {body.address} (senses: {', '.join(body.snapshot()['senses']) or 'none'}"
-                  + ("; without its key the page only watches)" if body.key else ")"), flush=True)
-        print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
-              f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
-              flush=True)
-        stop.wait()
+    # Warnings are log lines (standard error, or --log-file; JSON with --log-format json); what the
+    # daemon is and where it listens is said on standard output.
+    mode = security.describe(certs_dir=args.certs, identity=args.identity, name=embodiment.name)
+    if mode.startswith("plain"):
+        log.warning("%s", mode)
+    else:
+        print(mode, flush=True)
+    if args.no_multicast and not args.connect and not args.listen:
+        log.warning("no multicast and no endpoints: no peer can find this embodiment")
+    if table is not None:
+        print(f"device table {table.path}: embodiment {name!r}, knows {', '.join(table.names) or 'no device'}; "
+              f"listen {', '.join(args.listen) or '-'}; connect {', '.join(args.connect) or '-'}"
+              + (f"; companion {companion!r} born here" if companion and table.born_here else ""), flush=True)
+    if embodiment.companion_elsewhere:
+        log.warning("companion %r already lives on %r: it is not born here", companion, embodiment.companion_elsewhere)
+    standins = embodiment.standins()
+    if standins:
+        print(f"stand-ins, reported unavailable (see docs/portmap.md): {len(standins)}", flush=True)
+        for s in standins:
+            typed = f"; types {', '.join(s['types'])}" if s.get("types") else ""
+            print(f"  {s['class']} ({s['kind']}{typed}) at {s['where']}", flush=True)
+    for body in web:
+        print(f"web body of {embodiment.name!r} at {body.address} (senses: {', '.join(body.snapshot()['senses']) or 'none'}"
+              + ("; without its key the page only watches)" if body.key else ")"), flush=True)
+        logs.event(log, "web body served", url=body.address)  # its key, if any, is never logged
+    if metrics_server is not None:
+        print(f"metrics of {name!r} at {metrics_server.url}/metrics (health: {metrics_server.url}/healthz)", flush=True)
+        logs.event(log, "metrics served", url=f"{metrics_server.url}/metrics", health=f"{metrics_server.url}/healthz")
+    print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
+          f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
+          flush=True)
+    logs.event(log, "embodiment up", mesh=args.mesh, zenoh_id=str(embodiment.transport.id),
+               competencies=len(embodiment.execution.competencies), rules=len(embodiment.rules.rules), state=state,
+               companion=embodiment.inhabitant)
+    received = stop.wait()
+    logs.event(log, "embodiment stopping", signal=signal.Signals(received).name if received else None)
