@@ -1,11 +1,13 @@
 """Foxglove opens what cmion-mesh shows it: recordings (self-contained JSON Schemas, log lines as
-``foxglove.Log``)."""
+``foxglove.Log``) and the live connection (``cmion-mesh foxglove``, the Foxglove WebSocket protocol)."""
 
 from __future__ import annotations
 
 import json
 import math
 import subprocess
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -14,9 +16,11 @@ import pytest
 from mcap.reader import make_reader
 
 from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, encode
-from cmion_mesh.procs import cli_argv
+from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools.demo import start_bodies, stop_bodies
 from cmion_mesh.tools.recording import Recorder
 from cmion_mesh.tools.recording_format import (
     ERROR,
@@ -31,7 +35,9 @@ from cmion_mesh.tools.recording_format import (
     recorded_event,
 )
 from cmion_mesh.tools.recording_reader import info
+from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import DATA
 
 pytestmark = pytest.mark.timeout(180)
@@ -228,6 +234,56 @@ def test_a_recording_of_format_1_reads_as_before(tmp_path: Path) -> None:
     assert data["MigrationStarting"] == {"companion": "spirit", "target": "screen", "attempt": "ab12cd34"}
 
 
+# --- the live server, in this process -----------------------------------------------------------------
+
+
+def test_the_server_refuses_an_address_in_use_naming_it_and_closes_once() -> None:
+    from cmion_mesh.tools.foxglove import FoxgloveServer
+
+    network = MemoryNetwork()
+    with MemoryTransport(network, "mesh") as t, FoxgloveServer(t, "m", port=0) as server:
+        assert server.url == f"ws://127.0.0.1:{server.port}" and server.port > 0
+        with pytest.raises(ConfigError, match=f"cannot serve Foxglove on 127.0.0.1:{server.port}"):
+            FoxgloveServer(t, "m", port=server.port)
+        server.close()
+        server.close()
+
+
+def test_a_channels_first_subscriber_gets_its_last_messages_then_the_rest() -> None:
+    """Messages said on a channel before anyone subscribed are kept (the last ``KEEP``) for the
+    first client that does; a second client on the channel gets only what is said after."""
+    from websockets.sync.client import connect
+
+    from cmion_mesh.tools.foxglove import KEEP, FoxgloveServer
+    from tests.foxglove_client import MESSAGE_HEADER, SUBPROTOCOLS
+
+    def subscribe(ws: Any, topic: str) -> None:
+        for _ in range(100):  # bounded: serverInfo, then the advertisements
+            message = json.loads(ws.recv(timeout=10))
+            ids = [c["id"] for c in message.get("channels", []) if c["topic"] == topic]
+            if ids:
+                ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ids[0]}]}))
+                return
+        raise AssertionError(f"{topic} never advertised")
+
+    def seqs(ws: Any, count: int) -> list[int]:
+        return [json.loads(ws.recv(timeout=10)[MESSAGE_HEADER.size:])["seq"] for _ in range(count)]
+
+    key = "cmion/m/robot/ev/arm/Tick"
+    network = MemoryNetwork()
+    with MemoryTransport(network, "mesh") as t, FoxgloveServer(t, "m", port=0) as server:
+        for i in range(1, KEEP + 11):
+            t.publish(key, encode(Event("robot", "arm", "Tick", None, i, 1.7e9)))
+        wait_for(lambda: server.messages == KEEP + 10, 10, "every tick served")
+        with connect(server.url, subprotocols=SUBPROTOCOLS) as first, connect(server.url, subprotocols=SUBPROTOCOLS) as second:
+            subscribe(first, key)
+            assert seqs(first, KEEP) == list(range(11, KEEP + 11)), "the last KEEP, in order"
+            subscribe(second, key)
+            wait_for(lambda: server.subscribers(key) == 2, 10, "both subscribed")
+            t.publish(key, encode(Event("robot", "arm", "Tick", None, 99, 1.7e9)))
+            assert seqs(first, 1) == [99] and seqs(second, 1) == [99]
+
+
 # --- a real recording, a real mesh ------------------------------------------------------------------
 
 
@@ -248,3 +304,58 @@ def test_every_schema_of_the_demos_recording_is_read_by_foxglove_and_holds_its_m
     lines = [m["message"] for _, name, m in messages if name == LOG_SCHEMA]
     assert sum("MigrationSucceeded" in line for line in lines) == 3
     assert any(line.startswith("screen holds spirit") for line in lines)
+
+
+@pytest.fixture
+def bodies(tmp_path: Path) -> Iterator[tuple[str, list[str]]]:
+    mesh = unique_mesh("fox")
+    scenario = start_bodies(mesh, tmp_path / "state")
+    try:
+        yield mesh, list(scenario.endpoints.values())
+    finally:
+        stop_bodies(scenario)
+
+
+@pytest.mark.mesh
+def test_a_foxglove_client_in_another_process_sees_a_migration_live(bodies: tuple[str, list[str]]) -> None:
+    mesh, endpoints = bodies
+    net = [a for e in endpoints for a in ("--connect", e)] + ["--no-multicast"]
+    port = free_port()
+    with Daemon(cli_argv("foxglove", "--mesh", mesh, "--web", f"127.0.0.1:{port}", *net), name="foxglove") as server:
+        line = server.wait_line("serving mesh", 30)
+        assert f"ws://127.0.0.1:{port}" in line, line
+        with Daemon([sys.executable, "-m", "tests.foxglove_client", f"ws://127.0.0.1:{port}",
+                     "/ev/migration/", f"log:cmion/{mesh}", "@custody"], name="client") as client:
+            ready = json.loads(client.wait_line("READY", 30).split(" ", 1)[1])
+            assert ready["subprotocol"] == "foxglove.sdk.v1" and ready["server"]["op"] == "serverInfo"
+            # The daemons' tokens were advertised and latched: the client is in step with the mesh.
+            client.wait_line("robot holds spirit", 30)
+            with ZenohTransport(TransportConfig(connect=tuple(endpoints), multicast=False)) as t:
+                result = MeshClient(t, mesh).migrate("spirit", "screen", timeout=60)
+            assert result["target"] == "screen"
+            attempt = result["attempt"]
+
+            def received() -> list[dict[str, Any]]:
+                return [json.loads(line.split(" ", 1)[1]) for line in client.lines if line.startswith("M ")]
+
+            def steps() -> list[tuple[str, str]]:
+                # In the order the server received them: a channel's first subscriber gets the
+                # messages said before it subscribed at once, after others said since.
+                return [(m["message"]["embodiment"], m["message"]["data"]["step"]) for m in sorted(received(), key=lambda m: m["log_time"])
+                        if m["topic"].endswith("/ev/migration/MigrationStep")]
+
+            wait_for(lambda: len(steps()) >= 4, 30, "the handshake's four steps")
+            wait_for(lambda: any(m["topic"].endswith("/MigrationSucceeded") for m in received()), 30, "the migration's end")
+    got = received()
+    assert steps() == [("robot", "prepared"), ("screen", "incoming"), ("robot", "handed"), ("screen", "active")], \
+        "each step once, none lost on a channel advertised with the first of them"
+    schemas = {m["schemaName"]: json.loads(m["schema"]) for m in got if "schema" in m}
+    assert {EVENT_SCHEMA, LOG_SCHEMA} <= set(schemas) and all(json.loads(SCHEMAS[n]) == s for n, s in schemas.items())
+    check_channel_messages(schemas, [(m["schemaName"], m["message"]) for m in got])
+    events = [recorded_event(json.dumps(m["message"]).encode()) for m in got if m["schemaName"] == EVENT_SCHEMA]
+    assert {e.name for e in events} >= {"MigrationStarting", "MigrationStep", "MigrationSucceeded"}
+    assert all(e.data["companion"] == "spirit" for e in events)
+    assert {e.data["attempt"] for e in events if "attempt" in e.data} == {attempt}  # MigrationOccurred has none
+    lines = [m["message"]["message"] for m in got if m["schemaName"] == LOG_SCHEMA]
+    assert any(line.startswith("screen holds spirit") for line in lines)
+    assert all(m["log_time"] > 0 for m in got)

@@ -56,6 +56,8 @@ COMMANDS: dict[str, Command] = {
                       "record everything the mesh says to an MCAP file (record info FILE: summarise one)"),
     "replay": Command("recording", "replay_arguments", "cmd_replay",
                       "publish a recording's events into a mesh, at their timing or faster"),
+    "foxglove": Command("recording", "foxglove_arguments", "cmd_foxglove",
+                        "serve the mesh live to Foxglove (the channels and schemas of a recording)"),
     "hz": Command("observe", "hz_arguments", "cmd_hz", "the rate of publications on a key expression (as ros2 topic hz)"),
     "echo": Command("observe", "echo_arguments", "cmd_echo",
                     "print what is published on a key expression, decoded (as ros2 topic echo)"),

@@ -1,4 +1,5 @@
-"""Recordings of a mesh: ``record`` (and ``record info``) and ``replay``."""
+"""Recordings of a mesh: ``record`` (and ``record info``) and ``replay``; and ``foxglove``, the
+same channels live (docs/record.md)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from cmion_mesh.cli.session import session
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, ExitCode
 from cmion_mesh.signals import Stopper
+from cmion_mesh.tools.foxglove import DEFAULT_PORT, INSTALL_HINT, FoxgloveServer
 from cmion_mesh.tools.recording import Recorder, parse_size
 from cmion_mesh.tools.recording_reader import format_info, info
 from cmion_mesh.tools.replay import replay
@@ -137,3 +139,40 @@ def cmd_replay(args: argparse.Namespace) -> int:
               + (f"; {stats.undecodable} undecodable skipped" if stats.undecodable else "")
               + ("; the recording is truncated: replayed up to its last complete chunk" if stats.truncated else ""))
     return ExitCode.INTERRUPTED if halt.is_set() else ExitCode.OK
+
+
+def foxglove_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Serve the mesh live to Foxglove over the Foxglove WebSocket protocol, on the channels and "
+                     "schemas of a recording: events (migration steps and actions among them), storage changes, "
+                     "liveliness, requests answered, and the story as log lines (Foxglove's Log panel). In Foxglove: "
+                     f"Open connection, Foxglove WebSocket, ws://HOST:PORT. Read-only. Needs {INSTALL_HINT}. "
+                     "Until Ctrl-C or --duration. See docs/record.md.")
+    p.add_argument("filters", nargs="*", metavar="FILTER",
+                   help="key expressions of what to serve, relative to cmion/<mesh>/ (e.g. robot/ev/** */wm/**) or absolute "
+                        "(default: the whole mesh; liveliness is always served)")
+    p.add_argument("--web", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="HOST:PORT",
+                   help="where Foxglove connects (default: %(default)s, Foxglove's own; loopback unless an address says otherwise)")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: at Ctrl-C)")
+    mesh_options(p, json_output=False)
+
+
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    # Here, not at the top: the web server's module loads uvicorn, which record and replay never need.
+    from cmion_mesh.web.server import LOOPBACK_NAMES, parse_bind
+
+    host, port = parse_bind(args.web)
+    stop = Stopper()  # before any thread starts
+    with session(args) as client, FoxgloveServer(client.transport, args.mesh, host=host, port=port,
+                                                 filters=args.filters or ()) as server:
+        print(f"serving mesh {args.mesh!r} to Foxglove at {server.url} (in Foxglove: Open connection, Foxglove WebSocket; "
+              "Ctrl-C to stop)", flush=True)
+        if host not in LOOPBACK_NAMES:
+            print(f"warning: anyone who reaches {server.url} reads mesh {args.mesh!r}", file=sys.stderr, flush=True)
+        deadline = time.monotonic() + args.duration if args.duration else None
+        for _ in range(1_000_000):  # bounded; each round ends on a signal or the duration
+            left = None if deadline is None else deadline - time.monotonic()
+            if (left is not None and left <= 0) or stop.wait(left) is not None:
+                break
+    print(f"served {server.messages} messages on {len(server.topics())} channels"
+          + (f"; DROPPED {server.dropped} samples (the server fell behind)" if server.dropped else ""), flush=True)
+    return ExitCode.OK
