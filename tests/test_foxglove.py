@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -249,6 +250,14 @@ def test_the_server_refuses_an_address_in_use_naming_it_and_closes_once() -> Non
         server.close()
 
 
+def test_without_foxglove_sdk_the_server_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    from cmion_mesh.tools.foxglove import FoxgloveServer
+
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # what an install without the extra has
+    with MemoryTransport(MemoryNetwork(), "mesh") as t, pytest.raises(ConfigError, match=r"pip install 'cmion-mesh\[foxglove\]'"):
+        FoxgloveServer(t, "m", port=0)
+
+
 def test_a_channels_first_subscriber_gets_its_last_messages_then_the_rest() -> None:
     """Messages said on a channel before anyone subscribed are kept (the last ``KEEP``) for the
     first client that does; a second client on the channel gets only what is said after."""
@@ -346,6 +355,8 @@ def test_a_foxglove_client_in_another_process_sees_a_migration_live(bodies: tupl
 
             wait_for(lambda: len(steps()) >= 4, 30, "the handshake's four steps")
             wait_for(lambda: any(m["topic"].endswith("/MigrationSucceeded") for m in received()), 30, "the migration's end")
+        assert server.stop(signal.SIGINT) == 0, server.lines  # Ctrl-C: it says what it served and exits 0
+        assert server.lines[-1].startswith("served "), server.lines
     got = received()
     assert steps() == [("robot", "prepared"), ("screen", "incoming"), ("robot", "handed"), ("screen", "active")], \
         "each step once, none lost on a channel advertised with the first of them"
