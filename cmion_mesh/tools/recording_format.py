@@ -288,8 +288,12 @@ def recorded_event(data: bytes) -> Event:
 
 def record_event(event: Event) -> bytes:
     """The JSON an event channel carries for ``event``."""
+    data = event.data
+    if data is None or type(data) is dict:  # nearly every event: straight in (the recorder's hot path)
+        return _json.encode(RecordedEvent(event.embodiment, event.component, event.name, event.seq, event.time,
+                                          UNSET if data is None else data))
     return _json.encode(RecordedEvent(event.embodiment, event.component, event.name, event.seq, event.time,
-                                      **plain_fields("data", event.data)))
+                                      **plain_fields("data", data)))
 
 
 # --- what is subscribed to -----------------------------------------------------------------------------
