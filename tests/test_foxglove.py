@@ -187,7 +187,7 @@ def test_every_kind_of_sample_is_recorded_valid_and_reads_back(tmp_path: Path) -
             t.publish("cmion/m/robot/@outcome/manager/act", encode(refused))
             t.publish("cmion/m/robot/ev/arm/Broken", b"\xc1")
             t.publish("cmion/m/robot/elsewhere", b"bytes")
-            wait_for(lambda: recorder.stats.messages >= len(events) + len(PLAIN_VALUES) + 6, 10, "every sample written")
+            wait_for(lambda: recorder.stats.samples >= len(events) + len(PLAIN_VALUES) + 6, 10, "every sample written")
         token.close()
     schemas, messages = read_recording(tmp_path / "all.mcap")
     assert set(schemas) == set(SCHEMAS)
@@ -310,9 +310,12 @@ def test_every_schema_of_the_demos_recording_is_read_by_foxglove_and_holds_its_m
     schemas, messages = read_recording(demo_recording)
     assert set(schemas) == set(SCHEMAS) - {RAW_SCHEMA}, "every kind of message but raw ones (none in the demo)"
     check_channel_messages(schemas, [(name, message) for _, name, message in messages])
-    lines = [m["message"] for _, name, m in messages if name == LOG_SCHEMA]
-    assert sum("MigrationSucceeded" in line for line in lines) == 3
-    assert any(line.startswith("screen holds spirit") for line in lines)
+    lines = {(m["name"], m["message"]) for _, name, m in messages if name == LOG_SCHEMA}
+    migration = [m for _, name, m in messages if name == EVENT_SCHEMA and m["component"] == "migration"]
+    assert len([m for m in migration if m["name"] == "MigrationStep"]) == 12, "three hops of four steps"
+    for event in migration:  # each with its log line
+        assert any(name == event["embodiment"] and text.startswith(f"migration {event['name']}: ") for name, text in lines), event
+    assert ("screen", "screen holds spirit (epoch 2)") in lines
 
 
 @pytest.fixture
@@ -348,10 +351,12 @@ def test_a_foxglove_client_in_another_process_sees_a_migration_live(bodies: tupl
                 return [json.loads(line.split(" ", 1)[1]) for line in client.lines if line.startswith("M ")]
 
             def steps() -> list[tuple[str, str]]:
-                # In the order the server received them: a channel's first subscriber gets the
-                # messages said before it subscribed at once, after others said since.
-                return [(m["message"]["embodiment"], m["message"]["data"]["step"]) for m in sorted(received(), key=lambda m: m["log_time"])
-                        if m["topic"].endswith("/ev/migration/MigrationStep")]
+                # In the order they were raised (the daemons share this host's clock): a channel's
+                # first subscriber gets what was said before it subscribed at once, maybe after what
+                # others said since, and a batch of samples shares one receive time.
+                said = sorted((m["message"] for m in received() if m["topic"].endswith("/ev/migration/MigrationStep")),
+                              key=lambda event: event["time"])
+                return [(event["embodiment"], event["data"]["step"]) for event in said]
 
             wait_for(lambda: len(steps()) >= 4, 30, "the handshake's four steps")
             wait_for(lambda: any(m["topic"].endswith("/MigrationSucceeded") for m in received()), 30, "the migration's end")

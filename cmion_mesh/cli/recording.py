@@ -70,7 +70,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 break
     stats = recorder.stats
     if args.json:
-        print(json.dumps({"files": stats.files, "messages": stats.messages, "dropped": stats.dropped,
+        print(json.dumps({"files": stats.files, "messages": stats.messages, "samples": stats.samples, "dropped": stats.dropped,
                           "embodiments": sorted(stats.embodiments)}))
     else:
         print(f"recorded {stats.messages} messages to {', '.join(stats.files)}"

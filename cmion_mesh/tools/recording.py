@@ -213,9 +213,11 @@ class _Part:
 
 @dataclass
 class RecorderStats:
-    """What a recorder wrote: messages, per channel, samples dropped, the files."""
+    """What a recorder wrote: ``messages`` in its files (what ``record info`` counts: log lines
+    too), the ``samples`` (and liveliness changes) they came of, samples dropped, the files."""
 
     messages: int = 0
+    samples: int = 0
     dropped: int = 0
     files: list[str] = field(default_factory=list)
     embodiments: set[str] = field(default_factory=set)
@@ -356,9 +358,11 @@ class Recorder:
             name = key.rsplit("/", 1)[-1]
             self.stats.embodiments.add(name)
             (self._alive.add if alive else self._alive.discard)(name)
-        for routed in route_token(key, alive, stamp):
-            self._part.add(routed, stamp, self.mesh)
-        self.stats.messages += 1
+        routed = route_token(key, alive, stamp)
+        for message in routed:
+            self._part.add(message, stamp, self.mesh)
+        self.stats.samples += 1
+        self.stats.messages += len(routed)
 
     def _write_samples(self, stamp: int, batch: list[Sample]) -> None:
         # The hot path: an event on a key whose channel this file has (its topic is the key itself;
@@ -368,6 +372,7 @@ class Recorder:
         channels = part.channels
         add = part.writer.add_message
         mesh = self.mesh
+        written = part.messages
         for sample in batch:
             key, payload, deleted = sample.key, sample.payload, sample.deleted
             channel = channels.get(key)
@@ -388,7 +393,8 @@ class Recorder:
                 if routed.schema == EVENT_SCHEMA:
                     self.stats.embodiments.add(key.split("/")[2])
                 part.add(routed, stamp, mesh)
-        self.stats.messages += len(batch)
+        self.stats.samples += len(batch)
+        self.stats.messages += part.messages - written
 
     def _end_record(self) -> dict[str, str]:
         return {"messages": str(self._part.messages), "dropped": str(self._inbox.dropped), "ended": _iso(time.time()),
