@@ -163,6 +163,7 @@ TIERS: dict[str, str] = {
     "test_webbody": "system",
     "test_webbody_protocol": "unit",
     "test_webserver": "unit",
+    "test_world": "unit",
     "test_xmlsafe": "unit",
 }
 
