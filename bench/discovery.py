@@ -51,7 +51,8 @@ LABELS = {
     "import_zenoh": "python -c 'import zenoh' (wall)",
     "import_cmion": "python -c 'import <what up imports>' (wall)",
 }
-IMPORTS = "import cmion_mesh.cli.main, cmion_mesh.body.embodiment, cmion_mesh.transport.zenoh, bench.minds, bench.competencies"
+IMPORTS = ("import cmion_mesh.cli.main, cmion_mesh.cli.daemon, cmion_mesh.body.embodiment, cmion_mesh.transport.zenoh, "
+           "bench.minds, bench.competencies")
 
 
 def log(text: str) -> None:

@@ -145,6 +145,7 @@ TIERS: dict[str, str] = {
     "test_rules": "unit",
     "test_security_mtls": "mesh",
     "test_speech": "unit",
+    "test_statedir": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
     "test_logs": "unit",
@@ -158,6 +159,7 @@ TIERS: dict[str, str] = {
     "test_slow_subscriber": "mesh",
     "test_tiers": "unit",
     "test_transport": "mesh",
+    "test_up_service": "mesh",
     "test_view": "system",
     "test_view_server": "unit",
     "test_webbody": "system",
@@ -171,11 +173,14 @@ TIERS: dict[str, str] = {
 TIER_OF_TEST: dict[str, str] = {
     "test_ops_metrics::test_the_containerfile_health_check_as_written": "system",
     "test_ops_systemd::test_the_unit_file_passes_systemd_analyze_verify": "system",
+    "test_up_service::test_service_unit_prints_a_unit_systemd_accepts": "system",
     # a fresh interpreter, to see what an import loads
     "test_boundaries::test_importing_the_library_does_not_load_argparse": "mesh",
     "test_boundaries::test_a_one_shot_command_loads_no_xml_crypto_or_planner": "mesh",
     "test_boundaries::test_a_daemon_without_certificates_or_companion_loads_no_crypto": "mesh",
     "test_boundaries::test_importing_the_package_loads_none_of_the_modules_behind_its_face": "mesh",
+    "test_boundaries::test_the_command_table_lists_every_verb_without_importing_one": "mesh",
+    "test_boundaries::test_a_verb_imports_its_own_module_only": "mesh",
     "test_cli_truth::test_every_argument_has_help_text": "unit",
     # daemons, or the components `up` builds (a zenoh session)
     "test_cmion_compat::test_validate_builds_the_components_as_up_does": "mesh",

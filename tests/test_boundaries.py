@@ -1,5 +1,6 @@
 """The package's inner boundaries: its layers (each imports only its own and those below, with no
-circle), argparse only at the edge (cli/main.py), no import of bench/, one set of exit codes."""
+circle), argparse only at the edge (cli/), no import of bench/, one set of exit codes; the command
+table imports only the verb that runs."""
 
 from __future__ import annotations
 
@@ -46,14 +47,7 @@ HARNESS = "testing"
 #: the face defines itself. The names it exports lazily are imported from their own modules.
 FACE_OWN = frozenset({"__version__"})
 #: Imports that break the layers today, each with why and when it goes. A stale entry fails too.
-LAYER_EXCEPTIONS: dict[tuple[str, str], str] = {
-    # The device table a library names (devices.named_table, table_for_library) and the name it
-    # gives the embodiment (devices.embodiment_name) belong to the body: in body/library.py and
-    # body/architecture.py. cli/main.py's cmd_up calls them as devices.*: move them when the split
-    # of cli/main.py has merged (its cmd_up then calls them there), and remove these two entries.
-    ("cmion_mesh.migration.devices", "cmion_mesh.body.architecture"): "until the cli/main.py split merges",
-    ("cmion_mesh.migration.devices", "cmion_mesh.body.library"): "until the cli/main.py split merges",
-}
+LAYER_EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)
@@ -336,9 +330,10 @@ def test_importing_the_package_loads_none_of_the_modules_behind_its_face() -> No
 
 
 # --- the edges ----------------------------------------------------------------------------------
-#: The modules that read a command line: the package's, the handshake simulation's own, and the
-#: settings file's (it parses ``up``'s command line again to know which options it gives).
-COMMAND_LINES = ("cli/main.py", "testing/simulation.py", "ops/settings.py")
+#: The modules that read a command line: the package's (every module of cli/), the handshake
+#: simulation's own, and the settings file's (it parses ``up``'s command line again to know which
+#: options it gives).
+COMMAND_LINES = ("testing/simulation.py", "ops/settings.py")
 
 
 def imported_modules(path: Path) -> set[str]:
@@ -358,14 +353,15 @@ def modules() -> dict[str, set[str]]:
 
 
 def test_only_cli_imports_argparse() -> None:
-    offenders = sorted(name for name, imports in modules().items() if "argparse" in imports and name not in COMMAND_LINES)
-    assert offenders == [], f"argparse is read by the command line only (cli/main.py), but also imported by: {offenders}"
+    offenders = sorted(name for name, imports in modules().items()
+                       if "argparse" in imports and name not in COMMAND_LINES and not name.startswith("cli/"))
+    assert offenders == [], f"argparse is read by the command line only (cli/), but also imported by: {offenders}"
 
 
 def test_importing_the_library_does_not_load_argparse() -> None:
     code = ("import importlib, pkgutil, sys, cmion_mesh\n"
             "for m in pkgutil.walk_packages(cmion_mesh.__path__, 'cmion_mesh.'):\n"
-            "    if m.name != 'cmion_mesh.cli.main': importlib.import_module(m.name)\n"
+            "    if not m.name.startswith('cmion_mesh.cli.'): importlib.import_module(m.name)\n"
             "print(sorted(k for k in sys.modules if k == 'argparse' or k.split('.')[0] == 'bench'))\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert result.stdout.strip() == "[]", result.stdout
@@ -414,22 +410,59 @@ def test_one_set_of_exit_codes() -> None:
         assert "EXIT_OK" not in source and "EXIT_FAILED" not in source, f"{path.name} defines exit codes of its own"
 
 
-def test_the_parser_of_one_command_parses_as_the_whole_one() -> None:
-    # build_parser(command) gives only that command its arguments (start time): every command is
-    # still known, what it parses does not change, and a name that is no command gets the whole parser
+def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # argparse has no public walk
+    return dict(subs.choices)
+
+
+def cli_modules_loaded_by(code: str) -> list[str]:
+    """The modules of cmion_mesh.cli a fresh interpreter has loaded after running ``code``."""
+    probe = (f"import sys\n{code}\n"
+             "print(sorted(m for m in sys.modules if m == 'cmion_mesh.cli' or m.startswith('cmion_mesh.cli.')))\n")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    return list(ast.literal_eval(result.stdout.strip().splitlines()[-1]))
+
+
+def test_the_command_table_lists_every_verb_without_importing_one() -> None:
+    # --help, no verb and a typo: every verb with its summary from the table, no verb's module imported
     from cmion_mesh.cli import main as cli
 
-    def commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-        subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # argparse has no public walk
-        return dict(subs.choices)
+    listed = cli.build_parser()
+    assert list(subcommands(listed)) == list(cli.COMMANDS)
+    text = listed.format_help()
+    for verb, command in cli.COMMANDS.items():
+        assert verb in text and " ".join(command.summary.split()[:4]) in " ".join(text.split()), verb
+    code = ("from cmion_mesh.cli.main import main\n"
+            "import contextlib, io\n"
+            "for argv in (['--help'], ['pers'], []):\n"
+            "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()), "
+            "contextlib.redirect_stderr(io.StringIO()):\n"
+            "        main(argv)\n")
+    assert cli_modules_loaded_by(code) == ["cmion_mesh.cli", "cmion_mesh.cli.main"]
+    typo = subprocess.run([sys.executable, "-m", "cmion_mesh.cli", "pers"], capture_output=True, text=True, timeout=60)
+    assert typo.returncode == ExitCode.USAGE
+    assert "cmion-mesh: error: argument COMMAND: invalid choice: 'pers' (choose from 'up', " in typo.stderr, typo.stderr
 
-    whole = cli.build_parser()
-    for name, full in commands(whole).items():
-        only = commands(cli.build_parser(name))
-        assert sorted(only) == sorted(commands(whole))
-        assert [a.dest for a in only[name]._actions] == [a.dest for a in full._actions], name
-    assert [a.dest for a in commands(cli.build_parser("pers"))["peers"]._actions] == \
-        [a.dest for a in commands(whole)["peers"]._actions], "a typo gets the whole parser (and argparse's error)"
+
+def test_a_verb_imports_its_own_module_only() -> None:
+    code = ("from cmion_mesh.cli.main import build_parser\n"
+            "build_parser('bb').parse_args(['bb', 'get', 'robot'])\n")
+    assert cli_modules_loaded_by(code) == ["cmion_mesh.cli", "cmion_mesh.cli.common", "cmion_mesh.cli.main",
+                                           "cmion_mesh.cli.session", "cmion_mesh.cli.stores"]
+
+
+def test_the_parser_of_one_command_parses_as_the_whole_one() -> None:
+    # build_parser(verb) adds that verb's arguments only (its module's): what it parses does not
+    # change, and every verb of the table names functions its module has
+    from cmion_mesh.cli import main as cli
+
+    whole = subcommands(cli.whole_parser())
+    assert list(whole) == list(cli.COMMANDS)
+    for name in cli.COMMANDS:
+        only = subcommands(cli.build_parser(name))
+        assert list(only) == [name]
+        assert [a.dest for a in only[name]._actions] == [a.dest for a in whole[name]._actions], name
+        assert only[name].description == whole[name].description, name
     for argv in (["peers", "--mesh", "m", "--json"], ["up", "robot", "--name", "x", "--connect", "tcp/127.0.0.1:1"],
-                 ["bb", "set", "e", "a/b", "3", "--persistent"], ["certs", "init", "d"]):
-        assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(whole.parse_args(argv))
+                 ["bb", "set", "e", "a/b", "3", "--persistent"], ["certs", "init", "d"], ["custody", "show", "c"]):
+        assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(cli.whole_parser().parse_args(argv))

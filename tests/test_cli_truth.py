@@ -22,6 +22,7 @@ import pytest
 
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.cli import main as cli
+from cmion_mesh.cli.common import JOIN_WINDOW
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError, NotReached, Refused
 from cmion_mesh.messages import ActionStatus, Describe
@@ -208,7 +209,7 @@ def test_a_second_robot_is_refused_every_time(bodies: Scenario, tmp_path: Path) 
     for attempt in range(20):
         with pytest.raises(Refused) as refused:
             Embodiment("robot", mesh=bodies.mesh, transport_config=config, state_dir=tmp_path / f"twin{attempt}",
-                       companion="spirit", join=cli.JOIN_WINDOW)
+                       companion="spirit", join=JOIN_WINDOW)
         pattern = r"embodiment 'robot' is already alive in mesh .*\(on host .*, pid \d+, zenoh id \w+"
         assert re.search(pattern, str(refused.value)), (attempt, str(refused.value))
     twin = real_cli("up", "robot", "--state-dir", str(tmp_path / "twin"), *net(bodies, "phone"))
@@ -362,5 +363,5 @@ def test_every_argument_has_help_text() -> None:
             elif not action.help and action.dest != "help":
                 missing.append(f"{path} {'/'.join(action.option_strings) or action.dest}")
 
-    walk(cli.build_parser(), "cmion-mesh")
+    walk(cli.whole_parser(), "cmion-mesh")
     assert missing == []

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.architecture import embodiment_name, load_architecture
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.body.library import table_for_library
 from cmion_mesh.body.validate import validate_file
 from cmion_mesh.cli.main import main
 from cmion_mesh.client import MeshClient
@@ -164,20 +165,20 @@ def library(folder: Path, class_name: str, parameters: str | None) -> Path:
 def test_the_library_names_the_table_relative_to_itself(tmp_path: Path, class_name: str) -> None:
     (tmp_path / "conf").mkdir()
     (tmp_path / "conf" / "Send.xml").write_bytes((CMION_2011 / "MigrationConfigSend.xml").read_bytes())
-    table = devices.table_for_library(library(tmp_path, class_name, "conf/Send.xml"))
+    table = table_for_library(library(tmp_path, class_name, "conf/Send.xml"))
     assert table is not None and table.name == "A" and table.path == tmp_path / "conf" / "Send.xml"
 
 
 def test_android_raw_names_and_missing_tables(tmp_path: Path) -> None:
     (tmp_path / "migrationconfig.xml").write_bytes((CMION_2011 / "MigrationConfigReceive.xml").read_bytes())
-    table = devices.table_for_library(library(tmp_path, "cmion.level2.competencies.AndroidMigration", "migrationconfig"))
+    table = table_for_library(library(tmp_path, "cmion.level2.competencies.AndroidMigration", "migrationconfig"))
     assert table is not None and table.name == "B"
     # no parameter (our own class, used plainly), or another competency: no table
-    assert devices.table_for_library(library(tmp_path, "cmion_mesh.migration.manager:MigrationCompetency", None)) is None
-    assert devices.table_for_library(library(tmp_path, "cmion_mesh.competencies.cmion_test:TestCompetency1", "x.xml")) is None
+    assert table_for_library(library(tmp_path, "cmion_mesh.migration.manager:MigrationCompetency", None)) is None
+    assert table_for_library(library(tmp_path, "cmion_mesh.competencies.cmion_test:TestCompetency1", "x.xml")) is None
     lib = library(tmp_path, "cmion.level2.competencies.Migration", "Nowhere.xml")
     with pytest.raises(ConfigError, match=rf"^{lib}:1: device table 'Nowhere.xml' not found"):
-        devices.table_for_library(lib)
+        table_for_library(lib)
 
 
 def test_the_migration_competency_takes_cmions_parameter() -> None:
@@ -205,12 +206,12 @@ def test_precedence_explicit_settings_win_over_the_table(tmp_path: Path) -> None
     arch_path = folder / "ArchitectureConfiguration.xml"
     arch_path.write_text('<ArchitectureConfiguration CompetencyManagerRulesFile="CompManagerRules.xml" '
                          'CompetencyLibraryConfigurationFile="CompetencyLibrary.xml"/>')
-    assert devices.embodiment_name(table, load_architecture(arch_path)) == "A"  # the folder's name yields
-    assert devices.embodiment_name(None, load_architecture(arch_path)) == "plain"
+    assert embodiment_name(table, load_architecture(arch_path)) == "A"  # the folder's name yields
+    assert embodiment_name(None, load_architecture(arch_path)) == "plain"
     arch_path.write_text('<ArchitectureConfiguration Embodiment="robot" CompetencyManagerRulesFile="CompManagerRules.xml" '
                          'CompetencyLibraryConfigurationFile="CompetencyLibrary.xml"/>')
     with pytest.raises(ConfigError, match=r"Embodiment='robot' but its device table .* names this embodiment 'A' \(give --name"):
-        devices.embodiment_name(table, load_architecture(arch_path))
+        embodiment_name(table, load_architecture(arch_path))
 
 
 def configuration_copy(source: Path, target: Path, values: dict[str, str] | None = None, *, java_names: bool = False) -> Path:

@@ -504,7 +504,7 @@ def test_cli_flag_when_wired(pki: Pki, mesh: str) -> None:
     """``cmion-mesh up --certs DIR`` (once cli/main.py has the flag): the daemon says it is secure, listens over TLS only."""
     from cmion_mesh.cli import main as cli
 
-    _, unknown = cli.build_parser().parse_known_args(["up", "--certs", str(pki.dir)])
+    _, unknown = cli.build_parser("up").parse_known_args(["up", "--certs", str(pki.dir)])
     if unknown:
         pytest.skip("cli/main.py does not have --certs yet")
     port = free_port()

@@ -205,8 +205,8 @@ def test_up_refuses_a_web_address_in_use_naming_it(mesh: str, tmp_path: Path) ->
         port = taken.getsockname()[1]
         done = subprocess.run(cli_argv("up", "phone", "--mesh", mesh, "--no-multicast", "--state-dir", str(tmp_path / "p"),
                                        "--web", f"127.0.0.1:{port}"), capture_output=True, text=True, timeout=60, check=False)
-    assert done.returncode == 1
-    assert f"cannot listen on http://127.0.0.1:{port}" in done.stderr
+    assert done.returncode == 2, "an address in use is a configuration error (docs/deploy.md): restarting would not help"
+    assert f"cannot listen on http://127.0.0.1:{port}" in done.stderr and not (tmp_path / "p").exists()
 
 
 def test_up_refuses_a_bad_web_address_as_a_usage_error(mesh: str, tmp_path: Path) -> None:

@@ -35,6 +35,7 @@ from cmion_mesh.classes import construct, find_file, import_class, split_paramet
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.migration import signing
+from cmion_mesh.migration.devices import DeviceTable
 
 if TYPE_CHECKING:
     from cmion_mesh.ion import Component
@@ -189,3 +190,16 @@ def read_architecture(path: str | os.PathLike[str], diagnostics: Diagnostics, *,
             except MeshError as exc:
                 diagnostics.error(str(exc), where, xmlsafe.sourceline(el))
     return Architecture(config, name, rules, library, world_model, components, line, companion, admit)
+
+
+def embodiment_name(table: DeviceTable | None, arch: Architecture) -> str:
+    """The table's devicename, else the configuration's name. A configuration that names its
+    embodiment (``Embodiment="..."``, not just its folder's name) differently from the table is a
+    ``ConfigError``: the command line's ``--name`` settles it."""
+    if table is None or table.name is None:
+        return arch.embodiment
+    explicit = arch.embodiment != arch.path.parent.name
+    if explicit and arch.embodiment != table.name:
+        raise ConfigError(f"Embodiment={arch.embodiment!r} but its device table {table.path.name} names this embodiment "
+                          f"{table.name!r} (give --name to choose)", path=str(arch.path), line=arch.line)
+    return table.name

@@ -22,9 +22,9 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import __version__, keys
-from cmion_mesh.body.architecture import load_architecture
+from cmion_mesh.body.architecture import embodiment_name, load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
-from cmion_mesh.body.library import load_library
+from cmion_mesh.body.library import load_library, table_for_library
 from cmion_mesh.body.manager import CompetencyManager
 from cmion_mesh.body.rules import Plan, Rule, RuleSet, Step, load_rules
 from cmion_mesh.body.standin import StandIn
@@ -36,7 +36,7 @@ from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Code, Describe, Event, RemoteAction
-from cmion_mesh.migration.devices import DeviceTable, birth, embodiment_name, table_for_library, with_table_endpoints
+from cmion_mesh.migration.devices import DeviceTable, birth, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
 from cmion_mesh.mind import Mind, MindAction, remote_action_problem

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 from cmion_mesh import xmlsafe
 from cmion_mesh.classes import construct, split_parameters
 from cmion_mesh.competency import Competency
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, MeshError
+from cmion_mesh.migration.devices import DeviceTable, is_migration_class, read_device_table, resolve_table
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,3 +85,39 @@ def load_library(path: str | os.PathLike[str], diagnostics: Diagnostics | None =
         names.add(competency.name)
         competencies.append(competency)
     return competencies
+
+
+# --- the device table a library names (CMION: the Migration competency's parameter) -----------
+
+
+def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics | None = None) -> DeviceTable | None:
+    """The device table the library's Migration competency names, or None when it names none.
+    Errors (reported to ``diagnostics``, every one; without it one ``ConfigError`` lists them all):
+    the table is missing (at the library's line), invalid (at its own lines), or two Migration
+    competencies name different tables."""
+    found = Diagnostics() if diagnostics is None else diagnostics
+    path = named_table(library, found)
+    table = read_device_table(path, found) if path is not None else None
+    if diagnostics is None:
+        found.raise_if_errors()
+    return table
+
+
+def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
+    """Where the library's Migration competency says its device table is (not read); None when it
+    names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
+    lib = os.fspath(library)
+    found: tuple[Path, int | None] | None = None
+    for entry in read_library(lib, diagnostics):
+        if not is_migration_class(entry.class_name) or not entry.parameters or not entry.parameters[0]:
+            continue
+        path = resolve_table(lib, entry.parameters[0], entry.class_name)
+        if found is not None and found[0] != path:
+            diagnostics.error(f"two Migration competencies name different device tables ({found[0].name} at line "
+                       f"{found[1]}, {path.name})", lib, entry.line)
+            return None
+        if not path.is_file():
+            diagnostics.error(f"device table {entry.parameters[0]!r} not found (looked at {path})", lib, entry.line)
+            return None
+        found = (path, entry.line)
+    return found[0] if found is not None else None

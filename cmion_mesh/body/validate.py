@@ -25,16 +25,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmion_mesh import xmlsafe
-from cmion_mesh.body.architecture import Architecture, read_architecture
+from cmion_mesh.body.architecture import Architecture, embodiment_name, read_architecture
 from cmion_mesh.body.java_classes import DOC
-from cmion_mesh.body.library import load_library
+from cmion_mesh.body.library import load_library, named_table, table_for_library
 from cmion_mesh.body.rules import SCHEMA as RULES_SCHEMA
 from cmion_mesh.body.rules import RuleSet, parse_rules
 from cmion_mesh.body.standin import StandInCompetency, why_standin
 from cmion_mesh.competency import Competency
 from cmion_mesh.diagnostics import Diagnostic, Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.migration.devices import embodiment_name, named_table, read_device_table, table_for_library
+from cmion_mesh.migration.devices import read_device_table
 from cmion_mesh.resources import data_dir
 from cmion_mesh.storage import load_world_model_init
 

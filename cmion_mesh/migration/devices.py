@@ -43,10 +43,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.body.architecture import Architecture  # upward: see LAYER_EXCEPTIONS in tests/test_boundaries.py
 from cmion_mesh.classes import current_name
 from cmion_mesh.diagnostics import Diagnostics, load_xml
-from cmion_mesh.errors import ConfigError, InvalidName
+from cmion_mesh.errors import InvalidName
 from cmion_mesh.transport.base import TransportConfig
 
 SCHEMA = "MigrationConfig.xsd"
@@ -208,56 +207,6 @@ def resolve_table(library: str | os.PathLike[str], parameter: str, class_name: s
     if not candidate.suffix and (class_name.strip() == ANDROID_MIGRATION or not candidate.exists()):
         candidate = candidate.with_name(candidate.name + ".xml")
     return candidate
-
-
-def table_for_library(library: str | os.PathLike[str], diagnostics: Diagnostics | None = None) -> DeviceTable | None:
-    """The device table the library's Migration competency names, or None when it names none.
-    Errors (reported to ``diagnostics``, every one; without it one ``ConfigError`` lists them all):
-    the table is missing (at the library's line), invalid (at its own lines), or two Migration
-    competencies name different tables."""
-    found = Diagnostics() if diagnostics is None else diagnostics
-    path = named_table(library, found)
-    table = read_device_table(path, found) if path is not None else None
-    if diagnostics is None:
-        found.raise_if_errors()
-    return table
-
-
-def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Path | None:
-    """Where the library's Migration competency says its device table is (not read); None when it
-    names none, or (reported to ``diagnostics``) a table that is not there or two different ones."""
-    # An upward import, listed in tests/test_boundaries.py's LAYER_EXCEPTIONS: this function reads the
-    # library, a body's file, and moves to body/library.py (start time: it stays out of the top).
-    from cmion_mesh.body.library import read_library
-
-    lib = os.fspath(library)
-    found: tuple[Path, int | None] | None = None
-    for entry in read_library(lib, diagnostics):
-        if not is_migration_class(entry.class_name) or not entry.parameters or not entry.parameters[0]:
-            continue
-        path = resolve_table(lib, entry.parameters[0], entry.class_name)
-        if found is not None and found[0] != path:
-            diagnostics.error(f"two Migration competencies name different device tables ({found[0].name} at line "
-                       f"{found[1]}, {path.name})", lib, entry.line)
-            return None
-        if not path.is_file():
-            diagnostics.error(f"device table {entry.parameters[0]!r} not found (looked at {path})", lib, entry.line)
-            return None
-        found = (path, entry.line)
-    return found[0] if found is not None else None
-
-
-def embodiment_name(table: DeviceTable | None, arch: Architecture) -> str:
-    """The table's devicename, else the configuration's name. A configuration that names its
-    embodiment (``Embodiment="..."``, not just its folder's name) differently from the table is a
-    ``ConfigError``: the command line's ``--name`` settles it."""
-    if table is None or table.name is None:
-        return arch.embodiment
-    explicit = arch.embodiment != arch.path.parent.name
-    if explicit and arch.embodiment != table.name:
-        raise ConfigError(f"Embodiment={arch.embodiment!r} but its device table {table.path.name} names this embodiment "
-                          f"{table.name!r} (give --name to choose)", path=str(arch.path), line=arch.line)
-    return table.name
 
 
 def birth(table: DeviceTable | None, configured: str | None) -> str | None:

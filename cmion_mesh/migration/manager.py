@@ -455,7 +455,7 @@ class MigrationCompetency(Competency):
     be cancelled once the handshake has started (the companion must end up in exactly one place).
 
     The constructor takes CMION's one parameter, the device table's file name (``devices``): the
-    daemon reads that table before its session opens (``devices.table_for_library``), so here it
+    daemon reads that table before its session opens (``body.library.table_for_library``), so here it
     is only kept, as ``device_table``.
     """
 

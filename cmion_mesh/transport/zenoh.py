@@ -15,7 +15,8 @@ that long at most behind it.
 Errors are mapped at this boundary and nowhere else: every call into zenoh runs inside
 ``_zenoh_errors``, so what escapes is what ``transport.Transport`` documents - ``ClosedError``
 after ``close()``, ``TransportError`` (naming the operation and key) for whatever zenoh refused,
-``ConfigError`` for a configuration zenoh cannot take - never ``zenoh.ZError``.
+``ConfigError`` for a configuration zenoh cannot take (a listen endpoint it cannot bind among
+them: the endpoint given is at fault) - never ``zenoh.ZError``.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import re
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -55,6 +57,20 @@ CHANNEL_CAPACITY = 4096
 MAX_PUBLISHERS = 4096
 _ALL = zenoh.QueryTarget.ALL
 _NONE = zenoh.ConsolidationMode.NONE
+
+
+#: zenoh's refusal to listen: "Can not create a new TCP listener bound to tcp/127.0.0.1:7447:
+#: [127.0.0.1:7447: Address already in use (os error 98) at <source file>...] at <source file>...".
+_LISTENER = re.compile(r"listener bound to (?P<endpoint>\S+?): \[(?:[^\]]*?: )?(?P<why>[^\]]*?)(?: \(os error \d+\))?(?: at |\])")
+
+
+def _open_error(exc: zenoh.ZError) -> ConfigError | ClosedError | TransportError:
+    """Why a session could not open: a listen endpoint that cannot be bound is one line naming it
+    (``ConfigError``: the endpoint given is at fault), anything else a ``TransportError``."""
+    found = _LISTENER.search(str(exc))
+    if found is not None:
+        return ConfigError(f"zenoh cannot listen on {found['endpoint']}: {found['why']}")
+    return _mapped("cannot open zenoh session", exc)
 
 
 def _mapped(what: str, exc: zenoh.ZError, closed: bool = False) -> ClosedError | TransportError:
@@ -297,8 +313,10 @@ class ZenohTransport:
     def __init__(self, config: TransportConfig | None = None) -> None:
         self.config = config or TransportConfig()
         zc = build_config(self.config)
-        with _zenoh_errors("cannot open zenoh session"):
+        try:
             self._session = zenoh.open(zc)
+        except zenoh.ZError as exc:
+            raise _open_error(exc) from None
         self._entities: list[_Entity] = []
         self._lock = threading.Lock()
         self._closed = False
