@@ -35,9 +35,12 @@ from cmion_mesh.errors import (
     Vanished,
 )
 from cmion_mesh.messages import (
+    CONTAINER_KIND,
     Act,
     ActionReport,
     ActionStatus,
+    AddContainer,
+    AddEntity,
     CancelAction,
     Code,
     Container,
@@ -50,6 +53,9 @@ from cmion_mesh.messages import (
     MigrateChain,
     Outcome,
     Property,
+    RemoteAction,
+    RemoveContainer,
+    RemoveProperty,
     SendInvitations,
     SetPolicy,
     SetProperty,
@@ -213,25 +219,19 @@ class MeshClient:
     def lookup(self, embodiment: str, store: str, path: str = "", *, below: bool = False, timeout: float = 5.0) -> dict[str, Entry]:
         """The property or container at ``path`` in ``embodiment``'s ``store``, by key; with ``below``
         (or no ``path``), everything under it too. In the world model ``entity.property`` (the form
-        ``$WM(...)`` uses) names ``entity/property``.
+        ``$WM(...)`` uses) names ``entity/property``, as in every write (``keys.store_path``).
 
         Raises ``StorageError`` naming the path when the store answers but holds no such thing, and
         ``OutcomeUnknown`` when the store does not answer within ``timeout``.
         """
         label = STORE_LABELS.get(store, f"{store!r} store")
-        candidates = [path]
-        if store == keys.WORLD_MODEL and "." in path and "/" not in path:
-            candidates.append(path.replace(".", "/", 1))
+        chunks = keys.store_path(store, path)
         root = keys.storage_key(self.mesh, embodiment, store, ())
+        base = keys.storage_key(self.mesh, embodiment, store, chunks)
         deadline = time.monotonic() + timeout
         delay = 0.01
         def find() -> dict[str, Entry]:
-            for candidate in candidates:
-                base = keys.storage_key(self.mesh, embodiment, store, keys.split_path(candidate))
-                entries = self.read(f"{base}/**" if below or not candidate else base, timeout=max(0.01, deadline - time.monotonic()))
-                if entries:
-                    return entries
-            return {}
+            return self.read(f"{base}/**" if below or not chunks else base, timeout=max(0.01, deadline - time.monotonic()))
 
         while True:
             entries = find()
@@ -241,10 +241,9 @@ class MeshClient:
                 entries = find()  # the store is reachable now: ask again before saying it is not there
                 if entries:
                     return entries
-                container, _, name = path.rpartition("/")
-                siblings = self.read(f"{keys.storage_key(self.mesh, embodiment, store, keys.split_path(container))}/*", timeout=2.0)
+                siblings = self.read(f"{keys.storage_key(self.mesh, embodiment, store, chunks[:-1])}/*", timeout=2.0)
                 raise StorageError(f"no property or container {path!r} in {embodiment}'s {label}"
-                                   + did_you_mean(name, (k.rsplit("/", 1)[-1] for k in siblings)))
+                                   + did_you_mean(chunks[-1], (k.rsplit("/", 1)[-1] for k in siblings)))
             if time.monotonic() + delay >= deadline:
                 raise OutcomeUnknown(f"{embodiment}'s {label} did not answer within {timeout:g} s", key=root)
             self.presence.wait(lambda alive: embodiment not in alive, delay)  # not routed here yet: again, soon
@@ -265,11 +264,50 @@ class MeshClient:
         return self._send(embodiment, key, write, timeout=timeout)
 
     def set_property(
-        self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False
+        self, embodiment: str, store: str, container: str, name: str, value: Any, *, persistent: bool = False,
+        create: bool = False,
     ) -> None:
-        """Set a property or raise ``RequestRejected`` / ``OutcomeUnknown`` naming the key."""
-        key = keys.request_key(self.mesh, embodiment, store, "set_property")
-        require_accepted(self.write(embodiment, store, SetProperty(container, name, value, persistent)), key)
+        """Set a property or raise ``RequestRejected`` / ``OutcomeUnknown`` naming the key. ``create``:
+        add the containers missing on the way, in the same write (never a world-model entity)."""
+        self._write(embodiment, store, SetProperty(container, name, value, persistent, create))
+
+    def remove_property(self, embodiment: str, store: str, path: str) -> None:
+        """Remove the property at ``path`` (``keys.store_path``: ``entity.property`` in the world model)."""
+        self._write(embodiment, store, RemoveProperty(*keys.property_path(store, path)))
+
+    def add_container(self, embodiment: str, store: str, path: str, *, kind: str = CONTAINER_KIND) -> None:
+        """Add the container at ``path`` (its parent must be there); a world-model entity is ``add_entity``'s."""
+        self._write(embodiment, store, AddContainer(*keys.property_path(store, path), kind))
+
+    def remove_container(self, embodiment: str, store: str, path: str) -> None:
+        """Remove the container at ``path`` and all it holds (an entity, when ``path`` is one name in the world model)."""
+        self._write(embodiment, store, RemoveContainer(*keys.property_path(store, path)))
+
+    def add_entity(self, embodiment: str, name: str, properties: dict[str, Any] | None = None, *, kind: str = "agent",
+                   persistent: bool = False) -> None:
+        """Add the world-model entity ``name`` (``agent`` or ``object``) with ``properties``, in one
+        write: minds hear the entity added, then each property set (CMION's AgentSimulator)."""
+        self._write(embodiment, keys.WORLD_MODEL, AddEntity(name, kind, dict(properties or {}), persistent))
+
+    def remove_entity(self, embodiment: str, name: str) -> None:
+        """Remove the world-model entity ``name``: minds hear it removed."""
+        self._write(embodiment, keys.WORLD_MODEL, RemoveContainer("", name))
+
+    def _write(self, embodiment: str, store: str, write: StorageWrite) -> None:
+        key = keys.request_key(self.mesh, embodiment, store, tag(type(write)))
+        require_accepted(self.write(embodiment, store, write), key)
+
+    def remote_action(self, embodiment: str, name: str, parameters: Sequence[str] = (), subject: str = "",
+                      *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> list[str]:
+        """Tell ``embodiment`` that another agent (``subject``) did ``name parameters``: its minds
+        perceive it as a remote action (CMION's RemoteActionSimulator). Returns the minds of the
+        daemon's own process that were awake to perceive it; ``RequestRejected`` (code ``invalid``)
+        for an action minds cannot be told (``mind.remote_action_problem``)."""
+        key = keys.request_key(self.mesh, embodiment, "embodiment", "remote_action")
+        answer = require_accepted(self.request(embodiment, "embodiment", "remote_action",
+                                               RemoteAction(name, list(parameters), subject), timeout=timeout), key)
+        minds = answer.get("minds") if isinstance(answer, dict) else None
+        return [str(m) for m in minds] if isinstance(minds, list) else []
 
     # --- requests and events ------------------------------------------------------------------
 

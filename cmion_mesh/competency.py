@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cmion_mesh import keys
-from cmion_mesh.errors import MeshError
+from cmion_mesh.errors import InvalidName, MeshError
 
 if TYPE_CHECKING:
     from cmion_mesh.ion import Simulation
@@ -109,16 +109,54 @@ class RunContext:
         require_accepted(self.competency.sim.request(store, tag(type(message)), message).result(timeout), store)
 
     def bb_set(self, path: str, value: Any, *, persistent: bool = False) -> None:
+        """Set the blackboard property at ``path`` (``container/.../name``), adding the containers
+        that are missing on the way in the same write (``SetProperty.create``)."""
         from cmion_mesh.messages import SetProperty
 
-        container, _, name = path.rpartition("/")
-        self.write(keys.BLACKBOARD, SetProperty(container, name, value, persistent))
+        container, name = keys.property_path(keys.BLACKBOARD, path)
+        self.write(keys.BLACKBOARD, SetProperty(container, name, value, persistent, create=True))
 
     def bb_remove(self, path: str) -> None:
         from cmion_mesh.messages import RemoveProperty
 
-        container, _, name = path.rpartition("/")
+        container, name = keys.property_path(keys.BLACKBOARD, path)
         self.write(keys.BLACKBOARD, RemoveProperty(container, name))
+
+    def wm_set(self, entity: str, prop: str, value: Any, *, persistent: bool = False) -> None:
+        """Set a property of the world-model entity ``entity``, which must be there (``wm_add``)."""
+        from cmion_mesh.messages import SetProperty
+
+        self.write(keys.WORLD_MODEL, SetProperty(entity, prop, value, persistent))
+
+    def wm_add(self, entity: str, properties: dict[str, Any] | None = None, *, kind: str = "agent",
+               persistent: bool = False) -> None:
+        """Add the world-model entity ``entity`` (``agent`` or ``object``) with ``properties``, in one
+        write: minds hear the entity added, then each property set. ``RequestRejected`` with code
+        ``exists`` if it is there already."""
+        from cmion_mesh.messages import AddEntity
+
+        self.write(keys.WORLD_MODEL, AddEntity(entity, kind, dict(properties or {}), persistent))
+
+    def wm_remove(self, entity: str) -> None:
+        """Remove the world-model entity ``entity`` and everything it holds (code ``not_found`` if absent)."""
+        from cmion_mesh.messages import RemoveContainer
+
+        self.write(keys.WORLD_MODEL, RemoveContainer("", entity))
+
+    def remote_action(self, name: str, parameters: tuple[str, ...] | list[str] = (), subject: str = "") -> None:
+        """Tell the embodiment's minds that another agent (``subject``) did ``name parameters``: a
+        ``RemoteAction`` event, as a sensor perceiving it raises it. ``InvalidName`` for an action
+        minds cannot be told (``mind.remote_action_problem``)."""
+        import msgspec
+
+        from cmion_mesh.messages import RemoteAction
+        from cmion_mesh.mind import remote_action_problem
+
+        action = RemoteAction(name, list(parameters), subject)
+        problem = remote_action_problem(action)
+        if problem:
+            raise InvalidName(problem)
+        self.raise_event("RemoteAction", msgspec.to_builtins(action))
 
     def raise_event(self, name: str, data: Any = None) -> None:
         self.competency.sim.raise_event(self.competency.name, name, data)

@@ -86,6 +86,27 @@ def split_path(path: str | Sequence[str], what: str = "container path") -> tuple
     return tuple(check_name(p, f"{what} element") for p in parts)
 
 
+def store_path(store: str, path: str) -> tuple[str, ...]:
+    """The chunks of ``path`` in ``store`` (see the module's doc): ``a/b/c``; in the world model
+    ``entity.property`` too, split at the first dot. ``""`` is the root."""
+    if store == WORLD_MODEL and "/" not in path and "." in path:
+        entity, _, prop = path.partition(".")
+        if not entity or not prop:
+            raise InvalidName(f"world-model path {path!r}: entity.property names an entity and a property "
+                              "(a name holding a dot is written with slashes: entity/property)")
+        return check_name(entity, "entity"), check_name(prop, "property")
+    return split_path(path, "path")
+
+
+def property_path(store: str, path: str) -> tuple[str, str]:
+    """``(container, name)`` of the property at ``path`` in ``store`` (``store_path``), the
+    container as a ``/`` path ("" for the root)."""
+    chunks = store_path(store, path)
+    if not chunks:
+        raise InvalidName("a property path is empty")
+    return "/".join(chunks[:-1]), chunks[-1]
+
+
 def mesh_prefix(mesh: str) -> str:
     return f"{ROOT}/{check_name(mesh, 'mesh')}"
 

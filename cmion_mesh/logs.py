@@ -52,7 +52,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import logging.handlers
 import math
 import re
 import sys
@@ -243,7 +242,9 @@ def configure(level: str | int = "info", fmt: str = "text", file: str | Path | N
         handler = _Stderr()
     else:
         try:
-            handler = logging.handlers.WatchedFileHandler(file, encoding="utf-8")
+            from logging.handlers import WatchedFileHandler  # only with a log file: it loads socket and more (start time)
+
+            handler = WatchedFileHandler(file, encoding="utf-8")
         except OSError as exc:
             raise ConfigError(f"cannot open the log file: {exc.strerror or exc}", path=str(file)) from None
     handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())

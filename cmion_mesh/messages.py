@@ -69,11 +69,19 @@ class Container(Message, frozen=True, tag="container"):
     kind: str = ""
 
 
+#: Kind of the containers a ``SetProperty`` with ``create`` adds on its way.
+CONTAINER_KIND = "container"
+
+
 class SetProperty(Message, frozen=True, tag="set_property"):
     container: str  # slash-separated path below the store's root, "" for the root
     name: str
     value: Value
     persistent: bool = False
+    #: Add the containers of ``container`` that are missing first (kind ``container``), in the same
+    #: write; never a world-model entity, which has a kind of its own (``AddEntity``). A daemon
+    #: that does not know the field refuses the write for its missing container: nothing is lost.
+    create: bool = False
 
 
 class RemoveProperty(Message, frozen=True, tag="remove_property"):
@@ -92,7 +100,17 @@ class RemoveContainer(Message, frozen=True, tag="remove_container"):
     name: str
 
 
-StorageWrite = SetProperty | RemoveProperty | AddContainer | RemoveContainer
+class AddEntity(Message, frozen=True, tag="add_entity"):
+    """A world-model entity and its properties, added in one write (``.../rq/wm/add_entity``): a
+    mind hears the entity added, then each property set, in one update (CMION's AgentSimulator)."""
+
+    name: str
+    kind: str = "agent"  # or "object"
+    properties: dict[str, Value] = {}
+    persistent: bool = False  # of every property given
+
+
+StorageWrite = SetProperty | RemoveProperty | AddContainer | RemoveContainer | AddEntity
 #: The writes a store serves, each on the request named by its tag (``.../rq/<store>/set_property``...).
 STORAGE_WRITES: tuple[type[StorageWrite], ...] = (SetProperty, RemoveProperty, AddContainer, RemoveContainer)
 
@@ -216,6 +234,17 @@ class MindMessage(Message, frozen=True, tag="mind_message"):
     """Raw data for a mind to interpret (``.../rq/<mind>/message``), e.g. a goal for the planner."""
 
     data: dict[str, Value]
+
+
+class RemoteAction(Message, frozen=True, tag="remote_action"):
+    """Another agent's action, as an embodiment perceives it (CMION's ``EventRemoteAction``): sent
+    to ``.../rq/embodiment/remote_action``, raised there as the event ``.../ev/embodiment/RemoteAction``
+    with this as its ``data``, which every mind of the embodiment perceives (``Mind.on_remote_action``).
+    Any component may raise a ``RemoteAction`` event with the same data."""
+
+    name: str
+    parameters: list[str] = []
+    subject: str = ""  # who acted ("" : nobody said; FAtiMA hears ``World``)
 
 
 # --- competency manager --------------------------------------------------------------------------
@@ -442,8 +471,8 @@ class SendInvitations(Message, frozen=True, tag="send_invitations"):
 
 
 AnyMessage = (
-    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | StorageChange | Event | Outcome
-    | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage
+    Property | Container | SetProperty | RemoveProperty | AddContainer | RemoveContainer | AddEntity | StorageChange | Event
+    | Outcome | Describe | ExecutionStatus | Sleep | Wake | MindState | MindMessage | RemoteAction
     | Act | CancelAction | ActionStatus | ActionReport | StartRun | CancelRun | RunEnded
     | Migrate | MigratePrepare | MigrateCommit | MigrateAbort | MigrateStatus | SetPolicy | Invite | SendInvitations
     | MigrateHave | MigrateSections | RequestAnswered | MigrateChain | CustodyStandDown | CustodyResume
@@ -455,6 +484,8 @@ class _Untagged(Message, frozen=True, tag=""):
     which it leaves optional when decoding into one tagged Struct."""
 
 _encoder = msgspec.msgpack.Encoder()
+#: Fields, in any message kind, that hold plain data: checked after decoding.
+_PLAIN_NAMES = ("value", "data", "parameters", "properties")
 #: Per message kind, its fields holding plain data (checked after decoding); never _Untagged.
 _PLAIN_FIELDS: dict[type, tuple[str, ...]] = {}
 _FLAT = frozenset({str, int, float, bool, type(None)})
@@ -491,7 +522,7 @@ def decoder(kind: Any) -> Callable[[bytes, str], Any]:
         raise TypeError(f"decoder() takes message kinds, not {kind!r}")
     # A union of tagged Structs needs its tag to decode; one kind alone needs _Untagged to need it.
     strict: msgspec.msgpack.Decoder[Any] = msgspec.msgpack.Decoder(kind if len(kinds) > 1 else kind | _Untagged)
-    plain = {k: tuple(f for f in ("value", "data", "parameters") if f in k.__struct_fields__) for k in kinds}
+    plain = {k: tuple(f for f in _PLAIN_NAMES if f in k.__struct_fields__) for k in kinds}
     flat = _FLAT
 
     def run(data: bytes, where: str = "") -> Any:
@@ -529,7 +560,7 @@ def many_decoder(kind: types.UnionType | type[Message]) -> Callable[[list[bytes]
         raise TypeError(f"many_decoder() takes message kinds, not {kind!r}")
     items: Any = kind if len(kinds) > 1 else kind | _Untagged
     batch: msgspec.msgpack.Decoder[Any] = msgspec.msgpack.Decoder(list[items])
-    plain = {k: tuple(f for f in ("value", "data", "parameters") if f in k.__struct_fields__) for k in kinds}
+    plain = {k: tuple(f for f in _PLAIN_NAMES if f in k.__struct_fields__) for k in kinds}
     flat = _FLAT
 
     def run(payloads: list[bytes]) -> list[Any]:
@@ -574,7 +605,7 @@ def decode(data: bytes, kind: Any = AnyMessage, *, where: str = "") -> Any:
     if fields is None:
         if cls is _Untagged:
             raise ProtocolError(f"{where or 'payload'}: malformed message: its type is empty")
-        fields = _PLAIN_FIELDS.setdefault(cls, tuple(f for f in ("value", "data", "parameters") if f in cls.__struct_fields__))
+        fields = _PLAIN_FIELDS.setdefault(cls, tuple(f for f in _PLAIN_NAMES if f in cls.__struct_fields__))
     for field in fields:
         value = getattr(message, field)
         if type(value) in _FLAT:

@@ -12,7 +12,14 @@ A ``Mind`` is an ION component that drives the body and perceives it:
 * ``sleep`` / ``wake`` (requests ``.../rq/<mind>/sleep`` and ``wake``: ``Sleep``, ``Wake``): an
   asleep mind perceives nothing and its ``act`` is refused; ``on_sleep`` / ``on_wake`` tell it;
 * ``state`` (``MindState``) answers ``state()``; ``message`` (``MindMessage``) hands its data to
-  ``on_message`` (refused while asleep).
+  ``on_message`` (refused while asleep);
+* **to the world**: ``wm_add`` / ``wm_remove`` / ``wm_set`` write the world model (an entity and
+  its properties, as a sensor would); they never wait (a mind runs on the update loop, where the
+  store answers): each returns the outcome's future, and ``on_outcome`` runs on the loop.
+
+A remote action comes from any component's ``RemoteAction`` event whose data is a
+``messages.RemoteAction`` (or a map of its fields): a sensor's competency (``RunContext.remote_action``),
+an invitation, or a person (``cmion-mesh remote-action``: the request ``.../rq/embodiment/remote_action``).
 
 The same class runs inside the daemon (named in the architecture config) or in another process
 (``ion.serve``, ``cmion-mesh serve-mind``): there its simulation carries the embodiment's name, so its requests and
@@ -28,6 +35,8 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,15 +48,21 @@ from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
     Act,
     ActionReport,
+    AddEntity,
     CancelAction,
     Code,
     Event,
     MindMessage,
     MindState,
     Outcome,
+    RemoteAction,
+    RemoveContainer,
+    SetProperty,
     Sleep,
     StorageChange,
+    StorageWrite,
     Wake,
+    tag,
 )
 from cmion_mesh.requests import IncomingRequest
 
@@ -70,6 +85,25 @@ class MindAction:
     def describe(self) -> str:
         """The action as one line of text: its name and parameters (as events and reasons show it)."""
         return " ".join((self.name, *self.parameters))
+
+
+#: Most parameters a remote action carries.
+MAX_REMOTE_PARAMETERS = 64
+
+
+def remote_action_problem(action: RemoteAction) -> str:
+    """Why ``action`` cannot be perceived as it is, or "" when it can: its name, each parameter and
+    its subject ("" allowed) are words (no white space), as minds' line protocols (FAtiMA's) carry
+    them, split on spaces."""
+    if len(action.parameters) > MAX_REMOTE_PARAMETERS:
+        return f"remote action {action.name[:40]!r} has {len(action.parameters)} parameters, more than {MAX_REMOTE_PARAMETERS}"
+    for what, word in (("name", action.name), *(("parameter", p) for p in action.parameters), ("subject", action.subject)):
+        if not word and what == "subject":
+            continue
+        if not word or len(word) > keys.MAX_NAME or any(c.isspace() or ord(c) < 32 for c in word):
+            return (f"remote action {what} {word[:40]!r} must be one word of 1 to {keys.MAX_NAME} characters, "
+                    "without white space (minds split actions on spaces)")
+    return ""
 
 
 class Mind(Component):
@@ -146,6 +180,23 @@ class Mind(Component):
 
     def cancel(self, action_id: str) -> None:
         self.sim.request("manager", "cancel", CancelAction(action_id))
+
+    # --- to the world model (never waiting: see the module's doc) -----------------------------
+
+    def wm_add(self, entity: str, properties: Mapping[str, Any] | None = None, *, kind: str = "agent",
+               persistent: bool = False, on_outcome: Callable[[Outcome], None] | None = None) -> Future[Outcome]:
+        """Add the entity ``entity`` (``agent`` or ``object``) with ``properties``, in one write."""
+        return self._write_world(AddEntity(entity, kind, dict(properties or {}), persistent), on_outcome)
+
+    def wm_remove(self, entity: str, on_outcome: Callable[[Outcome], None] | None = None) -> Future[Outcome]:
+        return self._write_world(RemoveContainer("", entity), on_outcome)
+
+    def wm_set(self, entity: str, prop: str, value: Any, *, persistent: bool = False,
+               on_outcome: Callable[[Outcome], None] | None = None) -> Future[Outcome]:
+        return self._write_world(SetProperty(entity, prop, value, persistent), on_outcome)
+
+    def _write_world(self, write: StorageWrite, on_outcome: Callable[[Outcome], None] | None) -> Future[Outcome]:
+        return self.sim.request(keys.WORLD_MODEL, tag(type(write)), write, on_outcome=on_outcome)
 
     def _act_answered(self, act: Act, outcome: Outcome) -> None:
         if outcome.status != "accepted" and self.pending.pop(act.action_id, None) is not None:

@@ -13,7 +13,10 @@ On the mesh (see ``keys``)::
 
 A plain zenoh ``get`` on a key or wildcard answers the current values; a plain subscriber sees
 every change (a put of the new ``Property``/``Container``, a delete when removed). Writes are
-requests to ``.../rq/<store>/<set_property|remove_property|add_container|remove_container>``.
+requests to ``.../rq/<store>/<set_property|remove_property|add_container|remove_container>``;
+the world model also takes ``add_entity`` (an entity and its properties in one write), and its
+root holds entities only, no properties. A ``set_property`` with ``create`` adds the containers
+it needs on the way (kind ``container``; never an entity, which has a kind of its own).
 
 *Persistent* properties survive a restart of their daemon: with a state folder (``keep_persistent``)
 a store saves them (with the kinds of the containers holding them) after every write that
@@ -25,9 +28,10 @@ Mediation policy (CMION's): within one update, the *first* write to a property (
 sub-container name) wins; later writes to the same name in that update get ``conflict``.
 Writes to a missing container, or that clash with an existing name of the other sort, are
 ``rejected`` with the reason and a code (``not_found``, ``exists``, ``invalid``: see
-``messages.Code``). After each applied write the store raises an event (``PropertyChanged``,
-``PropertyRemoved``, ``SubContainerAdded``, ``SubContainerRemoved``) whose data is a
-``StorageChange``.
+``messages.Code``). A write is applied whole or not at all. After each applied write the store
+raises an event per change (``PropertyChanged``, ``PropertyRemoved``, ``SubContainerAdded``,
+``SubContainerRemoved``) whose data is a ``StorageChange``: the containers a write added come
+first, so a mind hears of an entity before its properties, as from a sensor that writes them.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,10 +50,13 @@ from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import ConfigError, InvalidName, StorageError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import (
+    CONTAINER_KIND,
     STORAGE_WRITES,
     AddContainer,
+    AddEntity,
     Code,
     Container,
+    Message,
     Property,
     RemoveContainer,
     RemoveProperty,
@@ -75,6 +82,10 @@ EVENT_FOR_OP = {
     "add_container": "SubContainerAdded",
     "remove_container": "SubContainerRemoved",
 }
+
+
+#: One applied change: its op, its event's data, the path it changed, its new wire value (None: removed).
+_Change = tuple[str, StorageChange, tuple[str, ...], bytes | None]
 
 
 @dataclass(slots=True)
@@ -116,10 +127,12 @@ def _everything(node: Node, key: str, out: list[tuple[str, bytes]]) -> None:
 class Store(Component):
     """A tree of containers of properties, mediated per update and served on its key-space."""
 
-    requests = {tag(write): write for write in STORAGE_WRITES}
+    requests: Mapping[str, type[Message]] = {tag(write): write for write in STORAGE_WRITES}
     #: Kinds allowed for the root's sub-containers (None: any).
     root_kinds: frozenset[str] | None = None
     root_kind = "store"
+    #: Whether the root holds properties of its own (the world model's holds only entities).
+    root_properties = True
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
@@ -154,7 +167,7 @@ class Store(Component):
             for i, chunk in enumerate(path):
                 child = node.children.get(chunk)
                 if child is None:
-                    raise StorageError(f"{self.name}: no container {_join(path[: i + 1])!r}")
+                    raise StorageError(self._missing(path[: i + 1]))
                 node = child
             return node
 
@@ -301,11 +314,11 @@ class Store(Component):
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
         written: set[tuple[str, ...]] = set()
-        changes: list[tuple[str, StorageChange, tuple[str, ...], bytes | None]] = []
+        changes: list[_Change] = []
         with self._lock:
             for request in batch:
                 try:
-                    change = self._apply(request.payload, written)
+                    applied = self._apply(request.payload, written)
                 except StorageError as exc:
                     request.reject(str(exc), Code(exc.code))
                 except _Conflict as exc:
@@ -314,19 +327,19 @@ class Store(Component):
                     request.reject(f"{self.name}: {exc}", Code.INVALID)
                 else:
                     request.accept()
-                    changes.append(change)
+                    changes.extend(applied)
         self._save_persistent()
         self._publish(changes)
 
     def apply_now(self, write: StorageWrite) -> None:
         """Apply one write outside mediation (loading, restoring); raises ``StorageError``."""
         with self._lock:
-            change = self._apply(write, set())
+            changes = self._apply(write, set())
         self._save_persistent()
         if self._sim is not None and self._prefix:
-            self._publish([change])
+            self._publish(changes)
 
-    def _publish(self, changes: list[tuple[str, StorageChange, tuple[str, ...], bytes | None]]) -> None:
+    def _publish(self, changes: list[_Change]) -> None:
         if self._sim is None or not self._prefix:
             return
         transport = self._sim.transport
@@ -338,54 +351,123 @@ class Store(Component):
                 transport.publish(key, wire, block=True)
             self.raise_event(EVENT_FOR_OP[op], msgspec.to_builtins(change))
 
-    def _apply(self, write: StorageWrite, written: set[tuple[str, ...]]) -> tuple[str, StorageChange, tuple[str, ...], bytes | None]:
+    def _missing(self, path: Sequence[str]) -> str:
+        """Why ``path``, a container that is not there, cannot be written to."""
+        return f"{self.name}: no container {_join(path)!r}"
+
+    def _apply(self, write: StorageWrite, written: set[tuple[str, ...]]) -> list[_Change]:
+        """Apply ``write`` whole or not at all (``StorageError``, ``_Conflict``, ``ValueError``),
+        returning its changes in order: the containers it added, then what it was asked."""
+        if isinstance(write, AddEntity):
+            return self._add_entity(write, written)
         path = _path(write.container)
         name = keys.check_name(write.name, "property" if isinstance(write, (SetProperty, RemoveProperty)) else "container")
-        node = self.node(path)
         full = (*path, name)
         where = f"{self.name}/{_join(full)}"
         if full in written:
             raise _Conflict(f"{where}: lost to an earlier write to the same name in this update")
+        added: list[_Change] = []
         wire: bytes | None = None
         match write:
-            case SetProperty(value=value, persistent=persistent):
+            case SetProperty(value=value, persistent=persistent, create=create):
+                value = check_value(value)  # before any container is added: all or nothing
+                if not path and not self.root_properties:
+                    raise StorageError(f"{where}: the {self.root_kind.replace('_', ' ')}'s root holds entities, not properties: "
+                                       "name a property as entity.property or entity/property", code=Code.INVALID)
+                node = self._containers(path, written, added) if create else self.node(path)
                 if name in node.children:
                     raise StorageError(f"{where} is a container, not a property", code=Code.INVALID)
-                value = check_value(value)
                 wire = encode(Property(value, persistent))
                 old = node.properties.get(name)
                 self._persist_dirty |= persistent or (old is not None and old.persistent)
                 node.properties[name] = _Prop(value, persistent, wire)
                 change = StorageChange("set_property", _join(path), name, value, persistent)
             case RemoveProperty():
-                prop = node.properties.pop(name, None)
+                prop = self.node(path).properties.pop(name, None)
                 if prop is None:
                     raise StorageError(f"{where}: no such property", code=Code.NOT_FOUND)
                 self._persist_dirty |= prop.persistent
                 change = StorageChange("remove_property", _join(path), name, None, prop.persistent)
             case AddContainer(kind=kind):
-                if len(path) >= MAX_CONTAINER_DEPTH:
-                    raise StorageError(f"{where}: containers nest at most {MAX_CONTAINER_DEPTH} deep", code=Code.INVALID)
-                if name in node.properties or name in node.children:
-                    raise StorageError(f"{where} already exists", code=Code.EXISTS)
-                if not path and self.root_kinds is not None and kind not in self.root_kinds:
-                    raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}", code=Code.INVALID)
-                child = Node(kind)
-                node.children[name] = child
+                node = self.node(path)
+                self._check_new_container(node, path, name, kind)
+                child = node.children[name] = Node(kind)
                 change = StorageChange("add_container", _join(path), name, kind=kind)
                 wire = child.wire
             case RemoveContainer():
+                node = self.node(path)
                 if name not in node.children:
                     raise StorageError(f"{where}: no such container", code=Code.NOT_FOUND)
                 child = node.children.pop(name)
                 self._persist_dirty = True  # it may have held persistent properties
                 change = StorageChange("remove_container", _join(path), name, kind=child.kind)
         written.add(full)
-        return change.op, change, full, wire
+        added.append((change.op, change, full, wire))
+        return added
+
+    def _check_new_container(self, node: Node, path: tuple[str, ...], name: str, kind: str) -> None:
+        """Refuse a container ``name`` of ``kind`` in ``node`` (at ``path``) that may not be added."""
+        where = f"{self.name}/{_join((*path, name))}"
+        if len(path) >= MAX_CONTAINER_DEPTH:
+            raise StorageError(f"{where}: containers nest at most {MAX_CONTAINER_DEPTH} deep", code=Code.INVALID)
+        if name in node.properties or name in node.children:
+            raise StorageError(f"{where} already exists", code=Code.EXISTS)
+        if not path and self.root_kinds is not None and kind not in self.root_kinds:
+            raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}", code=Code.INVALID)
+
+    def _containers(self, path: tuple[str, ...], written: set[tuple[str, ...]], added: list[_Change]) -> Node:
+        """The container at ``path``, the missing ones on the way added (kind ``CONTAINER_KIND``)
+        once every one of them is known to be allowed; their changes appended to ``added``."""
+        node = self.root
+        depth = 0
+        while depth < len(path) and path[depth] in node.children:
+            node = node.children[path[depth]]
+            depth += 1
+        if depth == len(path):
+            return node
+        if depth == 0 and self.root_kinds is not None:  # an entity has a kind: added on its own
+            raise StorageError(self._missing(path[:1]), code=Code.NOT_FOUND)
+        if path[depth] in node.properties:
+            raise StorageError(f"{self.name}/{_join(path[: depth + 1])} is a property, not a container", code=Code.INVALID)
+        for end in range(depth + 1, len(path) + 1):
+            if path[:end] in written:
+                raise _Conflict(f"{self.name}/{_join(path[:end])}: lost to an earlier write to the same name in this update")
+        self._check_new_container(node, path[:depth], path[depth], CONTAINER_KIND)
+        if len(path) > MAX_CONTAINER_DEPTH:
+            raise StorageError(f"{self.name}/{_join(path)}: containers nest at most {MAX_CONTAINER_DEPTH} deep",
+                               code=Code.INVALID)
+        for end in range(depth + 1, len(path) + 1):
+            child = node.children[path[end - 1]] = Node(CONTAINER_KIND)
+            change = StorageChange("add_container", _join(path[: end - 1]), path[end - 1], kind=CONTAINER_KIND)
+            added.append((change.op, change, path[:end], child.wire))
+            written.add(path[:end])
+            node = child
+        return node
+
+    def _add_entity(self, write: AddEntity, written: set[tuple[str, ...]]) -> list[_Change]:
+        name = keys.check_name(write.name, "entity")
+        where = f"{self.name}/{name}"
+        if (name,) in written:
+            raise _Conflict(f"{where}: lost to an earlier write to the same name in this update")
+        self._check_new_container(self.root, (), name, write.kind)
+        values = {keys.check_name(p, "property"): check_value(v) for p, v in write.properties.items()}
+        child = self.root.children[name] = Node(write.kind)
+        added = StorageChange("add_container", "", name, kind=write.kind)
+        changes: list[_Change] = [(added.op, added, (name,), child.wire)]
+        written.add((name,))
+        for prop, value in values.items():
+            wire = encode(Property(value, write.persistent))
+            child.properties[prop] = _Prop(value, write.persistent, wire)
+            change = StorageChange("set_property", name, prop, value, write.persistent)
+            changes.append((change.op, change, (name, prop), wire))
+            written.add((name, prop))
+        self._persist_dirty |= write.persistent and bool(values)
+        return changes
 
 
 class _Conflict(Exception):
     pass
+
 
 
 def _plain(node: Node) -> dict[str, Any]:
@@ -406,11 +488,18 @@ class Blackboard(Store):
 class WorldModel(Store):
     """The world model: top-level entities are agents or objects, addressed by unique name."""
 
+    requests = {**Store.requests, tag(AddEntity): AddEntity}
     root_kind = "world_model"
     root_kinds = frozenset({"agent", "object"})
+    root_properties = False
 
     def __init__(self, name: str = keys.WORLD_MODEL) -> None:
         super().__init__(name)
+
+    def _missing(self, path: Sequence[str]) -> str:
+        if len(path) == 1:
+            return f"{self.name}: no entity {path[0]!r}"
+        return super()._missing(path)
 
     def load_init(self, path: str | os.PathLike[str]) -> int:
         """Load a CMION ``WorldModel`` init file; returns the number of entities added."""

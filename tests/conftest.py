@@ -166,6 +166,8 @@ TIERS: dict[str, str] = {
     "test_webbody": "system",
     "test_webbody_protocol": "unit",
     "test_webserver": "unit",
+    "test_world": "unit",
+    "test_world_cli": "mesh",
     "test_xmlsafe": "unit",
 }
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.messages import ActionReport
-from cmion_mesh.mind import Mind
+from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.procs import Daemon, cli_argv
 
 
@@ -57,6 +57,26 @@ class EagerMind(Mind):
 
     def state(self) -> dict[str, Any]:
         return {"outcomes": list(self.outcomes)}
+
+
+class Perceiver(Mind):
+    """A remote mind for tests: tells what it perceives of the world by a ``Perceived`` event each."""
+
+    def __init__(self, name: str = "perceiver") -> None:
+        super().__init__(name)
+
+    def on_entity_added(self, name: str, kind: str) -> None:
+        self.raise_event("Perceived", {"op": "added", "entity": name, "kind": kind})
+
+    def on_entity_removed(self, name: str, kind: str) -> None:
+        self.raise_event("Perceived", {"op": "removed", "entity": name, "kind": kind})
+
+    def on_property_changed(self, entity: str, name: str, value: Any, persistent: bool) -> None:
+        self.raise_event("Perceived", {"op": "changed", "entity": entity, "name": name, "value": value})
+
+    def on_remote_action(self, action: MindAction) -> None:
+        self.raise_event("Perceived", {"op": "remote", "name": action.name, "parameters": list(action.parameters),
+                                       "subject": action.subject})
 
 
 class Diary(Mind):

@@ -19,6 +19,8 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+import msgspec
+
 from cmion_mesh import __version__, keys
 from cmion_mesh.body.architecture import embodiment_name, load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
@@ -33,11 +35,11 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component, Simulation
-from cmion_mesh.messages import Describe, Event
+from cmion_mesh.messages import Code, Describe, Event, RemoteAction
 from cmion_mesh.migration.devices import DeviceTable, birth, with_table_endpoints
 from cmion_mesh.migration.invitation import Invitations
 from cmion_mesh.migration.manager import MigrationCompetency, MigrationManager
-from cmion_mesh.mind import Mind, MindAction
+from cmion_mesh.mind import Mind, MindAction, remote_action_problem
 from cmion_mesh.presence import Presence
 from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.statedir import StateLock
@@ -304,9 +306,13 @@ class Embodiment:
 
 
 class Describer(Component):
-    """Answers ``.../rq/embodiment/describe`` for discovery."""
+    """The embodiment's own requests: ``.../rq/embodiment/describe`` for discovery, and
+    ``.../rq/embodiment/remote_action``: another agent's action, which the embodiment perceives as
+    its ``RemoteAction`` event (CMION's RemoteActionSimulator; ``cmion-mesh remote-action``).
+    Accepted with ``{"minds": [...]}``, the minds of this process awake to perceive it (a mind in
+    another process perceives it too); rejected ``invalid`` when minds could not be told it."""
 
-    requests = {"describe": Describe}
+    requests = {"describe": Describe, "remote_action": RemoteAction}
     built_by_embodiment = True
 
     def __init__(self, embodiment: Embodiment) -> None:
@@ -314,9 +320,20 @@ class Describer(Component):
         self.embodiment = embodiment
 
     def handle_requests(self, batch: list[IncomingRequest]) -> None:
-        description = self.embodiment.describe()
+        description: dict[str, Any] | None = None
         for request in batch:
-            request.accept(description)
+            match request.payload:
+                case RemoteAction() as action:
+                    problem = remote_action_problem(action)
+                    if problem:
+                        request.reject(problem, Code.INVALID)
+                        continue
+                    self.raise_event("RemoteAction", msgspec.to_builtins(action))
+                    request.accept({"minds": sorted(m.name for m in self.embodiment.minds if m.awake)})
+                case _:
+                    if description is None:
+                        description = self.embodiment.describe()
+                    request.accept(description)
 
 
 def with_migrate_rule(rules: RuleSet) -> RuleSet:

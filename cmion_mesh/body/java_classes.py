@@ -94,14 +94,17 @@ PORT_MAP: dict[str, Port] = _ports(
     Port("cmion.addOns.monitors.IonEventMonitor", "GUI add-on", None, "Swing list of ION events",
          command="cmion-mesh events"),
     Port("cmion.addOns.manipulators.WorldModelManipulator", "GUI add-on", None, "Swing world-model editor",
-         command="cmion-mesh wm get|tree|set|remove|watch"),
-    Port("cmion.addOns.manipulators.AgentSimulator", "GUI add-on", None, "Swing editor adding agents to the world model",
-         command="cmion-mesh wm set"),
+         command="cmion-mesh wm get|tree|set|add|remove|watch"),
+    Port("cmion.addOns.manipulators.AgentSimulator", "GUI add-on", None,
+         "Swing editor adding agents to the world model: `wm add robot Visitor present=true` adds one with its "
+         "properties (minds hear it added), `wm remove robot Visitor` takes it away; in code, "
+         "`MeshClient.add_entity` / `RunContext.wm_add`", command="cmion-mesh wm add|remove"),
     Port("cmion.addOns.simulators.WorldModelSimulator", "GUI add-on", None, "Swing world-model simulator",
-         command="cmion-mesh wm set|remove"),
+         command="cmion-mesh wm add|set|remove"),
     Port("cmion.addOns.manipulators.RemoteActionSimulator", "GUI add-on", None,
-         "Swing GUI raising remote actions; no command raises one yet: `cmion-mesh act` sends the body's own actions, "
-         "a component raises a RemoteAction event", command="cmion-mesh act (body actions only)"),
+         "Swing GUI raising remote actions: `remote-action robot Greet Spirit --subject Visitor` makes the embodiment's "
+         "minds perceive another agent's action (FAtiMA hears ACTION-FINISHED Visitor Greet Spirit); in code, "
+         "`MeshClient.remote_action` / `RunContext.remote_action`", command="cmion-mesh remote-action"),
     # --- abstract bases: subclass the cmion-mesh class instead --------------------------------------
     Port("cmion.architecture.CmionComponent", "base class", "cmion_mesh.ion:Component", "every CMION component"),
     Port("cmion.level2.Competency", "base class", "cmion_mesh.competency:Competency", "every competency"),

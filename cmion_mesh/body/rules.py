@@ -26,7 +26,8 @@ are those current at that moment, not at action arrival:
 * ``$BB(name)`` - a blackboard value; ``name`` may be a ``container/property`` path and may not
   contain parentheses;
 * ``$WM(entity.property)`` - a world-model value; the *first* dot separates entity from property,
-  so entity names cannot contain a dot (property names may).
+  so entity names cannot contain a dot there (property names may); ``$WM(entity/property)`` is
+  the same, its dots literal (``keys.store_path``: the grammar of every world-model path).
 
 A value that is exactly one token yields the looked-up value with its own type (an ``int`` from
 the blackboard stays an ``int``); otherwise each token is replaced by ``str(value)`` in one pass,
@@ -55,8 +56,8 @@ from typing import Any
 
 from lxml import etree
 
-from cmion_mesh import xmlsafe
-from cmion_mesh.errors import ConfigError, PlanError, StorageError
+from cmion_mesh import keys, xmlsafe
+from cmion_mesh.errors import ConfigError, InvalidName, PlanError, StorageError
 from cmion_mesh.mind import MindAction
 
 __all__ = [
@@ -438,8 +439,13 @@ def _token_problem(value: str, parameter_count: int) -> str | None:
 
 
 def _split_wm(inner: str) -> tuple[str, str] | None:
-    entity, dot, prop = inner.partition(".")
-    return (entity, prop) if dot and entity and prop else None
+    """``(container, property)`` of a ``$WM(...)`` path, as every read and write of the world model
+    takes it (``keys.store_path``); None unless it names a property of an entity."""
+    try:
+        container, name = keys.property_path(keys.WORLD_MODEL, inner)
+    except InvalidName:
+        return None
+    return (container, name) if container else None
 
 
 def _check_graph(plan: Plan, label: str, path: str) -> None:

@@ -1,5 +1,5 @@
-"""One-shot commands that ask the mesh or act on it: ``peers``, ``act``, ``cancel``, ``migrate``,
-``invite``, ``custody``."""
+"""One-shot commands that ask the mesh or act on it: ``peers``, ``act``, ``cancel``,
+``remote-action``, ``migrate``, ``invite``, ``custody``."""
 
 from __future__ import annotations
 
@@ -118,6 +118,36 @@ def cmd_cancel(args: argparse.Namespace) -> int:
         key = keys.request_key(args.mesh, args.embodiment, "manager", "cancel")
         require_accepted(client.cancel(args.embodiment, args.action_id), key)
     print(json.dumps({"action_id": args.action_id, "cancel": "accepted"}) if args.json else f"cancel of {args.action_id} accepted")
+    return ExitCode.OK
+
+
+def remote_action_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Tell an embodiment's minds that another agent did an action: they perceive it as a remote "
+                     "action (FAtiMA hears ACTION-FINISHED SUBJECT NAME PARAMETERS), as from a sensor that saw it "
+                     "(CMION's RemoteActionSimulator). The name, each parameter and the subject are one word each. "
+                     "Unlike `act`, nothing is run: the body only perceives.")
+    p.epilog = "example: cmion-mesh remote-action robot Greet Spirit --subject Visitor"
+    p.add_argument("embodiment", help="the embodiment whose minds perceive it")
+    p.add_argument("action", help="the action's name, e.g. Greet")
+    p.add_argument("parameters", nargs="*", help="its parameters, e.g. Spirit")
+    p.add_argument("--subject", default="", help="the agent who acted (default: none said; FAtiMA hears World)")
+    join_timeout_option(p)
+    mesh_options(p)
+
+
+def cmd_remote_action(args: argparse.Namespace) -> int:
+    with session(args) as client:
+        client.join(args.embodiment, timeout=args.join_timeout)
+        minds = client.remote_action(args.embodiment, args.action, args.parameters, args.subject)
+    action = " ".join([args.action, *args.parameters])
+    if args.json:
+        print(json.dumps({"embodiment": args.embodiment, "name": args.action, "parameters": args.parameters,
+                          "subject": args.subject, "minds": minds}))
+    elif minds:
+        print(f"{args.embodiment}: {', '.join(minds)} perceived {args.subject or 'someone'} do {action}")
+    else:
+        print(f"{args.embodiment}: raised {args.subject or 'someone'} do {action}; no mind of its own is awake to perceive "
+              "it (a mind served from another process hears it)")
     return ExitCode.OK
 
 

@@ -51,6 +51,8 @@ COMMANDS: dict[str, Command] = {
     "act": Command("actions", "act_arguments", "cmd_act",
                    "send a mind action to an embodiment and wait for its outcome (exit code says it)"),
     "cancel": Command("actions", "cancel_arguments", "cmd_cancel", "cancel a running action"),
+    "remote-action": Command("actions", "remote_action_arguments", "cmd_remote_action",
+                             "tell an embodiment's minds that another agent did an action (CMION's RemoteActionSimulator)"),
     "events": Command("observe", "events_arguments", "cmd_events", "follow the event stream (filterable)"),
     "record": Command("recording", "record_arguments", "cmd_record",
                       "record everything the mesh says to an MCAP file (record info FILE: summarise one)"),

@@ -17,7 +17,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.competency import RunContext
 from cmion_mesh.errors import ConfigError, MeshError, RequestRejected
-from cmion_mesh.messages import AddContainer, Code, RemoveProperty, SetProperty
+from cmion_mesh.messages import CONTAINER_KIND, AddContainer, Code, RemoveProperty, SetProperty
 from cmion_mesh.storage import Store
 
 log = logging.getLogger(__name__)
@@ -26,8 +26,8 @@ log = logging.getLogger(__name__)
 SELF = "Self"
 #: The BB container through which tests and the demo simulate the world.
 SIM = "sim"
-#: Kind given to blackboard containers these competencies create.
-BB_CONTAINER = "container"
+#: Kind given to blackboard containers these competencies create (as ``RunContext.bb_set`` does).
+BB_CONTAINER = CONTAINER_KIND
 
 _TRUE = {"true", "yes", "1"}
 
@@ -121,9 +121,8 @@ def remove_property(ctx: RunContext, store: str, container: str, name: str) -> N
 
 
 def bb_set(ctx: RunContext, path: str, value: Any) -> None:
-    """Set the blackboard property ``container/name``, creating its container (``RunContext.bb_set`` does not)."""
-    container, _, name = path.rpartition("/")
-    set_property(ctx, keys.BLACKBOARD, container, name, value, kind=BB_CONTAINER)
+    """Set the blackboard property ``container/name``, creating its container (``RunContext.bb_set``)."""
+    ctx.bb_set(path, value)
 
 
 def bb_remove(ctx: RunContext, path: str) -> None:
