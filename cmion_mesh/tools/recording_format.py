@@ -62,7 +62,7 @@ STORAGE_SCHEMA = "cmion_mesh.StorageSample"
 LIVELINESS_SCHEMA = "cmion_mesh.Liveliness"
 RAW_SCHEMA = "cmion_mesh.RawSample"
 ANSWER_SCHEMA = "cmion_mesh.RequestAnswered"
-#: Foxglove's well-known schema of a log line (https://docs.foxglove.dev/docs/visualization/message-schemas/log).
+#: Foxglove's well-known schema of a log line (foxglove/foxglove-sdk, schemas/jsonschema/Log.json).
 LOG_SCHEMA = "foxglove.Log"
 #: Liveliness token kinds recorded, each one channel.
 TOKEN_KINDS = (keys.ALIVE, keys.CLAIM, keys.COMPETENCY, keys.CUSTODY)
