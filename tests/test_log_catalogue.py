@@ -23,6 +23,7 @@ from cmion_mesh.body.rules import load_rules
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Act, MindMessage
 from cmion_mesh.minds.fatima.connector import FAtiMAConnector
+from cmion_mesh.presence import Presence
 from cmion_mesh.requests import send_request
 from cmion_mesh.testing.fatima_peer import Peer
 from cmion_mesh.testing.wait import wait_for
@@ -157,6 +158,24 @@ def test_a_migration_and_the_action_that_moves_it_back_are_one_line_a_step(
 
     text = log_file.raw()
     assert keys_seen and not [s for s in keys_seen if s in text], "a custody private key reached the log"
+
+
+def test_the_embodiments_alive_before_a_listener_came_are_told_to_it(network: MemoryNetwork, mesh: str) -> None:
+    # An embodiment starts listening to its presence just after opening it: the peers the watch
+    # delivers in between would otherwise never be logged as joined.
+    with MemoryTransport(network, "robot") as robot, MemoryTransport(network, "screen") as screen:
+        token = robot.declare_token(keys.alive_key(mesh, "robot"))
+        presence = Presence(screen, mesh)
+        try:
+            wait_for(lambda: presence.alive() == {"robot"}, 5, "robot seen alive")
+            told: list[tuple[str, bool]] = []
+            with presence.listen(lambda name, alive: told.append((name, alive)), replay=True):
+                assert told == [("robot", True)]
+                token.close()
+                wait_for(lambda: told == [("robot", True), ("robot", False)], 5, "robot seen leaving")
+        finally:
+            presence.close()
+            token.close()
 
 
 def test_an_action_and_the_actions_refused_at_once_end_in_one_line_and_a_count(log_file: LogFile, tmp_path: Path,

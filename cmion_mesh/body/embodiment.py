@@ -116,7 +116,7 @@ class Embodiment:
             if state_dir is not None:
                 self._state_lock = StateLock(state_dir)
             self.presence = Presence(self.transport, self.mesh)
-            self._peers = self.presence.listen(self._on_peer)
+            self._peers = self.presence.listen(self._on_peer, replay=True)  # the peers already known too
             if joined is not None:
                 self._claim = joined.result()
             elif join is not None:

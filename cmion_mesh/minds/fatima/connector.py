@@ -195,8 +195,8 @@ class FAtiMAConnector(Mind):
         for fact, value in facts.items():
             self._blackboard(SetProperty(self.name, fact, value))
         self.raise_event("MindConnected", {"mind": self.name, "agent": hello.agent, "peer": link.peer, "role": hello.role})
-        logs.event(log, f"FAtiMA mind {hello.agent} at {link.peer} connected to {self.name}", mind=self.name, agent=hello.agent, peer=link.peer,
-                   role=hello.role)
+        logs.event(log, f"FAtiMA mind {hello.agent} at {link.peer} connected to {self.name}", mind=self.name, agent=hello.agent,
+                   peer=link.peer, role=hello.role)
         if self._arrival is not None and self.options.migrating:
             self._set_state(link)
         elif not self.awake:
