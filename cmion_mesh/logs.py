@@ -4,7 +4,8 @@ Modules log as they always do (``log = logging.getLogger(__name__)``); ``configu
 where the lines go and how they look, for the whole process:
 
 * ``text`` (the default): one line per record, ``2026-11-26T19:00:00.123Z INFO
-  cmion_mesh.migration robot: companion arrived epoch=7 duration_s=0.412``: the time in UTC with
+  cmion_mesh.migration.incoming screen: companion spirit arrived from robot step=active
+  companion=spirit peer=robot epoch=7 attempt=30ca... duration_s=0.412``: the time in UTC with
   milliseconds, the level, the logger, the embodiment (when known), the message, then the
   record's fields as ``name=value`` (values with spaces or quotes are JSON strings). Control
   characters in a message are escaped, so what a peer sends cannot forge a line or drive a terminal.
@@ -15,6 +16,9 @@ where the lines go and how they look, for the whole process:
 
 Lines go to standard error (which journald captures under systemd) or, with ``file``, to a file
 that may be rotated by logrotate (``WatchedFileHandler`` reopens it once it is moved).
+
+What each module writes at info (the catalogue of lines, their messages and fields) is listed in
+docs/deploy.md, "Logs".
 
 Fields: ``event(log, "companion arrived", epoch=7, duration_s=0.4)``, or
 ``log.info("...", extra={"fields": {...}})``. ``event`` builds nothing unless the level is on;
@@ -84,9 +88,16 @@ _CONTROL: Final = re.compile(r"[\x00-\x1f\x7f]")
 _PLAIN: Final = re.compile(r"[^\s\"'=\\\x00-\x1f\x7f]+")
 _PLAIN_NAME: Final = re.compile(r"[^\s\"':=\\\x00-\x1f\x7f]+")
 
+#: Values that are no table, known without asking the ``Mapping`` ABC (a line's usual fields).
+_SCALARS: Final = frozenset({int, float, bool, type(None)})
+
 _lock = threading.Lock()
 _installed: logging.Handler | None = None
 _root_level: int | None = None  # the root logger's level before ``configure``, for ``unconfigure``
+#: What every record notes of its thread and process (``logging.logThreads``...): neither format
+#: writes it, and looking it up is a third of what making a record costs. Off while configured.
+_RECORD_EXTRAS: Final = ("logThreads", "logProcesses", "logMultiprocessing")
+_record_extras: dict[str, Any] = {}  # their values before ``configure``, for ``unconfigure``
 _embodiment: str | None = None
 _throttles: weakref.WeakSet[Throttle] = weakref.WeakSet()
 
@@ -102,9 +113,16 @@ def is_secret(name: str) -> bool:
 def redact(fields: Mapping[str, Any]) -> dict[str, Any]:
     """``fields`` with the value of every secret-named field (in nested tables too) replaced, and
     secret URL parameters scrubbed from the values that are text."""
-    return {name: REDACTED if is_secret(str(name)) else redact(value) if isinstance(value, Mapping)
-            else scrub(value) if isinstance(value, str) else value
-            for name, value in fields.items()}
+    out: dict[str, Any] = {}
+    for name, value in fields.items():
+        if is_secret(str(name)):
+            value = REDACTED
+        elif isinstance(value, str):
+            value = scrub(value)
+        elif type(value) not in _SCALARS and isinstance(value, Mapping):  # the ABC's check is the slow one: last
+            value = redact(value)
+        out[name] = value
+    return out
 
 
 def scrub(text: str) -> str:
@@ -122,14 +140,27 @@ def event(log: logging.Logger, msg: str, /, *, level: int = logging.INFO, **fiel
     """Log ``msg`` with structured ``fields`` (see the module's description), only when ``level``
     is on for ``log``."""
     if log.isEnabledFor(level):
-        log.log(level, msg, extra={"fields": fields}, stacklevel=2)
+        # The record is made here rather than by ``log.log``: its caller is the frame above, known,
+        # and the standard library's search for it (``findCaller``) is a third of what a line costs.
+        caller = sys._getframe(1)
+        code = caller.f_code
+        log.handle(log.makeRecord(log.name, level, code.co_filename, caller.f_lineno, msg, (), None, code.co_name,
+                                  {"fields": fields}))
 
 
 # --- formats --------------------------------------------------------------------------------------
 
 
+_second: tuple[int, str] = (-1, "")  # the last whole second written, and its text
+
+
 def _timestamp(record: logging.LogRecord) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z"
+    global _second
+    whole = int(record.created)
+    second = _second
+    if second[0] != whole:  # a new second: formatted once, not for every line in it
+        second = _second = (whole, time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(whole)))
+    return f"{second[1]}.{int(record.msecs):03d}Z"
 
 
 def _parts(record: logging.LogRecord) -> tuple[str, str | None, dict[str, Any]]:
@@ -140,10 +171,26 @@ def _parts(record: logging.LogRecord) -> tuple[str, str | None, dict[str, Any]]:
 
 
 def _escape(text: str) -> str:
+    if text.isprintable():  # no control character in it (the common case, and a fast test)
+        return text
     return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
 
 
+@functools.lru_cache(maxsize=1024)  # field names are few, and written again and again
+def _field_name(name: str) -> str:
+    return _escape(name)
+
+
 def _text_value(value: Any) -> str:
+    kind = type(value)  # the common types first, without the general path's work
+    if kind is str:
+        return value if _PLAIN.fullmatch(value) else json.dumps(value, ensure_ascii=False)
+    if kind is int:
+        return str(value)
+    if value is None:
+        return "null"
+    if kind is bool:
+        return "true" if value else "false"
     if isinstance(value, str):
         return value if _PLAIN.fullmatch(value) else json.dumps(value, ensure_ascii=False)
     if isinstance(value, float):
@@ -154,15 +201,40 @@ def _text_value(value: Any) -> str:
         return json.dumps(str(value), ensure_ascii=False)
 
 
+@functools.lru_cache(maxsize=64)
+def _embodiment_text(name: str) -> str:
+    # A name may hold spaces or a colon: then it is quoted, so that the line still parses.
+    return name if _PLAIN_NAME.fullmatch(name) else json.dumps(name, ensure_ascii=False)
+
+
+def _text_field(name: str, value: Any) -> str:
+    """A field's value as a text line writes it, redacted as ``redact`` says (one pass: no copy)."""
+    if is_secret(name):
+        return REDACTED
+    if type(value) is str and "=" not in value:  # the common case first: a plain value, no URL in it
+        return value if _PLAIN.fullmatch(value) else json.dumps(value, ensure_ascii=False)
+    if isinstance(value, str):
+        value = scrub(value)
+    elif type(value) not in _SCALARS and isinstance(value, Mapping):
+        value = redact(value)
+    return _text_value(value)
+
+
 class TextFormatter(logging.Formatter):
     """``2026-11-26T19:00:00.123Z INFO cmion_mesh.migration robot: message name=value``."""
 
     def format(self, record: logging.LogRecord) -> str:
-        msg, embodiment, fields = _parts(record)
+        # ``_parts`` and ``redact`` unrolled: a line is formatted on the thread that logs it (the
+        # update loop, at an action's end), so it costs what it must and no more.
+        embodiment = getattr(record, "embodiment", None) or _embodiment
         head = f"{_timestamp(record)} {record.levelname} {record.name}"
-        if embodiment:  # a name may hold spaces or a colon: then it is quoted, so the line still parses
-            head += " " + (embodiment if _PLAIN_NAME.fullmatch(embodiment) else json.dumps(embodiment, ensure_ascii=False))
-        line = f"{head}: {_escape(msg)}" + "".join(f" {_escape(str(name))}={_text_value(value)}" for name, value in fields.items())
+        if embodiment:
+            head += " " + _embodiment_text(embodiment)
+        line = f"{head}: {_escape(scrub(record.getMessage()))}"
+        fields = getattr(record, "fields", None)
+        if fields and isinstance(fields, Mapping):
+            line += "".join([f" {_field_name(name)}={_text_field(name, value)}"
+                             for name, value in ((str(n), v) for n, v in fields.items())])
         if record.exc_info:
             line += "\n" + self.formatException(record.exc_info)
         elif record.stack_info:
@@ -231,8 +303,9 @@ def level_number(level: str | int) -> int:
 def configure(level: str | int = "info", fmt: str = "text", file: str | Path | None = None) -> logging.Handler:
     """Send every log line of the process at ``level`` and above to standard error, or to ``file``
     (appended to), in format ``fmt`` (``text`` or ``json``). Called again, it replaces what it
-    installed before (nothing else: handlers others added stay). ``ConfigError`` for an unknown
-    level or format, or a file that cannot be opened."""
+    installed before (nothing else: handlers others added stay). While configured, records do not
+    note their thread and process (neither format writes them; ``unconfigure`` restores it).
+    ``ConfigError`` for an unknown level or format, or a file that cannot be opened."""
     global _installed, _root_level
     number = level_number(level)
     if fmt not in FORMATS:
@@ -255,6 +328,9 @@ def configure(level: str | int = "info", fmt: str = "text", file: str | Path | N
             root.removeHandler(old)
         else:
             _root_level = root.level
+            _record_extras.update({name: getattr(logging, name) for name in _RECORD_EXTRAS})
+            for name in _RECORD_EXTRAS:
+                setattr(logging, name, False)
         root.addHandler(handler)
         root.setLevel(number)
     if old is not None:
@@ -272,6 +348,9 @@ def unconfigure() -> None:
         if old is not None:
             root.removeHandler(old)
             root.setLevel(_root_level if _root_level is not None else logging.WARNING)
+            for name, value in _record_extras.items():
+                setattr(logging, name, value)
+            _record_extras.clear()
     if old is not None:
         old.close()
         logging.captureWarnings(False)

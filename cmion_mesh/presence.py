@@ -50,10 +50,16 @@ class Presence(Handle):
         with self._cond:
             return self._cond.wait_for(lambda: predicate(self._alive), max(0.0, timeout))
 
-    def listen(self, listener: Listener) -> Closeable:
-        """``listener(name, alive)`` on every change from now on (on the transport's worker)."""
+    def listen(self, listener: Listener, *, replay: bool = False) -> Closeable:
+        """``listener(name, alive)`` on every change from now on (on the transport's worker). With
+        ``replay``, first ``listener(name, True)`` for each embodiment alive now, from this thread:
+        a listener added while the watch delivers the first tokens misses none of them (one may be
+        told twice, never left out of date)."""
         with self._cond:
             self._listeners.append(listener)
+            if replay:  # under the lock: no change is applied between the snapshot and its telling
+                for name in sorted(self._alive):
+                    listener(name, True)
         return _Listening(self, listener)
 
     def close(self) -> None:

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Message, Outcome, RequestAnswered, check_value, decode, encode
 from cmion_mesh.transport.base import Matching, Transport
@@ -32,6 +32,13 @@ log = logging.getLogger(__name__)
 DEFAULT_REQUEST_TIMEOUT = 10.0
 #: Bound of the cache of ``@outcome`` keys (cleared when full: request names are not ours to bound).
 MAX_OUTCOME_KEYS = 4096
+#: Refusals that are a step of a protocol, not news for a person: a target lacking sections says so
+#: with a refusal, and the source sends them (``migration.outgoing``). Logged at debug only.
+ROUTINE_REFUSALS = frozenset({Code.MISSING_SECTIONS})
+#: The sender named in the log for a request on a key without one (only handshake keys name theirs).
+UNNAMED = "(unnamed)"
+#: Characters of a refusal's reason written in its log line.
+MAX_REASON = 300
 
 
 class IncomingRequest:
@@ -85,7 +92,12 @@ class IncomingRequest:
 
 class Answers:
     """The answers one embodiment gave over the mesh. ``given`` is called from the loop and from the
-    transport's workers (refusals that need no component): the lock keeps the count exact."""
+    transport's workers (refusals that need no component): the lock keeps the count exact.
+
+    Each refusal is a log line at info (``refused <component>/<request> from <sender>``, fields
+    ``code``, ``sender``, ``component``, ``request``, ``reason``) through a ``logs.Throttle`` keyed
+    by the sender: a flood writes the first line of each sender a window and then one count, so it
+    cannot fill a disk. Accepted answers are only counted."""
 
     def __init__(self, transport: Transport, mesh: str, embodiment: str) -> None:
         self.transport = transport
@@ -97,6 +109,7 @@ class Answers:
         # so that an answer costs one attribute read when nobody does.
         self._listeners: Matching | None = None
         self._keys: dict[tuple[str, str], str] = {}
+        self._refused = logs.Throttle(log, "refused requests")
 
     def follow_listeners(self) -> None:
         """Start following who listens on ``@outcome`` (once; before the first queryable)."""
@@ -113,9 +126,21 @@ class Answers:
         counted = (outcome.status, outcome.code)
         with self._lock:
             self._counts[counted] = self._counts.get(counted, 0) + 1
+        if outcome.status != "accepted":
+            self._log_refusal(component, request, sender, outcome)
         listeners = self._listeners
         if listeners is not None and listeners.matching:
             self._tell(component, request, sender, outcome)
+
+    def _log_refusal(self, component: str, request: str, sender: str, outcome: Outcome) -> None:
+        reason = outcome.reason if len(outcome.reason) <= MAX_REASON else outcome.reason[:MAX_REASON] + "..."
+        if outcome.code in ROUTINE_REFUSALS:
+            logs.event(log, f"{component}/{request} from {sender or UNNAMED}: {outcome.code}", level=logging.DEBUG,
+                       code=str(outcome.code), sender=sender or None, component=component, request=request)
+            return
+        who = sender or UNNAMED
+        self._refused(who, "refused %s/%s from %s", component, request, who, code=str(outcome.code or outcome.status),
+                      sender=sender or None, component=component, request=request, reason=reason)
 
     def counts(self) -> dict[tuple[str, str], int]:
         """Answers given so far, by (status, code): a copy, from any thread."""
@@ -141,6 +166,7 @@ class Answers:
     def close(self) -> None:
         if self._listeners is not None:
             self._listeners.close()
+        self._refused.flush()  # the counts of the last window: the embodiment stops
 
 
 def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:

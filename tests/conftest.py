@@ -149,6 +149,8 @@ TIERS: dict[str, str] = {
     "test_statedir": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
+    "test_log_catalogue": "unit",
+    "test_log_daemons": "mesh",
     "test_logs": "unit",
     "test_ops_settings": "unit",
     "test_ops_systemd": "unit",

@@ -7,6 +7,10 @@ With ``join`` (what the daemon passes) it first claims its name in the mesh and 
 when a live embodiment holds it (``claim.NameClaim``), and a companion it would give birth to
 is not born when a live embodiment already hosts it. With a ``state_dir`` it holds that folder
 (``statedir.StateLock``): two daemons never share one.
+
+Other embodiments joining and leaving the mesh are log lines at info (``peer <name> joined`` /
+``peer <name> left``, field ``peer``), through throttles keyed by the peer: a peer whose token
+comes and goes many times a second writes a line and a count per window, not a line each time.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh import __version__, keys
+from cmion_mesh import __version__, keys, logs
 from cmion_mesh.body.architecture import embodiment_name, load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
 from cmion_mesh.body.library import load_library, table_for_library
@@ -99,6 +103,9 @@ class Embodiment:
         self._claim: NameClaim | None = None
         self._state_lock: StateLock | None = None
         self.presence: Presence | None = None
+        self._peers: Closeable | None = None
+        self._joins = logs.Throttle(log, "joins")
+        self._departures = logs.Throttle(log, "departures")
         if transport is None:
             # Imported here for start time: an embodiment on a given transport (the tests' memory
             # transport) never loads zenoh.
@@ -111,6 +118,7 @@ class Embodiment:
             if state_dir is not None:
                 self._state_lock = StateLock(state_dir)
             self.presence = Presence(self.transport, self.mesh)
+            self._peers = self.presence.listen(self._on_peer, replay=True)  # the peers already known too
             if joined is not None:
                 self._claim = joined.result()
             elif join is not None:
@@ -206,6 +214,14 @@ class Embodiment:
                     return None
         return companion
 
+    def _on_peer(self, name: str, alive: bool) -> None:
+        # On the transport's worker (the presence watch): a line, nothing that waits.
+        if name != self.name:
+            if alive:
+                self._joins(name, "peer %s joined", name, peer=name)
+            else:
+                self._departures(name, "peer %s left", name, peer=name)
+
     def _carry_persistent(self, event: Event) -> None:
         """The world model's persistent properties belong to the companion: packed into its identity
         when it leaves (a section of the world model's name), set here when it arrives."""
@@ -230,8 +246,9 @@ class Embodiment:
         keeps = self._claim.keeps_name()
         rule = ("this one is the older and keeps the name" if keeps else
                 "the other one is older and keeps the name: stop this one")
-        log.error("DUPLICATE EMBODIMENT: another daemon named %r is in mesh %r (zenoh id %s); %s",
-                  self.name, self.mesh, ", ".join(zenoh_ids), rule)
+        logs.event(log, f"DUPLICATE EMBODIMENT: another daemon named {self.name!r} is in mesh {self.mesh!r} "
+                        f"(zenoh id {', '.join(zenoh_ids)}); {rule}", level=logging.ERROR, peer=self.name, zenoh_ids=zenoh_ids,
+                   keeps_name=keeps)
         self.sim.raise_event("embodiment", "DuplicateEmbodiment",
                              {"name": self.name, "others": zenoh_ids, "keeps_name": keeps, "rule": rule})
 
@@ -298,7 +315,7 @@ class Embodiment:
         if token is not None:
             token.close()
         self.sim.close()
-        for handle in (self._claim, self.presence, self._state_lock):
+        for handle in (self._peers, self._claim, self.presence, self._state_lock):
             if handle is not None:
                 handle.close()
         if self._owns_transport:

@@ -18,18 +18,25 @@ Rules are tried most specific first (see ``rules``); within a rule its plans in 
 plan that needs a competency type this embodiment does not have is skipped (as CMION did); when a
 plan fails, the next untried candidate runs; when none is left the action fails with every
 reason collected.
+
+Each action's end is one log line at info (``action <name> <outcome>``, fields ``action``,
+``action_id``, ``outcome``, ``duration_s``, ``rule``, ``attempts``, ``reason``); an action that
+fails at once (no rule, no executable plan) ends the same way, through a throttle keyed by its
+name, since a peer can send those as fast as it likes. Nothing is logged per attempt at info.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import math
+import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import msgspec
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.body.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
 from cmion_mesh.body.rules import Plan, Rule, RuleSet
 from cmion_mesh.errors import MeshError
@@ -37,6 +44,8 @@ from cmion_mesh.ion import Component
 from cmion_mesh.messages import Act, ActionReport, ActionState, ActionStatus, CancelAction, Code, RunStatus
 from cmion_mesh.mind import MindAction
 from cmion_mesh.requests import IncomingRequest
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(eq=False)
@@ -49,6 +58,7 @@ class _Active:
     attempts: int = 0
     reasons: list[str] = field(default_factory=list)
     cancel_requested: bool = False
+    started: float = field(default_factory=time.monotonic)
 
 
 #: Longest plan deadline an action may ask for (a day).
@@ -72,6 +82,7 @@ class CompetencyManager(Component):
         self._active: dict[str, _Active] = {}
         self._finished: OrderedDict[str, ActionReport] = OrderedDict()
         self._ids = itertools.count(1)
+        self._failed_at_once = logs.Throttle(log, "actions failed at once")
 
     @property
     def active(self) -> list[str]:
@@ -128,6 +139,7 @@ class CompetencyManager(Component):
             reason = f"no rule matches action {action.describe()!r}: {self.rules.why_no_match(action)}"
             request.reject(reason, Code.NOT_FOUND)
             self._report("ActionFailed", act, "failed", reason)
+            self._log_failed_at_once(act, reason)
             return
         types = self.execution.types()
         candidates: deque[tuple[Rule, Plan]] = deque()
@@ -143,6 +155,7 @@ class CompetencyManager(Component):
             reason = f"no executable plan for {action.describe()!r}: " + "; ".join(skipped)
             request.reject(reason, Code.NOT_FOUND)
             self._report("ActionFailed", act, "failed", reason)
+            self._log_failed_at_once(act, reason)
             return
         active = _Active(act, action, candidates, reasons=skipped)
         self._active[action_id] = active
@@ -193,6 +206,18 @@ class CompetencyManager(Component):
         if self._active.pop(active.act.action_id, None) is None:
             return
         self._report(event, active.act, status, reason, active.rule, active.attempts)
+        if log.isEnabledFor(logging.INFO):
+            act = active.act
+            logs.event(log, f"action {act.name} {status}", action=act.name, action_id=act.action_id, outcome=status,
+                       duration_s=round(time.monotonic() - active.started, 4), rule=active.rule or None,
+                       attempts=active.attempts, reason=reason or None)
+
+    def detach(self) -> None:
+        self._failed_at_once.flush()
+
+    def _log_failed_at_once(self, act: Act, reason: str) -> None:
+        self._failed_at_once(act.name, "action %s failed", act.name, action=act.name, action_id=act.action_id,
+                             outcome="failed", duration_s=0.0, rule=None, attempts=0, reason=reason)
 
     def _report(self, event: str, act: Act, status: ActionState, reason: str = "", rule: str = "", attempt: int = 0) -> None:
         report = ActionReport(act.action_id, act.name, list(act.parameters), act.subject, status, reason, rule, attempt)

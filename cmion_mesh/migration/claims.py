@@ -34,7 +34,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.messages import Code, MigrateChain
 from cmion_mesh.migration import custody, signing
@@ -226,7 +226,9 @@ class Claims:
             holder, companion, epoch_text = key.split("/")[-3:]
             epoch = int(epoch_text)
         except ValueError:
-            log.warning("ignored custody token %s: not <holder>/<companion>/<epoch>", key)
+            if self.host.quiet.allow(f"token:{key.split('/')[-3] if key.count('/') >= 2 else key}") is not None:
+                logs.event(log, f"ignored custody token {key}: not <holder>/<companion>/<epoch>", level=logging.WARNING,
+                           keyexpr=key)
             return
         with self._lock:
             tokens = self._tokens.setdefault(companion, set())
@@ -294,8 +296,10 @@ class Claims:
         muted = self.host.quiet.allow(f"claim:{holder}")
         if muted is not None:
             more = f" ({muted} more of its claims ignored since the last report)" if muted else ""
-            log.warning("ignored the custody claim of %r on %r at epoch %d: %s. A custody token is a hint, not proof: "
-                        "only a claim backed by its chain of custody counts%s", holder, companion, epoch, why, more)
+            logs.event(log, f"ignored the custody claim of {holder!r} on {companion!r} at epoch {epoch}: {why}. A custody "
+                            f"token is a hint, not proof: only a claim backed by its chain of custody counts{more}",
+                       level=logging.WARNING, conflict="unbacked_claim", companion=companion, epoch=epoch, peer=holder,
+                       muted=muted)
 
     def _checked(self, key: ClaimKey) -> None:
         self.host.post(self._on_checked, key[1])

@@ -20,6 +20,11 @@ damaged at start and never run (``unbacked``).
 
 Threads: all of it runs on the loop (``check_conflict`` is posted there when a claim is found
 backed); ``frozen`` and ``superseded_by`` are the loop's.
+
+Each conflict is one log line (``custody of <companion>: ...``; fields ``companion``, ``epoch``
+(this copy's), ``peer`` (the other holder), and ``peer_epoch``, ``equivocator`` where known): a
+copy superseded or frozen by a fork at error, a fork refused from an offer at error (once a minute
+per equivocator), standing down and resuming as an operator resolves it at warning.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from cmion_mesh import logs
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import Code, CustodyResume, CustodyStandDown
 from cmion_mesh.migration import custody, handshake, signing
@@ -144,9 +150,11 @@ class Forks:
         self.clear()
         host.sleep_minds()
         host.withdraw_claim()
-        log.error("custody of %s moved on without this copy: %r holds it at epoch %d, by a link that this embodiment's "
-                  "custody key of epoch %d signed to %r (a state folder rolled back?): this copy stands down for good",
-                  record.companion, claim.holder, claim.epoch, record.epoch, released.link.holder)
+        logs.event(log, f"custody of {record.companion} moved on without this copy: {claim.holder!r} holds it at epoch "
+                        f"{claim.epoch}, by a link that this embodiment's custody key of epoch {record.epoch} signed to "
+                        f"{released.link.holder!r} (a state folder rolled back?): this copy stands down for good",
+                   level=logging.ERROR, conflict="superseded", companion=record.companion, epoch=record.epoch,
+                   peer=claim.holder, peer_epoch=claim.epoch)
         host.raise_event("CustodySuperseded", {"companion": record.companion, "holder": claim.holder, "epoch": claim.epoch,
                                                "handed_to": released.link.holder, "handed_at": record.epoch + 1})
 
@@ -166,19 +174,23 @@ class Forks:
         self.frozen = freeze
         host.sleep_minds()
         for claim, fork in new:
-            log.error("CUSTODY FORK of %s: %s. This embodiment holds one branch (epoch %d), %r the other (epoch %d). No "
-                      "branch wins by itself: %s is frozen here until an operator resolves it (`cmion-mesh custody show %s`, "
-                      "then `%s`)%s", record.companion, fork.describe(), record.epoch, claim.holder, claim.epoch,
-                      record.companion, record.companion, RESOLVE.format(companion=record.companion),
-                      f"; revoke the equivocator: `cmion-mesh certs revoke PKI {fork.equivocator}`" if fork.equivocator else "")
+            logs.event(log, f"CUSTODY FORK of {record.companion}: {fork.describe()}. This embodiment holds one branch (epoch "
+                            f"{record.epoch}), {claim.holder!r} the other (epoch {claim.epoch}). No branch wins by itself: "
+                            f"{record.companion} is frozen here until an operator resolves it (`cmion-mesh custody show "
+                            f"{record.companion}`, then `{RESOLVE.format(companion=record.companion)}`)"
+                            + (f"; revoke the equivocator: `cmion-mesh certs revoke PKI {fork.equivocator}`" if fork.equivocator else ""),
+                       level=logging.ERROR, conflict="fork", companion=record.companion, epoch=record.epoch,
+                       peer=claim.holder, peer_epoch=claim.epoch, equivocator=fork.equivocator or None)
         host.raise_event("CustodyFork", {"companion": record.companion, "frozen": True, **fork_report(freeze, me)})
 
     def seen_fork(self, fork: custody.Fork, source: str) -> None:
         """A target refused an offer because of a proven fork: logged (per equivocator, quietly) and raised."""
         muted = self.host.quiet.allow(f"fork:{fork.companion}:{fork.equivocator}:{fork.epoch}")
         if muted is not None:
-            log.error("CUSTODY FORK of %s: %s (the offer of %r refused here). Equivocation: revoke it "
-                      "(`cmion-mesh certs revoke PKI %s`)", fork.companion, fork.describe(), source, fork.equivocator)
+            logs.event(log, f"CUSTODY FORK of {fork.companion}: {fork.describe()} (the offer of {source!r} refused here). "
+                            f"Equivocation: revoke it (`cmion-mesh certs revoke PKI {fork.equivocator}`)",
+                       level=logging.ERROR, conflict="fork_offered", companion=fork.companion, epoch=fork.epoch, peer=source,
+                       equivocator=fork.equivocator or None, muted=muted)
         self.host.raise_event("CustodyFork", {"companion": fork.companion, "frozen": False, "refused_from": source,
                                               "forks": [fork_summary(fork)], "equivocators": [fork.equivocator]})
 
@@ -198,9 +210,11 @@ class Forks:
                 return str(exc)
             if freeze is not None and freeze.branches.get(me) == list(record.chain) and freeze.forks(me):
                 self.frozen = freeze
-                log.error("custody of %s is frozen here by a fork of its chain (%s), until an operator resolves it: `%s`",
-                          record.companion, "; ".join(f.describe() for _, f in freeze.forks(me)),
-                          RESOLVE.format(companion=record.companion))
+                logs.event(log, f"custody of {record.companion} is frozen here by a fork of its chain "
+                                f"({'; '.join(f.describe() for _, f in freeze.forks(me))}), until an operator resolves it: "
+                                f"`{RESOLVE.format(companion=record.companion)}`",
+                           level=logging.ERROR, conflict="frozen", companion=record.companion, epoch=record.epoch,
+                           peer=sorted(h for h in freeze.branches if h != me))
             elif freeze is not None:
                 records.thaw(record.companion)  # evidence about a chain this record no longer holds
         return ""
@@ -242,9 +256,11 @@ class Forks:
         self.clear()
         host.sleep_minds()
         host.withdraw_claim()
-        log.warning("custody of %s: this copy (epoch %d) stood down for the branch of %r (epoch %d), as an operator "
-                    "resolved the fork%s", msg.companion, record.epoch, msg.keep, retired.epoch,
-                    f" ({fork.describe()})" if fork is not None else "")
+        logs.event(log, f"custody of {msg.companion}: this copy (epoch {record.epoch}) stood down for the branch of "
+                        f"{msg.keep!r} (epoch {retired.epoch}), as an operator resolved the fork"
+                        + (f" ({fork.describe()})" if fork is not None else ""),
+                   level=logging.WARNING, conflict="stood_down", companion=msg.companion, epoch=record.epoch,
+                   peer=msg.keep, peer_epoch=retired.epoch)
         host.raise_event("CustodyStoodDown", {"companion": msg.companion, "keep": msg.keep, "epoch": record.epoch,
                                               "kept_epoch": retired.epoch})
         request.accept({"state": retired.state, "epoch": retired.epoch})
@@ -269,8 +285,10 @@ class Forks:
             return
         host.records.thaw(msg.companion)
         self.frozen = None
-        log.warning("custody of %s: the fork is resolved (%s stood down); it runs here again", msg.companion,
-                    ", ".join(map(repr, msg.retired)) or "nobody else")
+        logs.event(log, f"custody of {msg.companion}: the fork is resolved "
+                        f"({', '.join(map(repr, msg.retired)) or 'nobody else'} stood down); it runs here again",
+                   level=logging.WARNING, conflict="resolved", companion=msg.companion, epoch=record.epoch,
+                   peer=list(msg.retired))
         host.raise_event("CustodyResolved", {"companion": msg.companion, "retired": list(msg.retired)})
         self.check_conflict()
         if self.frozen is not None:

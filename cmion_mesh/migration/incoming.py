@@ -26,6 +26,11 @@ Threads:
   drops an attempt at its bound (``_expire``);
 * one handshake thread per undecided attempt asks its source (``resolve_incoming``); it only reads
   the records and posts what it learnt to the loop (``_settle``).
+
+Log lines at info, one per step (fields ``companion``, ``peer`` (the source), ``epoch``,
+``attempt``, ``step``): ``incoming`` (the prepare recorded), ``active`` (the companion arrived:
+its new ``epoch`` and ``duration_s`` since the prepare was recorded), ``dropped`` (with its
+``reason``). Offers refused are the refused requests' lines.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from typing import Any
 
 import msgspec
 
+from cmion_mesh import logs
 from cmion_mesh.errors import MeshError, OutcomeUnknown
 from cmion_mesh.messages import Code, MigrateAbort, MigrateCommit, MigrateHave, MigratePrepare, MigrateStatus
 from cmion_mesh.migration import handshake
@@ -158,6 +164,7 @@ class Incoming:
                                     sections=carried, key=decision.key, replace=True)
         crash_point("target:incoming")
         host.step(incoming)
+        log_step(f"companion {msg.companion} incoming from {msg.source}", "incoming", incoming, msg.source)
         self.uploads.end(msg.source, prepared=True)
         for ref in decision.manifest.refs:
             if decision.sections is not None:
@@ -227,15 +234,21 @@ class Incoming:
             self._prepared.pop(msg.attempt, None)
             if host.identity is None:
                 host.withdraw_claim()
+            log_step(f"migration of {msg.companion} from {request.requester} dropped: the source aborted it", "dropped",
+                     decision.record, request.requester, attempt=msg.attempt, reason="aborted by the source")
             host.raise_event("MigrationDropped", {"companion": msg.companion, "attempt": msg.attempt,
                                                   "source": request.requester})
         request.answer(decision.outcome)
 
     def _activate(self, active: Record) -> None:
         host = self.host
+        before = host.records.get(active.companion)
+        since = before.since or before.updated if before is not None and before.state == "incoming" else 0.0
         active = host.records.put(active)
         crash_point("target:active")
         host.step(active)
+        log_step(f"companion {active.companion} arrived from {active.peer}", "active", active, active.peer,
+                 duration_s=round(max(0.0, time.time() - since), 4) if since else None)
         self.forks.clear()  # a frozen holder accepts no prepare: any evidence here was of a copy long gone
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
@@ -295,17 +308,25 @@ class Incoming:
             return
         reason = (f"{current.peer!r} neither committed nor aborted attempt {current.attempt} of {current.companion!r} "
                   f"within {self.timeout:g} s of its prepare")
-        log.warning("dropping the incoming migration: %s", reason)
-        self._drop(expired, reason)
+        self._drop(expired, reason, logging.WARNING)
 
-    def _drop(self, dropped: Record, reason: str) -> None:
+    def _drop(self, dropped: Record, reason: str, level: int = logging.INFO) -> None:
         """Loop: the attempt ``dropped`` ends here, durably first (the source is told ``dropped`` from
         this record on); the embodiment is free for the next migration."""
         host = self.host
         host.records.put(dropped)
+        log_step(f"migration of {dropped.companion} from {dropped.peer} dropped: {reason}", "dropped", dropped, dropped.peer,
+                 level=level, reason=reason)
         self._prepared.pop(dropped.attempt, None)
         self.uploads.end(dropped.peer, dropped.attempt)
         if host.identity is None:
             host.withdraw_claim()
         host.raise_event("MigrationDropped", {"companion": dropped.companion, "attempt": dropped.attempt,
                                               "source": dropped.peer, "reason": reason})
+
+
+def log_step(msg: str, step: str, record: Record, source: str, *, attempt: str | None = None, level: int = logging.INFO,
+             **more: Any) -> None:
+    """One line for a step of this side of the handshake, with the fields every step has."""
+    logs.event(log, msg, level=level, step=step, companion=record.companion, peer=source, epoch=record.epoch,
+               attempt=record.attempt if attempt is None else attempt, **more)

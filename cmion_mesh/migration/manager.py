@@ -48,6 +48,10 @@ Threads (each part's docstring says which of its methods runs where):
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
 SIGKILL right after writing that record (``host.crash_point``): the crash tests use it.
+
+Log lines: the steps of each side are ``outgoing``'s and ``incoming``'s; here, at info, a companion
+``born`` here and ``resumed`` here (fields ``companion``, ``epoch``, ``step``, ``reason``), and at
+error one that is damaged. Custody conflicts are ``forks``' and ``claims``'.
 """
 
 from __future__ import annotations
@@ -60,7 +64,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.ion import Component, Simulation
@@ -221,7 +225,7 @@ class MigrationManager(Component):
         if self.seed is not None and self.records.get(self.seed) is None and self.records.hosting() is None:
             self._give_birth(self.seed)
         for companion, error in self.damaged.items():
-            log.error("companion %s is damaged and will not run here: %s", companion, error)
+            _log_damaged(companion, error)
             self.raise_event("CompanionDamaged", {"companion": companion, "error": error})
         for record in self.records.all():
             if record.companion in self.damaged:
@@ -257,6 +261,7 @@ class MigrationManager(Component):
         self.records.put_key(companion, private)
         self.records.put(Record(companion, "active", 1, chain=chain, public_key=signing.encode_public(chain[0].public_key)),
                          document=packed.manifest, sections=packed.data)
+        logs.event(log, f"companion {companion} born here", step="born", companion=companion, epoch=1)
 
     def _adopt_legacy(self, record: Record) -> Record:
         """A record written before custody chains: an active companion starts its chain here (its old
@@ -301,7 +306,7 @@ class MigrationManager(Component):
 
     def _report_damaged(self, companion: str, error: str) -> None:
         self.damaged[companion] = error
-        log.error("companion %s is damaged and will not run here: %s", companion, error)
+        _log_damaged(companion, error)
         self.raise_event("CompanionDamaged", {"companion": companion, "error": error})
 
     # --- what the parts share (``host.Host``) ------------------------------------------------------
@@ -369,6 +374,8 @@ class MigrationManager(Component):
         record = self.records.get(companion)
         if record is not None:
             identity.epoch = record.epoch
+        logs.event(log, f"companion {companion} resumed here: {why}", step="resumed", companion=companion,
+                   epoch=identity.epoch, reason=why)
         self.inhabit(identity, "CompanionResumed", why)
 
     def inhabit(self, identity: Identity, event: str, why: str) -> None:
@@ -445,6 +452,11 @@ class MigrationManager(Component):
         self.refresh_sections(identity)
         self._keep(record, identity)
         request.accept(identity.sections.get(POLICY_SECTION))
+
+
+def _log_damaged(companion: str, error: str) -> None:
+    logs.event(log, f"companion {companion} is damaged and will not run here: {error}", level=logging.ERROR,
+               companion=companion, reason=error)
 
 
 class MigrationCompetency(Competency):

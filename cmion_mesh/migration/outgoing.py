@@ -32,6 +32,11 @@ Threads:
   then the ``prepared`` record that names them, and two send chunks, all joined before it goes on.
 
 ``start``, ``contribute``, ``resolve`` and ``refuse`` may be called from any thread.
+
+Log lines at info, one per step (fields ``companion``, ``peer`` (the target), ``epoch``,
+``attempt``, ``step``): ``started``, ``prepared``, ``handed`` (the commit point), ``released``
+(the companion left: ``duration_s`` from the start, and the new ``epoch``), ``aborted`` (with
+its ``reason``); a ``migrate`` refused before it starts is the refused request's line.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from __future__ import annotations
 import functools
 import logging
 import threading
+import time
 import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -46,7 +52,7 @@ from typing import Any
 
 import msgspec
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import MeshError, OutcomeUnknown
 from cmion_mesh.messages import (
     Code,
@@ -98,6 +104,7 @@ class Departure:
     waits: set[str] = field(default_factory=set)
     packed: bool = False
     transfer: dict[str, int] = field(default_factory=dict)  # bytes sent / of the document (handshake thread)
+    started: float = field(default_factory=time.monotonic)
 
 
 @dataclass(frozen=True)
@@ -206,6 +213,8 @@ class Outgoing:
         self.departure = out
         host.raise_event("MigrationStarting", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
                                                "epoch": out.epoch})
+        logs.event(log, f"migration of {out.companion} to {out.target} started", step="started", companion=out.companion,
+                   peer=out.target, epoch=out.epoch, attempt=out.attempt)
         host.sleep_minds()  # freeze: the companion acts nowhere until the handshake is decided
         # The event is dispatched in this update; sections are collected from the next one on.
         host.sim.call(functools.partial(self._maybe_pack, out))
@@ -264,6 +273,8 @@ class Outgoing:
 
     def _abandon(self, out: Departure, reason: str) -> None:
         self.departure = None
+        log_step(f"migration of {out.companion} to {out.target} aborted: {reason}", "aborted", out.companion, out.target,
+                 out.epoch, out.attempt, reason=reason)
         self.host.raise_event("MigrationFailed", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
                                                   "reason": reason})
         if not self.forks.halted:
@@ -318,6 +329,7 @@ class Outgoing:
                 return
             crash_point("source:prepared")
             host.post(host.step, written[0])
+            log_prepared(written[0])
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
         try:
@@ -349,6 +361,7 @@ class Outgoing:
                 return
             crash_point("source:prepared")
             host.post(host.step, prepared)
+            log_prepared(prepared)
         reply, unknown = self._prepare(out, message, packed, inline)
         after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
             else handshake.resume(prepared)
@@ -364,6 +377,8 @@ class Outgoing:
         handed = host.records.put(after)
         crash_point("source:handed")
         host.post(host.step, handed)
+        log_step(f"companion {handed.companion} handed to {handed.peer}", "handed", handed.companion, handed.peer,
+                 handed.epoch, handed.attempt)
         host.post(self._handed, out)
         self.commit_until_acked(handed)
 
@@ -482,7 +497,7 @@ class Outgoing:
                     return
                 if next_step == "resume" and record is not None:
                     host.records.put(record)
-                    host.post(self._taken_back, record, f"{handed.peer} dropped attempt {handed.attempt}")
+                    host.post(self._taken_back, record, handed, f"{handed.peer} dropped attempt {handed.attempt}")
                     return
                 if next_step == "abort":
                     host.ask(handed.peer, "abort", MigrateAbort(handed.companion, handed.epoch, handed.attempt))
@@ -525,10 +540,12 @@ class Outgoing:
         self.host.identity = None
         self.forks.clear()
 
-    def _taken_back(self, record: Record, why: str) -> None:
+    def _taken_back(self, record: Record, handed: Record, why: str) -> None:
         out = self.departure
         self.departure = None
         reason = f"migration of {record.companion!r} to {why}; the companion resumes here"
+        log_step(f"migration of {record.companion} to {handed.peer} aborted: {why}", "aborted", record.companion,
+                 handed.peer, handed.epoch, handed.attempt, reason=why)
         self.host.raise_event("MigrationFailed", {"companion": record.companion, "attempt": out.attempt if out else "",
                                                   "reason": reason})
         if out is not None and not out.future.done():
@@ -547,5 +564,18 @@ class Outgoing:
             data["transfer"] = dict(out.transfer)
             self.last_transfer = dict(out.transfer)
         host.raise_event("MigrationSucceeded", data)
+        log_step(f"companion {record.companion} left for {record.peer}", "released", record.companion, record.peer,
+                 record.epoch + 1, record.attempt,
+                 duration_s=round(time.monotonic() - out.started, 4) if out is not None and out.attempt == record.attempt else None)
         if out is not None and out.attempt == record.attempt and not out.future.done():
             out.future.set_result(Outcome("accepted", "", data))
+
+
+def log_step(msg: str, step: str, companion: str, peer: str, epoch: int, attempt: str, **more: Any) -> None:
+    """One info line for a step of this side of the handshake, with the fields every step has."""
+    logs.event(log, msg, step=step, companion=companion, peer=peer, epoch=epoch, attempt=attempt, **more)
+
+
+def log_prepared(record: Record) -> None:
+    log_step(f"companion {record.companion} prepared for {record.peer}", "prepared", record.companion, record.peer,
+             record.epoch, record.attempt)

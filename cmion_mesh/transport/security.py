@@ -33,6 +33,12 @@ Migration handshake keys are per sender: ``cmion/<mesh>/<target>/rq/migration/<o
 control lets ``S`` query only keys whose last chunk is ``S``, so a target knows the sender of a
 handshake message from the key it arrived on. A name revoked (``certs revoke``) is never admitted.
 
+A certificate that cannot be used (another name, another authority, expired, its key missing or
+not its own, a name not trusted) is a configuration error at start (exit code 2, naming the file);
+one or an authority that expires within ``EXPIRY_WARNING_DAYS`` is a warning in the log at every
+start (``certificate of <name> expires in <n> days``; fields ``identity``, ``cert``, ``expires``,
+``days_left``). What fails on a link later (a peer's certificate refused) is zenoh's to log.
+
 Only ``transport.zenoh`` imports zenoh: this module produces settings (json5 key, value) that
 reach the session through ``TransportConfig.overrides``.
 """
@@ -40,13 +46,14 @@ reach the session through ``TransportConfig.overrides``.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport.base import TransportConfig
 
@@ -54,6 +61,11 @@ if TYPE_CHECKING:
     # Imported where used: certificates mean cryptography, whose import costs every daemon start
     # time, and only secure mode needs them.
     from cmion_mesh.transport import certs
+
+log = logging.getLogger(__name__)
+
+#: A certificate (or the authority) that expires within this many days is a warning at each start.
+EXPIRY_WARNING_DAYS = 30
 
 #: Every message kind zenoh 1.10's access control knows (``AclMessage``).
 MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -209,6 +221,13 @@ def load_credentials(directory: str | os.PathLike[str], name: str, trust: certs.
         raise ConfigError(f"certificate expired on {cert.not_valid_after_utc:%Y-%m-%d}", path=str(cert_path))
     if not certs.same_key(cert, key):
         raise ConfigError(f"{key_path.name} does not belong to {cert_path.name}", path=str(key_path))
+    for what, held, path in (("certificate of " + name, cert, cert_path), ("the authority's certificate", ca, ca_path)):
+        left = held.not_valid_after_utc - certs._now()
+        if left.days < EXPIRY_WARNING_DAYS:
+            date = f"{held.not_valid_after_utc:%Y-%m-%d}"
+            when = f"expired on {date}" if left.total_seconds() <= 0 else f"expires in {left.days} days ({date})"
+            logs.event(log, f"{what} {when}: issue a new one, or the mesh refuses this process", level=logging.WARNING,
+                       identity=name, cert=str(path), expires=date, days_left=max(0, left.days))
     trust = trust if trust is not None else certs.Trust.load(folder)
     role = trust.role(name)
     if role is None:

@@ -31,6 +31,11 @@ page is read-only unless opened with ``?key=<key>``: watching stays open, but on
 the printed address may play a visitor, answer or type a command, since these become world-model
 writes on an authenticated mesh.
 
+Pages opening and closing are log lines at info (``web page connected`` / ``web page disconnected``;
+fields ``body``, ``client`` (its address), ``acts`` (whether it may act), ``pages`` (open now),
+``duration_s`` at the end), through throttles keyed by the client's address: a client opening
+sockets in a loop writes a line and a count per window. The page's key is never written.
+
 Threads: events reach the body on the update loop, competencies call it from their threads, the
 page talks to it on the web server's asyncio loop. State is guarded by one lock held only to
 copy or change it; the loops are crossed with ``WebServer.call_soon`` (never blocking).
@@ -57,7 +62,7 @@ from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from cmion_mesh import keys
+from cmion_mesh import keys, logs
 from cmion_mesh.errors import InvalidName, MeshError
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event
@@ -126,6 +131,8 @@ class WebBody(Component):
             "asking": None, "visitors": [], "senses": [], "layout": layout,
         }
         self._pages: set[_Page] = set()  # on the server's loop only
+        self._connects = logs.Throttle(log, "page connections")
+        self._disconnects = logs.Throttle(log, "page disconnections")
         self._server: WebServer | None = None
         self._subscription: Any = None
         self._closed = False
@@ -167,6 +174,8 @@ class WebBody(Component):
             self._subscription.close()
         if self._server is not None:
             self._server.close()
+        self._connects.flush()
+        self._disconnects.flush()
 
     def detach(self) -> None:
         self.close()
@@ -205,7 +214,11 @@ class WebBody(Component):
         return Response(wav, media_type="audio/wav", headers={"cache-control": "no-store"})
 
     async def _socket(self, socket: WebSocket) -> None:
+        client = f"{socket.client.host}:{socket.client.port}" if socket.client is not None else "?"
+        host = socket.client.host if socket.client is not None else "?"
         if not same_origin(socket.headers, loopback=self.loopback):
+            self._connects(host, "web page refused on %s: cross-origin", self.name, body=self.name, client=client,
+                           reason="cross-origin page")
             await socket.close(code=1008, reason="cross-origin page")
             return
         await socket.accept()
@@ -215,6 +228,9 @@ class WebBody(Component):
         page.latest = self.snapshot()
         page.ready.set()
         self._pages.add(page)
+        opened = time.monotonic()
+        self._connects(host, "web page connected to %s", self.name, body=self.name, client=client, acts=may_act,
+                       pages=len(self._pages))
         sender = asyncio.create_task(self._send_to(socket, page))
         try:
             while True:
@@ -228,6 +244,8 @@ class WebBody(Component):
             pass
         finally:
             self._pages.discard(page)
+            self._disconnects(host, "web page disconnected from %s", self.name, body=self.name, client=client,
+                              pages=len(self._pages), duration_s=round(time.monotonic() - opened, 3))
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await sender

@@ -37,18 +37,26 @@ that migrated it (as CMION's ``successMsg``) and ``ACTION-FAILED`` for the other
 connected when the companion arrives, the state is kept (and carried on, should the companion leave
 first) and set in the next mind that connects. Late answers (a ``STATE`` or ``STATE-SET`` whose
 request was given up) are logged and ignored.
+
+**Log lines.** A mind connecting is a line at info (``FAtiMA mind <agent> at <address> connected``)
+and one whose connection ends, not as the body stops, a line at warning (``FAtiMA mind <agent> at
+<address> disconnected``); fields ``mind`` (this connector), ``agent``, ``peer`` (its address), ``role``
+when connecting, ``reason``, ``cancelled`` (its running actions) and ``duration_s`` when
+disconnecting. Connections refused or closed before a handshake are ``link``'s warnings, a few a
+minute per host.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
+import time
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from cmion_mesh import keys, xmlsafe
+from cmion_mesh import keys, logs, xmlsafe
 from cmion_mesh.body.manager import CompetencyManager
 from cmion_mesh.errors import MeshError, XmlError
 from cmion_mesh.ion import Simulation
@@ -187,6 +195,8 @@ class FAtiMAConnector(Mind):
         for fact, value in facts.items():
             self._blackboard(SetProperty(self.name, fact, value))
         self.raise_event("MindConnected", {"mind": self.name, "agent": hello.agent, "peer": link.peer, "role": hello.role})
+        logs.event(log, f"FAtiMA mind {hello.agent} at {link.peer} connected to {self.name}", mind=self.name, agent=hello.agent,
+                   peer=link.peer, role=hello.role)
         if self._arrival is not None and self.options.migrating:
             self._set_state(link)
         elif not self.awake:
@@ -202,8 +212,9 @@ class FAtiMAConnector(Mind):
 
     def _disconnected(self, link: Link, why: str) -> None:
         """The mind's connection ended (not as the body stops)."""
-        log.warning("FAtiMA mind %s at %s disconnected (%s); its %d running action(s) are cancelled",
-                    link.agent, link.peer, why, len(self._running))
+        logs.event(log, f"FAtiMA mind {link.agent} at {link.peer} disconnected from {self.name} ({why}); its {len(self._running)} running "
+                        "action(s) are cancelled", level=logging.WARNING, mind=self.name, agent=link.agent, peer=link.peer,
+                   reason=why, cancelled=len(self._running), duration_s=round(time.time() - link.connected_at, 3))
         self.raise_event("MindDisconnected", {"mind": self.name, "agent": link.agent, "peer": link.peer, "reason": why})
         self._blackboard(SetProperty(self.name, "connected", False))
         for action_id in list(self._running):

@@ -505,7 +505,7 @@ class PlannerMind(Mind):
             return True
         self.in_flight = action_id
         self.actions_spent[goal.name] = spent + 1
-        log.info("mind %s acts for %r: %s (%s)", self.name, goal.name, step.describe(), action_id)
+        log.debug("mind %s acts for %r: %s (%s)", self.name, goal.name, step.describe(), action_id)  # the action's end is the body's line
         self._decide("act", goal=goal.name, action_id=action_id, step=step.to_data())
         return True
 
