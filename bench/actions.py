@@ -40,7 +40,8 @@ from bench.harness import Probe, interleaved, loopback_config, loopback_endpoint
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
 from cmion_mesh import keys
-from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
+from cmion_mesh.action_runs import ACTION_END_EVENTS
+from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Act, ActionReport, Event, MindMessage
 from cmion_mesh.procs import unique_mesh

@@ -10,10 +10,6 @@ that any live daemon sees: a daemon has been in the mesh long enough to know all
 
 from __future__ import annotations
 
-import base64
-import difflib
-import queue
-import secrets
 import threading
 import time
 import uuid
@@ -21,16 +17,14 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
-import msgspec
-
-from cmion_mesh import keys
+from cmion_mesh import companions, keys
+from cmion_mesh.action_runs import ActionRun, ActionWatch
 from cmion_mesh.errors import (
     MeshError,
     NotAlive,
     NotReached,
     OutcomeUnknown,
     ProtocolError,
-    RequestRejected,
     StorageError,
     Vanished,
 )
@@ -38,26 +32,18 @@ from cmion_mesh.messages import (
     CONTAINER_KIND,
     Act,
     ActionReport,
-    ActionStatus,
     AddContainer,
     AddEntity,
     CancelAction,
-    Code,
     Container,
-    CustodyResume,
-    CustodyStandDown,
     Describe,
     Event,
     Message,
-    Migrate,
-    MigrateChain,
     Outcome,
     Property,
     RemoteAction,
     RemoveContainer,
     RemoveProperty,
-    SendInvitations,
-    SetPolicy,
     SetProperty,
     StorageWrite,
     decode,
@@ -66,14 +52,13 @@ from cmion_mesh.messages import (
     many_decoder,
     tag,
 )
-from cmion_mesh.presence import Presence
+from cmion_mesh.presence import Presence, alive_list, did_you_mean
 from cmion_mesh.requests import DEFAULT_REQUEST_TIMEOUT, require_accepted, send_request
-from cmion_mesh.transport.base import Closeable, Handle, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Sample, Transport
 
 Entry = Property | Container
 _decode_entry: Callable[[bytes, str], Entry] = decoder(Entry)
 _decode_entries: Callable[[list[bytes]], list[Entry]] = many_decoder(Entry)
-ACTION_END_EVENTS = frozenset({"ActionSucceeded", "ActionFailed", "ActionCancelled"})
 #: How long a request whose embodiment is alive is sent again while it reaches nobody (its
 #: queryable not yet known to a session that has just joined).
 REACH_RETRY = 0.5
@@ -90,19 +75,6 @@ def _one_embodiment(first: str, last: str) -> bool:
     ``cmion/<mesh>/<embodiment>/``, and so does every key that sorts between them."""
     head = first.split("/", 3)
     return len(head) == 4 and last.startswith(f"{head[0]}/{head[1]}/{head[2]}/")
-
-
-def did_you_mean(name: str, known: Iterable[str]) -> str:
-    """`` (did you mean 'robot'?)`` when a known name is close to ``name``, else ``""``."""
-    names = sorted(set(known))
-    if name in names:
-        return ""
-    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
-def alive_list(names: Iterable[str]) -> str:
-    return ", ".join(sorted(names)) or "none"
 
 
 class MeshClient:
@@ -411,116 +383,20 @@ class MeshClient:
         return self.request(embodiment, "manager", "cancel", CancelAction(action_id))
 
     def find_companion(self, companion: str, *, timeout: float = 2.0) -> str:
-        """The embodiment inhabited by ``companion``: ``NotAlive`` if none says so, ``MeshError`` if two do."""
-        described = self.describe_all(timeout=timeout)
-        hosts = sorted(str(d["name"]) for d in described if d.get("inhabitant") == companion)
-        if len(hosts) > 1:
-            raise MeshError(f"companion {companion!r} is claimed by {' and '.join(hosts)}: a duplicate! "
-                            "(see `cmion-mesh doctor`)")
-        if hosts:
-            return hosts[0]
-        inhabitants = {str(d["inhabitant"]): str(d["name"]) for d in described if d.get("inhabitant")}
-        living = ", ".join(f"{c} on {e}" for c, e in sorted(inhabitants.items())) or "none"
-        raise NotAlive(f"no embodiment alive in mesh {self.mesh!r} hosts companion {companion!r} "
-                       f"(alive: {alive_list(str(d['name']) for d in described)}; companions: {living})"
-                       + did_you_mean(companion, inhabitants))
+        """The embodiment inhabited by ``companion`` (``companions.find_companion``)."""
+        return companions.find_companion(self, companion, timeout=timeout)
 
     def migrate(self, companion: str, target: str, *, timeout: float = 60.0) -> dict[str, Any]:
-        """Move ``companion`` to ``target``; returns ``{source, target, epoch, attempt}`` once the target committed.
-
-        Raises ``RequestRejected`` with the reason if the migration is refused or fails (the
-        companion then keeps running at its source), ``NotAlive`` if the companion or the target
-        is nowhere to be found, and ``OutcomeUnknown`` (``Vanished`` when the source or the target
-        left the mesh) if its end is not heard.
-        """
-        started_at = time.monotonic()
-        source = self.find_companion(companion)
-        self.join(target)
-        ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
-
-        def on_event(event: Event) -> None:
-            if event.name in ("MigrationSucceeded", "MigrationFailed") and isinstance(event.data, dict) \
-                    and event.data.get("companion") == companion:
-                ended.put(event)
-
-        def on_presence(name: str, alive: bool) -> None:
-            if not alive and name in (source, target):
-                ended.put(name)
-
-        key = keys.request_key(self.mesh, source, "migration", "migrate")
-        with self.events(on_event, embodiment=source, component="migration"), self.presence.listen(on_presence):
-            if source not in self.presence.alive() or target not in self.presence.alive():
-                ended.put(source if source not in self.presence.alive() else target)
-            started = self._send(source, key, Migrate(companion, target), timeout=timeout)
-            require_accepted(started, key)
-            left = timeout - (time.monotonic() - started_at)
-            try:
-                end = ended.get(timeout=max(0.0, left))
-            except queue.Empty:
-                raise OutcomeUnknown(f"migration of {companion} from {source} to {target}: no end heard in {timeout:g} s",
-                                     key=key) from None
-        if isinstance(end, str):
-            raise Vanished(f"migration of {companion} from {source} to {target}: {end} left the mesh after "
-                           f"{time.monotonic() - started_at:.1f} s; outcome unknown (see `cmion-mesh peers`)", key=key)
-        data = dict(end.data)
-        if end.name == "MigrationFailed":
-            raise RequestRejected(f"migration of {companion} to {target} failed: {data.get('reason')}", key=key,
-                                  reason=str(data.get("reason")))
-        data["source"] = source
-        return data
+        """Move ``companion`` to ``target`` once the target committed (``companions.migrate``)."""
+        return companions.migrate(self, companion, target, timeout=timeout)
 
     def invite(self, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0) -> dict[str, Any]:
-        """Have the empty embodiment ``inviter`` invite the companion (``invitation``): to ``to``, or
-        to its device table's embodiments, or without a table to every live one. Returns the
-        round's ``InvitationsDone`` data (``round``, ``accepted_by``, ``answers``) when some
-        embodiment accepted it (its mind got ``MigrationInvitation <inviter>``).
-
-        Raises ``NotAlive`` if ``inviter`` is not alive, ``RequestRejected`` if it cannot invite
-        (inhabited, nobody to invite) or nobody accepted (the reason lists every answer),
-        ``OutcomeUnknown`` if no answer was definite (``Vanished`` if the inviter left the mesh).
-        """
-        started_at = time.monotonic()
-        self.join(inviter, timeout=min(timeout, 5.0))
-        ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
-
-        def on_event(event: Event) -> None:
-            if event.name == "InvitationsDone" and isinstance(event.data, dict):
-                ended.put(event)
-
-        def on_presence(name: str, alive: bool) -> None:
-            if not alive and name == inviter:
-                ended.put(name)
-
-        key = keys.request_key(self.mesh, inviter, "invitation", "send")
-        with self.events(on_event, embodiment=inviter, component="invitation", event="InvitationsDone"), \
-                self.presence.listen(on_presence):
-            started = self._send(inviter, key, SendInvitations(list(to)), timeout=timeout)
-            round_id = require_accepted(started, key)["round"]
-            for _ in range(10_000):  # bounded: each round ends on an event, a departure or the deadline
-                try:
-                    end = ended.get(timeout=max(0.0, timeout - (time.monotonic() - started_at)))
-                except queue.Empty:
-                    raise OutcomeUnknown(f"invitations from {inviter}: no end heard in {timeout:g} s", key=key) from None
-                if isinstance(end, str):
-                    raise Vanished(f"invitations from {inviter}: {inviter} left the mesh; outcome unknown", key=key)
-                if end.data.get("round") == round_id:
-                    break
-            else:
-                raise OutcomeUnknown(f"invitations from {inviter}: round {round_id} never ended", key=key)
-        data: dict[str, Any] = dict(end.data)
-        if data.get("accepted_by"):
-            return data
-        answers: dict[str, dict[str, Any]] = data.get("answers") or {}
-        reasons = "; ".join(f"{t}: {a.get('reason')}" for t, a in sorted(answers.items()))
-        if answers and all(a.get("code") == Code.OUTCOME_UNKNOWN for a in answers.values()):
-            raise OutcomeUnknown(f"invitations from {inviter}: no definite answer ({reasons})", key=key)
-        raise RequestRejected(f"invitations from {inviter}: nobody accepted ({reasons})", key=key, reason=reasons)
+        """Have the empty embodiment ``inviter`` invite the companion (``companions.invite``)."""
+        return companions.invite(self, inviter, to, timeout=timeout)
 
     def set_policy(self, companion: str, accepts: Sequence[str] | None) -> None:
         """Say which embodiments ``companion`` accepts (None: any); it travels with the companion."""
-        host = self.find_companion(companion)
-        payload = SetPolicy(None if accepts is None else list(accepts))
-        require_accepted(self.request(host, "migration", "policy", payload), keys.request_key(self.mesh, host, "migration", "policy"))
+        companions.set_policy(self, companion, accepts)
 
     def watch(self, selector: str, handler: Callable[[str, Entry | None], None]) -> Closeable:
         """``handler(key, entry)`` on every change under ``selector``; ``entry`` None when removed."""
@@ -639,77 +515,13 @@ class MeshClient:
         return out
 
     def custody(self, companion: str, *, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
-        """What every live embodiment says of ``companion``'s custody (``describe``'s ``custody``):
-        name -> its report ({} when it holds no copy; ``{"error": ...}`` when it did not answer)."""
-        reports: dict[str, dict[str, Any]] = {}
-        for d in self.describe_all(timeout=timeout):
-            name = str(d.get("name"))
-            if d.get("error"):
-                reports[name] = {"error": str(d["error"])}
-            else:
-                held = (d.get("custody") or {}).get(companion)
-                reports[name] = dict(held) if isinstance(held, dict) else {}
-        return reports
+        """What every live embodiment says of ``companion``'s custody (``companions.custody``)."""
+        return companions.custody(self, companion, timeout=timeout)
 
     def resolve_fork(self, companion: str, keep: str, *, force: bool = False, gone: Sequence[str] = (),
                      sender: str = "cmion-mesh", timeout: float = 10.0) -> dict[str, Any]:
-        """Resolve a fork of ``companion``'s chain of custody by keeping ``keep``'s branch: every
-        other branch holder stands down first (its copy retired on its disk before it answers), and
-        only once all of them did is ``keep`` told to run it again. Refused (``RequestRejected``,
-        nothing retired) when a holder of another branch cannot be reached (unless named ``gone``:
-        wiped or revoked for good), or when the evidence shows an equivocator holding ``keep``'s
-        branch (unless ``force``). Returns ``{"kept", "retired", "gone"}``."""
-        reports = self.custody(companion, timeout=min(timeout, 5.0))
-        key = keys.request_key(self.mesh, keep, "migration", "resume")
-        alive = {name for name, report in reports.items() if "error" not in report}
-        if keep not in reports:
-            raise self.not_alive(keep, 0.0)
-        kept = reports[keep]
-        if "error" in kept or kept.get("state") != "active":
-            raise RequestRejected(f"{keep!r} holds no running copy of {companion!r} to keep "
-                                  f"({kept.get('error') or kept.get('state') or 'no copy'})", key=key)
-        if not any(report.get("frozen") for report in reports.values()):
-            raise RequestRejected(f"no embodiment reports a fork of {companion!r}'s chain of custody: nothing to resolve",
-                                  key=key)
-        branches: dict[str, int] = {}
-        tainted: dict[str, set[str]] = {}
-        for name, report in reports.items():
-            if report.get("state") is not None:
-                branches[name] = int(report.get("epoch", 0))
-            for holder, info in (report.get("branches") or {}).items():
-                branches.setdefault(str(holder), int(info.get("epoch", 0)))
-                tainted.setdefault(str(holder), set()).update(map(str, info.get("equivocators") or ()))
-        if tainted.get(keep) and not force:
-            raise RequestRejected(f"the evidence shows {', '.join(map(repr, sorted(tainted[keep])))} (who equivocated) "
-                                  f"holding the branch of {keep!r}: keeping it would reward the equivocation "
-                                  "(--force keeps it anyway)", key=key)
-        others = sorted(h for h in branches if h != keep)
-        unreachable = [h for h in others if h not in alive and h not in gone]
-        if unreachable:
-            raise RequestRejected(
-                f"keeping {keep!r} would make two: {', '.join(f'{h!r} (epoch {branches[h]})' for h in unreachable)} "
-                f"{'holds' if len(unreachable) == 1 else 'hold'} a branch of {companion!r} and cannot be reached to stand "
-                "down; bring it back, or, if it is gone for good (wiped, or revoked), say so with --gone NAME", key=key)
-        chain_key = keys.request_key(self.mesh, keep, "migration", "chain", sender)
-        answer = require_accepted(self.request(keep, "migration", "chain",
-                                               MigrateChain(companion, int(kept.get("epoch", 0)), secrets.token_bytes(16)),
-                                               sender=sender, timeout=timeout), chain_key)
-        chain = base64.b64decode(str(answer.get("chain", "")) if isinstance(answer, dict) else "")
-        retired: list[str] = []
-        for holder in others:
-            if holder not in alive:
-                continue  # gone for good, the operator says
-            down_key = keys.request_key(self.mesh, holder, "migration", "stand_down")
-            outcome = self.request(holder, "migration", "stand_down", CustodyStandDown(companion, keep, chain), timeout=timeout)
-            if outcome.status != "accepted":
-                raise RequestRejected(f"{holder!r} did not stand down: {outcome.reason}; "
-                                      f"{'; '.join(f'{h!r} stood down' for h in retired) or 'nothing changed'}, "
-                                      f"{keep!r} stays frozen", key=down_key, reason=outcome.reason, code=outcome.code)
-            retired.append(holder)
-        gone_ones = sorted(h for h in others if h not in alive)
-        require_accepted(self.request(keep, "migration", "resume", CustodyResume(companion, [*retired, *gone_ones]),
-                                      timeout=timeout), key)
-        return {"kept": keep, "retired": retired, "gone": gone_ones}
+        """Resolve a fork of ``companion``'s custody by keeping ``keep``'s branch (``companions.resolve_fork``)."""
+        return companions.resolve_fork(self, companion, keep, force=force, gone=gone, sender=sender, timeout=timeout)
 
     def embodiments(self, *, timeout: float = 2.0) -> list[str]:
         """Names of the embodiments whose liveliness token is present (one liveliness query)."""
@@ -750,120 +562,5 @@ def mesh_problems(described: Sequence[dict[str, Any]]) -> list[str]:
     return list(dict.fromkeys(problems))
 
 
-class ActionWatch(Handle):
-    """One subscription to an embodiment's action end events, handing each to the ``ActionRun`` of
-    its action id (``MeshClient.watch_actions``). Close it (idempotent) to stop following."""
-
-    def __init__(self, client: MeshClient, embodiment: str) -> None:
-        self.client = client
-        self.embodiment = embodiment
-        self.closed = False
-        self._runs: dict[str, ActionRun] = {}
-        self._lock = threading.Lock()
-        self._ends = tuple(keys.event_key(client.mesh, embodiment, "manager", name) for name in ACTION_END_EVENTS)
-        # The manager's other events (started, attempt) are skipped by key, never decoded.
-        self._events = client.transport.subscribe_batches(keys.event_pattern(client.mesh, embodiment, "manager", "*"),
-                                                          self._on_samples)
-
-    @property
-    def busy(self) -> bool:
-        """Whether an action is in flight on it."""
-        with self._lock:
-            return bool(self._runs)
-
-    def _add(self, run: ActionRun) -> None:
-        with self._lock:
-            self._runs[run.action_id] = run
-
-    def _remove(self, run: ActionRun) -> None:
-        with self._lock:
-            if self._runs.get(run.action_id) is run:
-                del self._runs[run.action_id]
-
-    def _on_samples(self, batch: list[Sample]) -> None:
-        for key, payload, deleted, _ in batch:
-            if deleted or key not in self._ends:
-                continue
-            try:
-                event = decode(payload, Event, where=key)
-                if not isinstance(event.data, dict):
-                    continue
-                with self._lock:
-                    run = self._runs.get(str(event.data.get("action_id")))
-                if run is not None:
-                    run._end(msgspec.convert(event.data, ActionReport))
-            except (ProtocolError, msgspec.ValidationError):
-                continue  # not a manager's report (another program on the same keys)
-
-    def close(self) -> None:
-        if self.closed:
-            return
-        self.closed = True
-        self.client._forget(self)
-        self._events.close()
-
-
-class ActionRun(Handle):
-    """A mind action on its way: ``wait`` for its report. Follows the manager's end events (through
-    the client's ``watch_actions``) and the embodiment's liveliness; close it (idempotent) to stop
-    following."""
-
-    def __init__(self, client: MeshClient, embodiment: str, action_id: str, on_end: Callable[[], None] | None) -> None:
-        self.client = client
-        self.embodiment = embodiment
-        self.action_id = action_id
-        self.report: ActionReport | None = None
-        self.vanished = False
-        self.ended = threading.Event()
-        self._on_end = on_end
-        self._started = time.monotonic()
-        self._watch = client._follow(embodiment, self)
-        self._presence = client.presence.listen(self._on_presence)
-        if embodiment not in client.presence.alive():
-            self._end(None)
-
-    def __enter__(self) -> ActionRun:
-        return self
-
-    def _on_presence(self, name: str, alive: bool) -> None:
-        if name == self.embodiment and not alive:
-            self._end(None)
-
-    def _end(self, report: ActionReport | None) -> None:
-        if self.ended.is_set():
-            return
-        if report is None:
-            self.vanished = True
-        else:
-            self.report = report
-        self.ended.set()
-        if self._on_end is not None:
-            self._on_end()
-
-    def wait(self, timeout: float) -> ActionReport:
-        """The final report, once the action ends (see ``result``)."""
-        self.ended.wait(timeout)
-        return self.result(timeout)
-
-    def result(self, waited: float) -> ActionReport:
-        """The final report: ``Vanished`` if the embodiment left first; when no end was heard (after
-        ``waited`` seconds) the manager is asked, since an end event may be missed, and
-        ``OutcomeUnknown`` if the action is still running."""
-        key = keys.request_key(self.client.mesh, self.embodiment, "manager", "act")
-        if self.report is not None:
-            return self.report
-        if self.vanished:
-            raise Vanished(f"{self.embodiment} left the mesh {time.monotonic() - self._started:.1f} s into action "
-                           f"{self.action_id}: its outcome is unknown", key=key)
-        status = self.client.request(self.embodiment, "manager", "status", ActionStatus(self.action_id))
-        if status.status == "accepted" and isinstance(status.value, dict) and status.value.get("status") != "running":
-            report: ActionReport = msgspec.convert(status.value, ActionReport)
-            return report
-        raise OutcomeUnknown(f"action {self.action_id} on {self.embodiment}: no end heard within {waited:g} s", key=key)
-
-    def close(self) -> None:
-        self._presence.close()
-        self._watch._remove(self)
-
-
-__all__ = ["ActionRun", "ActionWatch", "Entry", "MeshClient", "OutcomeUnknown", "mesh_problems"]
+# did_you_mean and alive_list are presence.py's; offered here too, where the commands have always found them.
+__all__ = ["Entry", "MeshClient", "OutcomeUnknown", "alive_list", "did_you_mean", "mesh_problems"]

@@ -10,13 +10,28 @@ The claim a daemon makes on its name before it declares that token is ``claim.py
 
 from __future__ import annotations
 
+import difflib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 from cmion_mesh import keys
 from cmion_mesh.transport.base import Closeable, Handle, Transport
 
 Listener = Callable[[str, bool], None]
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'robot'?)`` when a known name is close to ``name``, else ``""``."""
+    names = sorted(set(known))
+    if name in names:
+        return ""
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def alive_list(names: Iterable[str]) -> str:
+    """The names alive, for a message: sorted, or ``none``."""
+    return ", ".join(sorted(names)) or "none"
 
 
 class Presence(Handle):

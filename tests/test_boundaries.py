@@ -26,9 +26,11 @@ TESTS = Path(__file__).resolve().parent
 #: The top-level modules every layer builds on: the standard library and the outside packages only.
 GROUND = frozenset({"errors", "keys", "messages", "classes", "xmlsafe", "diagnostics", "resources", "signals", "procs",
                     "statedir", "logs", "tomlsafe"})
-#: The top-level modules of the kernel: the update loop, the stores, the client, the mind and
-#: competency interfaces, who is alive and the claim on a name; requests and timers of the loop.
-KERNEL = frozenset({"ion", "requests", "timers", "storage", "client", "mind", "competency", "presence", "claim"})
+#: The top-level modules of the kernel: the update loop, the stores, the client (its action runs and
+#: companion operations), the mind and competency interfaces, who is alive and the claim on a name;
+#: requests and timers of the loop.
+KERNEL = frozenset({"ion", "requests", "timers", "storage", "client", "action_runs", "companions", "mind", "competency",
+                    "presence", "claim"})
 #: Lowest first. A module imports its own layer and the layers below it, never one above; the
 #: folders of one layer may import each other (without a circle).
 LAYERS: tuple[frozenset[str], ...] = (

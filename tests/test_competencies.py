@@ -10,9 +10,10 @@ from typing import Any
 
 import pytest
 
+from cmion_mesh.action_runs import ACTION_END_EVENTS
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.body.library import load_library
-from cmion_mesh.client import ACTION_END_EVENTS, MeshClient
+from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Event
