@@ -75,7 +75,7 @@ def start_daemon(mesh: str, name: str, *extra: str, port: int | None = None) -> 
 
 
 from cmion_mesh.procs import Daemon  # noqa: E402  (for the annotation above)
-from tests.browser import chromium_browser  # noqa: E402, F401  (the real-browser fixture, for the web page tests)
+from tests.helpers.browser import chromium_browser  # noqa: E402, F401  (the real-browser fixture, for the web page tests)
 
 # --- test tiers ------------------------------------------------------------------------------------
 #

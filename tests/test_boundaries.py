@@ -290,7 +290,7 @@ def test_relative_and_aliased_imports_are_seen(tmp_path: Path, statement: str) -
 
 
 def test_no_test_imports_bench() -> None:
-    offenders = sorted(p.name for p in TESTS.glob("*.py") if any(m.split(".")[0] == "bench" for m in imported_modules(p)))
+    offenders = sorted(p.name for p in TESTS.rglob("*.py") if any(m.split(".")[0] == "bench" for m in imported_modules(p)))
     assert offenders == [], f"tests run the benchmarks as a user does (python -m bench): {offenders} import bench/"
 
 

@@ -109,7 +109,7 @@ def test_bb_and_wm_commands(mesh: str) -> None:
 
 def test_remote_mind_drives_a_daemon(two: tuple[Daemon, Daemon, str], mesh: str) -> None:
     _, _, endpoint = two
-    mind = Daemon(cli_argv("serve-mind", "tests.remote_helpers:EagerMind", "--embodiment", "alpha",
+    mind = Daemon(cli_argv("serve-mind", "tests.helpers.remote_helpers:EagerMind", "--embodiment", "alpha",
                            "--parameters", "eager,TestAction2", *net(mesh, endpoint)), name="mind")
     with mind, ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as t:
         mind.wait_line("serving embodiment", 20)

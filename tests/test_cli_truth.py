@@ -327,7 +327,8 @@ def test_events_count_is_exact_and_a_remote_competency_warns_while_alone(bodies:
         assert ev.proc.wait(20) == 0
     printed = [line for line in ev.lines if line.split(" ")[1:2] == ["screen/bb"]]
     assert len(printed) == 1 and "PropertyChanged" in printed[0], ev.lines
-    with Daemon(cli_argv("serve-competency", "tests.remote_helpers:Arm", "--embodiment", "nowhere", *net(bodies)), name="arm") as arm:
+    with Daemon(cli_argv("serve-competency", "tests.helpers.remote_helpers:Arm",
+                         "--embodiment", "nowhere", *net(bodies)), name="arm") as arm:
         line = arm.wait_line("warning: embodiment 'nowhere' is not alive", 20)
         assert "(alive: phone, robot, screen)" in line and "serves nobody until it starts" in line
         assert arm.stop() == 0

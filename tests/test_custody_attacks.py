@@ -48,8 +48,8 @@ from cmion_mesh.transport import certs
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from .custody_helpers import Holder
-from .remote_helpers import diary_embodiment_config
+from .helpers.custody_helpers import Holder
+from .helpers.remote_helpers import diary_embodiment_config
 from .test_migration_crash import Node, memory
 from .test_security_mtls import Pki, secure_config
 

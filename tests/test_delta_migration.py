@@ -1,7 +1,7 @@
 """Delta migration: sections stored and named by their hash, only the missing ones cross the network.
 
 The network tests run two daemons (``cmion-mesh up``) in processes of their own, on loopback, each
-with its own state folder, the companion's mind a ``tests.delta_helpers:Carrier`` whose blob is a
+with its own state folder, the companion's mind a ``tests.helpers.delta_helpers:Carrier`` whose blob is a
 section of its own. Their state folders are read directly (never through ``Records``, which would
 tidy a live daemon's folder). The in-process tests drive a target's migration component with a
 holder played by the test (``custody_helpers.Holder``) over the in-memory transport.
@@ -33,10 +33,10 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from . import delta_helpers, remote_helpers
-from .custody_helpers import Holder
-from .delta_helpers import carrier_config
-from .remote_helpers import Diary
+from .helpers import delta_helpers, remote_helpers
+from .helpers.custody_helpers import Holder
+from .helpers.delta_helpers import carrier_config
+from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -23,7 +23,7 @@ from cmion_mesh.storage import Blackboard, WorldModel
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryTransport
 
-from .competency_helpers import Scripted, pump
+from .helpers.competency_helpers import Scripted, pump
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -264,7 +264,7 @@ def test_a_channels_first_subscriber_gets_its_last_messages_then_the_rest() -> N
     from websockets.sync.client import connect
 
     from cmion_mesh.tools.foxglove import KEEP, FoxgloveServer
-    from tests.foxglove_client import MESSAGE_HEADER, SUBPROTOCOLS
+    from tests.helpers.foxglove_client import MESSAGE_HEADER, SUBPROTOCOLS
 
     def subscribe(ws: Any, topic: str) -> None:
         for _ in range(100):  # bounded: serverInfo, then the advertisements
@@ -336,7 +336,7 @@ def test_a_foxglove_client_in_another_process_sees_a_migration_live(bodies: tupl
     with Daemon(cli_argv("foxglove", "--mesh", mesh, "--web", f"127.0.0.1:{port}", *net), name="foxglove") as server:
         line = server.wait_line("serving mesh", 30)
         assert f"ws://127.0.0.1:{port}" in line, line
-        with Daemon([sys.executable, "-m", "tests.foxglove_client", f"ws://127.0.0.1:{port}",
+        with Daemon([sys.executable, "-m", "tests.helpers.foxglove_client", f"ws://127.0.0.1:{port}",
                      "/ev/migration/", f"log:cmion/{mesh}", "@custody"], name="client") as client:
             ready = json.loads(client.wait_line("READY", 30).split(" ", 1)[1])
             assert ready["subprotocol"] == "foxglove.sdk.v1" and ready["server"]["op"] == "serverInfo"

@@ -96,8 +96,8 @@ from cmion_mesh.storage import load_world_model_init
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
-from .custody_helpers import Holder
-from .remote_helpers import Diary
+from .helpers.custody_helpers import Holder
+from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -17,7 +17,7 @@ from cmion_mesh.migration import custody, handshake, signing
 from cmion_mesh.migration.identity import Bytes, Identity
 from cmion_mesh.migration.ledger import Record
 
-from .custody_helpers import Holder
+from .helpers.custody_helpers import Holder
 
 COMPANION = "spirit"
 

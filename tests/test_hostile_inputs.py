@@ -68,7 +68,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .conftest import CMION_2011
-from .custody_helpers import Holder
+from .helpers.custody_helpers import Holder
 
 pytestmark = pytest.mark.timeout(60)
 

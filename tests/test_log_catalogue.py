@@ -31,7 +31,7 @@ from cmion_mesh.transport import certs, security
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.web.body import WebBody
 
-from .remote_helpers import Diary
+from .helpers.remote_helpers import Diary
 from .test_logs import parse_text, strict_json
 
 pytestmark = pytest.mark.timeout(60)

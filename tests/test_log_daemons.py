@@ -25,7 +25,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from .remote_helpers import diary_embodiment_config
+from .helpers.remote_helpers import diary_embodiment_config
 from .test_log_catalogue import secrets_of
 from .test_logs import TEXT_LINE, parse_text
 

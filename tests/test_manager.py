@@ -22,7 +22,7 @@ from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import Act, ActionStatus, CancelAction, Code, Message, Outcome
 from cmion_mesh.transport.memory import MemoryTransport
 
-from .competency_helpers import Scripted, pump
+from .helpers.competency_helpers import Scripted, pump
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -21,8 +21,8 @@ from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
-from .custody_helpers import Holder
-from .remote_helpers import Diary
+from .helpers.custody_helpers import Holder
+from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(60)
 

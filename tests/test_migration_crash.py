@@ -23,7 +23,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from .remote_helpers import Node, diary_embodiment_config
+from .helpers.remote_helpers import Node, diary_embodiment_config
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -3,7 +3,7 @@
 Every embodiment is a daemon (``cmion-mesh up``) in a host of its own: a network namespace
 attached to one LAN (``cmion_mesh.testing.netns.Lan``); each keeps its durable records in a state folder
 the test reads directly (the namespaces share the file system). The test process lives in the
-caller's namespace and cannot join the mesh, so mesh clients are probes (``tests/mesh_probe.py``)
+caller's namespace and cannot join the mesh, so mesh clients are probes (``tests/helpers/mesh_probe.py``)
 run inside the hosts, commanded through a FIFO and reporting JSON lines. In the fault test the
 screen ``--connect``s to the robot (one TCP link between them, which the screen re-opens after
 healing), both with ``--lease-ms 2000`` and no multicast; cuts are at the switch (the screen's
@@ -76,7 +76,7 @@ from cmion_mesh.testing import netns
 from cmion_mesh.testing.netns import Host, Lan
 from cmion_mesh.testing.wait import wait_for
 
-from .remote_helpers import diary_embodiment_config
+from .helpers.remote_helpers import diary_embodiment_config
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -104,7 +104,7 @@ class Sample(NamedTuple):
 
 
 class Probe:
-    """A ``tests/mesh_probe.py`` process in a host: commands through a FIFO, answers as lines."""
+    """A ``tests/helpers/mesh_probe.py`` process in a host: commands through a FIFO, answers as lines."""
 
     def __init__(self, host: Host, folder: Path, mesh: str, *, connect: list[str] | None = None,
                  interface: str | None = None, gossip: bool = True, watch: list[str] | None = None) -> None:
@@ -112,7 +112,7 @@ class Probe:
         os.mkfifo(self.fifo_path)
         spec = {"mesh": mesh, "connect": connect or [], "multicast": interface is not None, "interface": interface,
                 "gossip": gossip, "watch": watch or [], "interval": 0.02, "fifo": str(self.fifo_path)}
-        self.daemon = host.popen([sys.executable, "-m", "tests.mesh_probe", json.dumps(spec)], name="probe", env=ENV)
+        self.daemon = host.popen([sys.executable, "-m", "tests.helpers.mesh_probe", json.dumps(spec)], name="probe", env=ENV)
         self.daemon.wait_line("READY", 30)
         # The probe holds the FIFO open (O_RDWR) before saying READY: this open does not block.
         self._fifo = open(self.fifo_path, "w", buffering=1, encoding="utf-8")  # noqa: SIM115 (closed by quit)

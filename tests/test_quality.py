@@ -52,7 +52,7 @@ def test_no_test_reads_private_state() -> None:
     private state may change without notice, and a test that needs it shows a missing public way."""
     private = _private_names_of_the_package()
     found = []
-    for path in sorted((ROOT / "tests").glob("*.py")):
+    for path in sorted((ROOT / "tests").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Attribute) and node.attr in private \
                     and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):

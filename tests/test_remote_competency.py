@@ -48,7 +48,7 @@ def client(robot: str, mesh: str) -> Iterator[MeshClient]:
 
 
 def arm_process(mesh: str, endpoint: str) -> Daemon:
-    argv = cli_argv("serve-competency", "tests.remote_helpers:Arm", "--embodiment", "robot", "--mesh", mesh,
+    argv = cli_argv("serve-competency", "tests.helpers.remote_helpers:Arm", "--embodiment", "robot", "--mesh", mesh,
                     "--connect", endpoint, "--no-multicast")
     arm = Daemon(argv, name="arm")
     arm.wait_line("serving embodiment", 20)

@@ -69,7 +69,7 @@ def robot(mesh: str, tmp_path: Path) -> Iterator[tuple[str, Daemon]]:
 
 def test_every_malformed_request_to_every_key_is_answered(robot: tuple[str, Daemon], mesh: str) -> None:
     endpoint, daemon = robot
-    arm = Daemon(cli_argv("serve-competency", "tests.remote_helpers:Arm", "--embodiment", "robot", "--mesh", mesh,
+    arm = Daemon(cli_argv("serve-competency", "tests.helpers.remote_helpers:Arm", "--embodiment", "robot", "--mesh", mesh,
                           "--connect", endpoint, "--no-multicast"), name="arm")
     with arm, ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport:
         arm.wait_line("serving embodiment", 20)

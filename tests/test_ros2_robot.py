@@ -1,7 +1,7 @@
 """A ROS 2 robot as a body: ``cmion-mesh up ros_robot`` against a stand-in ROS 2 robot.
 
 Separate processes over real zenoh on loopback: one ``ros_robot`` daemon for the module, and a
-stand-in robot (tests/ros2_robot_standin.py: rmw_zenoh's wire format written independently of
+stand-in robot (tests/helpers/ros2_robot_standin.py: rmw_zenoh's wire format written independently of
 cmion_mesh/ros2/wire.py and interfaces.py) started per behaviour it must show (succeeding, hanging, malformed), each
 connecting to the daemon. The test process sends mind actions with a ``MeshClient`` and reads
 what the stand-in received from its JSON lines.
@@ -34,7 +34,7 @@ class Standin:
     """The stand-in robot, connected to the daemon; ``event`` waits for one of its JSON lines."""
 
     def __init__(self, endpoint: str, *options: str) -> None:
-        self.proc = Daemon([sys.executable, "-m", "tests.ros2_robot_standin", "--connect", endpoint, *options],
+        self.proc = Daemon([sys.executable, "-m", "tests.helpers.ros2_robot_standin", "--connect", endpoint, *options],
                            name="standin", stdin=True)
         try:
             self.zid = self.event("ready", 20)["zid"]

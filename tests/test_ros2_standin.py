@@ -1,4 +1,4 @@
-"""The stand-in ROS 2 robot (tests/ros2_robot_standin.py) against the facts of rmw_zenoh it claims.
+"""The stand-in ROS 2 robot (tests/helpers/ros2_robot_standin.py) against the facts of rmw_zenoh it claims.
 
 One stand-in process on a loopback endpoint; the test process talks to it over a plain zenoh
 session with hand-written CDR, so that what is checked here is the wire format, not the
@@ -20,7 +20,7 @@ import zenoh
 import zenoh.ext
 
 from cmion_mesh.procs import Daemon, free_port
-from tests import ros2_robot_standin as standin
+from tests.helpers import ros2_robot_standin as standin
 
 DOMAIN = 7
 NS = "robot1"
@@ -68,7 +68,7 @@ def send_goal_request(goal_id: bytes, frame: str, xyz: tuple[float, float, float
 class Standin:
     def __init__(self) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.proc = Daemon([sys.executable, "-m", "tests.ros2_robot_standin", "--listen", self.endpoint, "--domain", str(DOMAIN),
+        self.proc = Daemon([sys.executable, "-m", "tests.helpers.ros2_robot_standin", "--listen", self.endpoint, "--domain", str(DOMAIN),
                             "--namespace", NS, "--feedback", "2", "--feedback-interval", "0.02"], name="standin", stdin=True)
         ready = self.event("ready", 20)
         self.zid = ready["zid"]

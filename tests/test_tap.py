@@ -11,7 +11,7 @@ import pytest
 from cmion_mesh.errors import InvalidName
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.tools.hz_echo import is_liveliness, resolve, yamlish
-from tests.rate_publisher import BINARY, RAW_KEY, TEXT, TICK_KEY
+from tests.helpers.rate_publisher import BINARY, RAW_KEY, TEXT, TICK_KEY
 
 pytestmark = pytest.mark.timeout(120)
 RATE = 50.0
@@ -34,7 +34,7 @@ def test_keys_are_relative_to_the_mesh_unless_absolute() -> None:
 
 def test_hz_reports_the_publishers_rate_and_echo_decodes_mesh_messages_and_shows_raw_payloads(mesh: str) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with Daemon([sys.executable, "-m", "tests.rate_publisher", mesh, endpoint, str(RATE)], name="publisher") as publisher:
+    with Daemon([sys.executable, "-m", "tests.helpers.rate_publisher", mesh, endpoint, str(RATE)], name="publisher") as publisher:
         publisher.wait_line("READY", 30)
         net = ["--mesh", mesh, "--connect", endpoint, "--no-multicast"]
         # The first messages after the link comes up are left out of the window (a start-up burst).

@@ -31,8 +31,8 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from .custody_helpers import Holder
-from .remote_helpers import Diary, Node, diary_embodiment_config
+from .helpers.custody_helpers import Holder
+from .helpers.remote_helpers import Diary, Node, diary_embodiment_config
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -23,8 +23,8 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web.view import spawn_view
 
-from .browser import screenshot
 from .conftest import start_daemon
+from .helpers.browser import screenshot
 
 pytestmark = pytest.mark.timeout(120)
 

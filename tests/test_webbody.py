@@ -33,7 +33,7 @@ from cmion_mesh.tools.demo import Scenario, start_bodies, stop_bodies, web_addre
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web import speech
-from tests.browser import screenshot
+from tests.helpers.browser import screenshot
 
 WAIT = 60.0
 WAIT_MS = int(WAIT * 1000)

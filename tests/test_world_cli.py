@@ -62,7 +62,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
                             "--state-dir", str(tmp / "state"), "--companion", "spirit"), name="robot")
     with robot:
         robot.wait_line("up in mesh", 30)
-        served = Daemon(cli_argv("serve-mind", "tests.remote_helpers:Perceiver", "--embodiment", "robot", "--mesh", mesh,
+        served = Daemon(cli_argv("serve-mind", "tests.helpers.remote_helpers:Perceiver", "--embodiment", "robot", "--mesh", mesh,
                                  "--connect", endpoint, "--no-multicast"), name="perceiver")
         with served, ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, \
                 MeshClient(transport, mesh) as client:

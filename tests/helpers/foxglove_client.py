@@ -16,7 +16,7 @@ it was before commit 8e2a044 moved it out). What this client does of it:
   log time in nanoseconds (uint64), both little-endian, then the payload, encoded as the
   channel's ``encoding`` says (here ``json``).
 
-Run as ``python -m tests.foxglove_client URL TOPIC_PART...``: subscribes to every channel whose
+Run as ``python -m tests.helpers.foxglove_client URL TOPIC_PART...``: subscribes to every channel whose
 topic contains one of the parts; prints, one JSON line each, ``READY {...}`` (the subprotocol
 chosen and the server's info), ``A {...}`` per channel advertised, ``M {...}`` per message
 (``topic``, ``schemaName``, ``schema`` only the first time a channel is seen, ``log_time``,

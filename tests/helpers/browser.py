@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-SCREENSHOTS = Path(__file__).parent / "screenshots"
+SCREENSHOTS = Path(__file__).parents[1] / "screenshots"
 CHROMIUM_ENV = "CMION_MESH_CHROMIUM"
 HOW_TO_GET = ("no Chromium for the browser tests: install it (Debian/Ubuntu: sudo apt-get install chromium; "
               f".ci/run does it when it can) or name its executable in ${CHROMIUM_ENV}")

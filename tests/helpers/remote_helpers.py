@@ -1,4 +1,4 @@
-"""Competencies that tests host in separate processes (importable as ``tests.remote_helpers``)."""
+"""Competencies that tests host in separate processes (importable as ``tests.helpers.remote_helpers``)."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ class Diary(Mind):
         self.arrivals = list(state.get("arrivals", []))
 
 
-def diary_embodiment_config(folder: Path, name: str, mind: str = "tests.remote_helpers:Diary") -> Path:
+def diary_embodiment_config(folder: Path, name: str, mind: str = "tests.helpers.remote_helpers:Diary") -> Path:
     """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a test mind
     (``package.module:Class``, a Diary unless told)."""
     from cmion_mesh.resources import embodiment_dir

@@ -2,7 +2,7 @@
 
 The test process stays in the caller's namespace, so it cannot open a zenoh session with daemons
 inside the namespaces; it runs this probe inside one (``host.popen([sys.executable, "-m",
-"tests.mesh_probe", SPEC])``) and talks to it through a FIFO on the shared file system:
+"tests.helpers.mesh_probe", SPEC])``) and talks to it through a FIFO on the shared file system:
 
 * ``SPEC`` (JSON): ``mesh``; ``connect`` (endpoints); ``multicast`` and ``interface`` (scouting);
   ``gossip`` (false keeps the session to its own endpoints: no auto-connection to the peers the

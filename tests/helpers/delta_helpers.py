@@ -1,4 +1,4 @@
-"""A mind for the delta-migration tests, hosted by daemons (importable as ``tests.delta_helpers``)."""
+"""A mind for the delta-migration tests, hosted by daemons (importable as ``tests.helpers.delta_helpers``)."""
 
 from __future__ import annotations
 
@@ -70,4 +70,4 @@ class Carrier(Mind):
 
 def carrier_config(folder: Path, name: str) -> Path:
     """An ArchitectureConfiguration for ``name`` with CMION's test rules and library and a Carrier mind."""
-    return diary_embodiment_config(folder, name, mind="tests.delta_helpers:Carrier")
+    return diary_embodiment_config(folder, name, mind="tests.helpers.delta_helpers:Carrier")

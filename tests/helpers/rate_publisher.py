@@ -1,6 +1,6 @@
 """A publisher at a known rate, in a process of its own, for the ``hz`` and ``echo`` tests.
 
-``python -m tests.rate_publisher MESH ENDPOINT RATE`` listens on ENDPOINT (loopback) and, on an
+``python -m tests.helpers.rate_publisher MESH ENDPOINT RATE`` listens on ENDPOINT (loopback) and, on an
 absolute clock schedule (the i-th tick at start + i / RATE, so a late tick does not shift the
 next ones), publishes on each tick an ``Event`` on ``cmion/MESH/pub/ev/test/Tick`` and a raw
 payload on ``cmion/MESH/raw/bytes``: UTF-8 text and binary bytes in turn. It prints ``READY`` once

@@ -1,6 +1,6 @@
 """A stand-in ROS 2 robot speaking rmw_zenoh's wire format (ROS 2 Jazzy), for the ROS 2 body's tests.
 
-Run as ``python -m tests.ros2_robot_standin [options]``; the command line and the JSON lines it
+Run as ``python -m tests.helpers.ros2_robot_standin [options]``; the command line and the JSON lines it
 prints are fixed by the stand-in contract (options in ``parse_args`` below). It plays a Nav2 robot:
 a node serving the ``navigate_to_pose`` action (nav2_msgs/action/NavigateToPose), subscribing to
 ``cmd_vel`` (geometry_msgs/msg/Twist) and ``speech`` (std_msgs/msg/String), optionally publishing
@@ -717,7 +717,7 @@ class StandinRobot:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m tests.ros2_robot_standin", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m tests.helpers.ros2_robot_standin", description=__doc__.split("\n")[0])
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", default=None, help="zenoh endpoint to listen on")
     p.add_argument("--domain", type=int, default=0, help="ROS_DOMAIN_ID")

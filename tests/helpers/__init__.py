@@ -1,0 +1,1 @@
+"""What the tests share: processes they start (probes, publishers, stand-ins), holders, minds and the browser."""
