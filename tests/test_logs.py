@@ -159,6 +159,7 @@ def test_configure_writes_both_formats_to_a_file_that_parses_back(tmp_path: Path
     logs.configure("debug", "json", file)  # replaces the text handler: lines are not written twice
     logs.event(LOG, "details", level=logging.DEBUG, peer="phone")
     LOG.warning("custody conflict over %s", "companion", extra={"fields": {"epoch": 3}})
+    assert logs.flush()
     lines = file.read_text(encoding="utf-8").splitlines()
     assert len(lines) == 3, lines
     assert {k: v for k, v in parse_text(lines[0]).items() if k != "ts"} == {
@@ -185,6 +186,7 @@ def test_configure_twice_keeps_one_handler_of_its_own_and_leaves_others_alone(ca
         assert len(ours) == 1 and theirs in root.handlers
         LOG.warning("once")
         LOG.info("not at warning")
+        assert logs.flush()
         err = capsys.readouterr().err.splitlines()
         assert [parse_text(line)["msg"] for line in err] == ["once"]
         logs.unconfigure()
@@ -217,8 +219,10 @@ def test_a_rotated_log_file_is_reopened(tmp_path: Path) -> None:
     file = tmp_path / "daemon.log"
     logs.configure("info", "json", file)
     LOG.info("before")
+    assert logs.flush()  # written before the file is moved
     file.rename(tmp_path / "daemon.log.1")  # what logrotate does
     LOG.info("after")
+    assert logs.flush()
     assert [strict_json(line)["msg"] for line in (tmp_path / "daemon.log.1").read_text().splitlines()] == ["before"]
     assert [strict_json(line)["msg"] for line in file.read_text().splitlines()] == ["after"]
 
