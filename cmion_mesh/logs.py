@@ -15,7 +15,10 @@ where the lines go and how they look, for the whole process:
   ``_`` appended); ``exc`` with the traceback when the record carries an exception.
 
 Lines go to standard error (which journald captures under systemd) or, with ``file``, to a file
-that may be rotated by logrotate (``WatchedFileHandler`` reopens it once it is moved).
+that may be rotated by logrotate (``WatchedFileHandler`` reopens it once it is moved). They are
+formatted and written by a thread of their own, ``logs-writer``, in batches (``_Writer``): the
+thread that logs a line only puts the record in a bounded queue (lines beyond are dropped and
+counted, never waited for). ``flush()`` waits until what was logged is written.
 
 What each module writes at info (the catalogue of lines, their messages and fields) is listed in
 docs/deploy.md, "Logs".
@@ -48,7 +51,8 @@ Wiring (the command line, ``up``; each one call):
   the settings file is merged (``ops.settings.apply``), inside the ``try`` that turns a
   ``ConfigError`` into exit code 2 (an unusable log file is one);
 * ``set_embodiment(name)`` once the embodiment's name is known;
-* ``shutdown()`` on the way out, before ``os._exit``: the throttles' pending counts are written.
+* ``shutdown()`` on the way out, before ``os._exit`` (and before looking for threads left
+  running): the throttles' pending counts and the lines queued are written, the writer stopped.
 """
 
 from __future__ import annotations
@@ -226,8 +230,8 @@ class TextFormatter(logging.Formatter):
     """``2026-11-26T19:00:00.123Z INFO cmion_mesh.migration robot: message name=value``."""
 
     def format(self, record: logging.LogRecord) -> str:
-        # ``_parts`` and ``redact`` unrolled: a line is formatted on the thread that logs it (the
-        # update loop, at an action's end), so it costs what it must and no more.
+        # ``_parts`` and ``redact`` unrolled: every line is formatted (on the writer thread, which
+        # shares the interpreter with the update loop), so it costs what it must and no more.
         embodiment = getattr(record, "embodiment", None) or _embodiment
         head = f"{_timestamp(record)} {record.levelname} {record.name}"
         if embodiment:
@@ -296,6 +300,10 @@ class _Stderr(logging.StreamHandler[IO[str]]):
 QUEUE_SIZE: Final = 10_000
 #: Records written together, at most: one write and one flush for them all.
 BATCH: Final = 500
+#: How long the writer waits, once a record came, for more to write with it (seconds): one wake-up
+#: and one write for every line of a burst rather than each, so that the thread that logs them
+#: (the update loop) shares the interpreter with the writer less often.
+LINGER: Final = 0.02
 #: How long ``flush``, ``shutdown`` and ``unconfigure`` wait for the writer, at most (seconds).
 DRAIN_TIMEOUT: Final = 5.0
 WRITER_THREAD: Final = "logs-writer"
@@ -320,6 +328,7 @@ class _Writer:
         self._dropped = 0
         self._dropped_lock = threading.Lock()
         self.stopped = False  # then records are written at once, by the thread that logs them
+        self._hurry = threading.Event()  # a flush or stop is waiting: no lingering
         self.thread = threading.Thread(target=self._run, name=WRITER_THREAD, daemon=True)
         self.thread.start()
 
@@ -341,6 +350,7 @@ class _Writer:
             return not self.thread.is_alive()
         done = threading.Event()
         self.queue.put(done)
+        self._hurry.set()
         return done.wait(timeout)
 
     def stop(self, timeout: float = DRAIN_TIMEOUT) -> None:
@@ -350,6 +360,7 @@ class _Writer:
             return
         if self.thread.is_alive():
             self.queue.put(_Stop())
+            self._hurry.set()
             self.thread.join(timeout)
         if not self.thread.is_alive():  # what was put while it stopped (not when the stream is stuck)
             self._handle(self._drain(None))
@@ -385,8 +396,13 @@ class _Writer:
         return stopping
 
     def _run(self) -> None:
-        while not self._handle(self._drain(self.queue.get())):
-            pass
+        while True:
+            first = self.queue.get()
+            if isinstance(first, logging.LogRecord):
+                self._hurry.wait(LINGER)
+            self._hurry.clear()  # before the drain: a flush coming after it sets it again
+            if self._handle(self._drain(first)):
+                return
 
     def write(self, records: list[logging.LogRecord]) -> None:
         """Format ``records`` and write them with one write and one flush (on any thread)."""
