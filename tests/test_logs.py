@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import logs
+from cmion_mesh import log_writer, logs
 from cmion_mesh.errors import ConfigError, ExitCode, exit_code
 
 LOG = logging.getLogger("cmion_mesh.migration")
@@ -261,7 +261,7 @@ class Gate:
 
 
 def writer_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name == logs.WRITER_THREAD and t.is_alive()]
+    return [t for t in threading.enumerate() if t.name == log_writer.WRITER_THREAD and t.is_alive()]
 
 
 def test_a_line_is_formatted_and_written_by_the_writer_thread_not_the_caller(
@@ -280,7 +280,7 @@ def test_a_line_is_formatted_and_written_by_the_writer_thread_not_the_caller(
     assert logs.flush()
     assert [parse_text(line)["msg"] for line in capsys.readouterr().err.splitlines()] == [
         "action One succeeded", "peer phone joined"]
-    assert formatted_on == [logs.WRITER_THREAD] * 2
+    assert formatted_on == [log_writer.WRITER_THREAD] * 2
 
 
 def test_what_could_change_after_a_line_is_logged_is_written_as_it_was(capsys: pytest.CaptureFixture[str]) -> None:
@@ -300,7 +300,7 @@ def test_what_could_change_after_a_line_is_logged_is_written_as_it_was(capsys: p
 def test_a_full_queue_drops_lines_counts_them_in_a_line_and_never_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
     gate = Gate()
     monkeypatch.setattr("sys.stderr", gate)
-    monkeypatch.setattr(logs, "QUEUE_SIZE", 10)
+    monkeypatch.setattr(log_writer, "QUEUE_SIZE", 10)
     logs.configure("info", "text")
     LOG.info("first")
     assert gate.entered.wait(10)  # the writer is held in its write: what comes now waits in the queue
