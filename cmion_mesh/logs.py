@@ -15,7 +15,10 @@ where the lines go and how they look, for the whole process:
   ``_`` appended); ``exc`` with the traceback when the record carries an exception.
 
 Lines go to standard error (which journald captures under systemd) or, with ``file``, to a file
-that may be rotated by logrotate (``WatchedFileHandler`` reopens it once it is moved).
+that may be rotated by logrotate (``WatchedFileHandler`` reopens it once it is moved). They are
+formatted and written by a thread of their own, ``logs-writer``, in batches (``Writer``): the
+thread that logs a line only puts the record in a bounded queue (lines beyond are dropped and
+counted, never waited for). ``flush()`` waits until what was logged is written.
 
 What each module writes at info (the catalogue of lines, their messages and fields) is listed in
 docs/deploy.md, "Logs".
@@ -48,7 +51,8 @@ Wiring (the command line, ``up``; each one call):
   the settings file is merged (``ops.settings.apply``), inside the ``try`` that turns a
   ``ConfigError`` into exit code 2 (an unusable log file is one);
 * ``set_embodiment(name)`` once the embodiment's name is known;
-* ``shutdown()`` on the way out, before ``os._exit``: the throttles' pending counts are written.
+* ``shutdown()`` on the way out, before ``os._exit`` (and before looking for threads left
+  running): the throttles' pending counts and the lines queued are written, the writer stopped.
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ from pathlib import Path
 from typing import IO, Any, Final
 
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.log_writer import DRAIN_TIMEOUT, Handoff, Writer
 
 LEVELS: Final = ("debug", "info", "warning", "error")
 FORMATS: Final = ("text", "json")
@@ -92,7 +97,7 @@ _PLAIN_NAME: Final = re.compile(r"[^\s\"':=\\\x00-\x1f\x7f]+")
 _SCALARS: Final = frozenset({int, float, bool, type(None)})
 
 _lock = threading.Lock()
-_installed: logging.Handler | None = None
+_installed: Handoff | None = None
 _root_level: int | None = None  # the root logger's level before ``configure``, for ``unconfigure``
 #: What every record notes of its thread and process (``logging.logThreads``...): neither format
 #: writes it, and looking it up is a third of what making a record costs. Off while configured.
@@ -224,8 +229,8 @@ class TextFormatter(logging.Formatter):
     """``2026-11-26T19:00:00.123Z INFO cmion_mesh.migration robot: message name=value``."""
 
     def format(self, record: logging.LogRecord) -> str:
-        # ``_parts`` and ``redact`` unrolled: a line is formatted on the thread that logs it (the
-        # update loop, at an action's end), so it costs what it must and no more.
+        # ``_parts`` and ``redact`` unrolled: every line is formatted (on the writer thread, which
+        # shares the interpreter with the update loop), so it costs what it must and no more.
         embodiment = getattr(record, "embodiment", None) or _embodiment
         head = f"{_timestamp(record)} {record.levelname} {record.name}"
         if embodiment:
@@ -305,22 +310,28 @@ def configure(level: str | int = "info", fmt: str = "text", file: str | Path | N
     (appended to), in format ``fmt`` (``text`` or ``json``). Called again, it replaces what it
     installed before (nothing else: handlers others added stay). While configured, records do not
     note their thread and process (neither format writes them; ``unconfigure`` restores it).
+
+    The lines are written by a thread of their own (``logs-writer``, a daemon thread): a record
+    costs the thread that logs it one put in a queue (see ``Handoff``). ``flush`` waits until
+    they are written; ``shutdown`` and ``unconfigure`` stop the writer once it has written them all.
+    Returns the handler that formats and writes the lines.
     ``ConfigError`` for an unknown level or format, or a file that cannot be opened."""
     global _installed, _root_level
     number = level_number(level)
     if fmt not in FORMATS:
         raise ConfigError(f"log format {fmt!r} is not one of {', '.join(FORMATS)}")
-    handler: logging.Handler
+    target: logging.StreamHandler[Any]
     if file is None or str(file) in ("", "-"):
-        handler = _Stderr()
+        target = _Stderr()
     else:
         try:
             from logging.handlers import WatchedFileHandler  # only with a log file: it loads socket and more (start time)
 
-            handler = WatchedFileHandler(file, encoding="utf-8")
+            target = WatchedFileHandler(file, encoding="utf-8")
         except OSError as exc:
             raise ConfigError(f"cannot open the log file: {exc.strerror or exc}", path=str(file)) from None
-    handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
+    target.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
+    handler = Handoff(Writer(target, lambda: _embodiment))
     root = logging.getLogger()
     with _lock:
         old, _installed = _installed, handler
@@ -334,13 +345,30 @@ def configure(level: str | int = "info", fmt: str = "text", file: str | Path | N
         root.addHandler(handler)
         root.setLevel(number)
     if old is not None:
-        old.close()
+        _close(old)
     logging.captureWarnings(True)
-    return handler
+    _at_exit()
+    return target
+
+
+def _close(handler: Handoff) -> None:
+    """Write what ``handler``'s writer holds, stop it, and close the stream (a file)."""
+    handler.writer.stop()
+    handler.close()
+    handler.writer.target.close()
+
+
+@functools.cache  # once per process
+def _at_exit() -> None:
+    # A process that leaves without ``shutdown`` (an exception, ``sys.exit``) still writes its last lines.
+    import atexit
+
+    atexit.register(shutdown)
 
 
 def unconfigure() -> None:
-    """Remove what ``configure`` installed and restore the root logger's level (idempotent)."""
+    """Remove what ``configure`` installed (its writer stopped once the lines queued are written)
+    and restore the root logger's level (idempotent)."""
     global _installed
     with _lock:
         old, _installed = _installed, None
@@ -352,17 +380,25 @@ def unconfigure() -> None:
                 setattr(logging, name, value)
             _record_extras.clear()
     if old is not None:
-        old.close()
+        _close(old)
         logging.captureWarnings(False)
 
 
+def flush(timeout: float = DRAIN_TIMEOUT) -> bool:
+    """Wait until every line logged before is written (``timeout`` at most): True when it is."""
+    handler = _installed
+    return handler.writer.flush(timeout) if handler is not None else True
+
+
 def shutdown() -> None:
-    """Write what the throttles still hold and flush the lines: before the process leaves."""
+    """Write what the throttles still hold and the lines queued, and stop the writer thread:
+    before the process leaves (idempotent). Lines logged afterwards are written at once, by the
+    thread that logs them, until ``unconfigure`` or ``configure``."""
     for throttle in list(_throttles):
         throttle.flush()
     handler = _installed
     if handler is not None:
-        handler.flush()
+        handler.writer.stop()
 
 
 def add_arguments(parser: Any) -> None:

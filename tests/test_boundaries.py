@@ -25,7 +25,7 @@ TESTS = Path(__file__).resolve().parent
 
 #: The top-level modules every layer builds on: the standard library and the outside packages only.
 GROUND = frozenset({"errors", "keys", "messages", "classes", "xmlsafe", "diagnostics", "resources", "signals", "procs",
-                    "statedir", "logs", "tomlsafe"})
+                    "statedir", "logs", "log_writer", "tomlsafe"})
 #: The top-level modules of the kernel: the update loop, the stores, the client (its action runs and
 #: companion operations), the mind and competency interfaces, who is alive and the claim on a name;
 #: requests and timers of the loop.

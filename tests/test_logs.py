@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from cmion_mesh import logs
+from cmion_mesh import log_writer, logs
 from cmion_mesh.errors import ConfigError, ExitCode, exit_code
 
 LOG = logging.getLogger("cmion_mesh.migration")
@@ -159,6 +159,7 @@ def test_configure_writes_both_formats_to_a_file_that_parses_back(tmp_path: Path
     logs.configure("debug", "json", file)  # replaces the text handler: lines are not written twice
     logs.event(LOG, "details", level=logging.DEBUG, peer="phone")
     LOG.warning("custody conflict over %s", "companion", extra={"fields": {"epoch": 3}})
+    assert logs.flush()
     lines = file.read_text(encoding="utf-8").splitlines()
     assert len(lines) == 3, lines
     assert {k: v for k, v in parse_text(lines[0]).items() if k != "ts"} == {
@@ -185,6 +186,7 @@ def test_configure_twice_keeps_one_handler_of_its_own_and_leaves_others_alone(ca
         assert len(ours) == 1 and theirs in root.handlers
         LOG.warning("once")
         LOG.info("not at warning")
+        assert logs.flush()
         err = capsys.readouterr().err.splitlines()
         assert [parse_text(line)["msg"] for line in err] == ["once"]
         logs.unconfigure()
@@ -217,8 +219,10 @@ def test_a_rotated_log_file_is_reopened(tmp_path: Path) -> None:
     file = tmp_path / "daemon.log"
     logs.configure("info", "json", file)
     LOG.info("before")
+    assert logs.flush()  # written before the file is moved
     file.rename(tmp_path / "daemon.log.1")  # what logrotate does
     LOG.info("after")
+    assert logs.flush()
     assert [strict_json(line)["msg"] for line in (tmp_path / "daemon.log.1").read_text().splitlines()] == ["before"]
     assert [strict_json(line)["msg"] for line in file.read_text().splitlines()] == ["after"]
 
@@ -231,6 +235,102 @@ def test_the_parser_options_and_their_defaults() -> None:
     assert vars(parser.parse_args([])) == {"log_level": "info", "log_format": "text", "log_file": None}
     assert vars(parser.parse_args(["--log-level", "DEBUG", "--log-format", "json", "--log-file", "x.log"])) == {
         "log_level": "debug", "log_format": "json", "log_file": "x.log"}
+
+
+
+# --- the writer thread ----------------------------------------------------------------------------
+
+
+class Gate:
+    """Standard error that holds the writer in its first write until opened (and keeps the text)."""
+
+    def __init__(self) -> None:
+        self.entered, self.open, self.text = threading.Event(), threading.Event(), []
+
+    def write(self, text: str) -> int:
+        self.entered.set()
+        assert self.open.wait(10), "the gate was never opened"
+        self.text.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    def lines(self) -> list[dict[str, Any]]:
+        return [parse_text(line) for line in "".join(self.text).splitlines()]
+
+
+def writer_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == log_writer.WRITER_THREAD and t.is_alive()]
+
+
+def test_a_line_is_formatted_and_written_by_the_writer_thread_not_the_caller(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    formatted_on: list[str] = []
+    real = logs.TextFormatter.format
+
+    def format(self: logs.TextFormatter, record: logging.LogRecord) -> str:
+        formatted_on.append(threading.current_thread().name)
+        return real(self, record)
+
+    monkeypatch.setattr(logs.TextFormatter, "format", format)
+    logs.configure("info", "text")
+    logs.event(LOG, "action One succeeded", action="One", duration_s=0.0002)
+    LOG.info("peer %s joined", "phone", extra={"fields": {"peer": "phone"}})
+    assert logs.flush()
+    assert [parse_text(line)["msg"] for line in capsys.readouterr().err.splitlines()] == [
+        "action One succeeded", "peer phone joined"]
+    assert formatted_on == [log_writer.WRITER_THREAD] * 2
+
+
+def test_what_could_change_after_a_line_is_logged_is_written_as_it_was(capsys: pytest.CaptureFixture[str]) -> None:
+    logs.configure("info", "json")
+    peers, fields = ["phone"], {"peers": ["phone"]}
+    LOG.info("peers %s", peers, extra={"fields": fields})
+    logs.event(LOG, "joined", peers=fields["peers"])
+    peers.append("robot")  # the caller goes on with its lists before the writer gets to the lines
+    fields["peers"].append("robot")
+    fields["late"] = 1
+    assert logs.flush()
+    first, second = (strict_json(line) for line in capsys.readouterr().err.splitlines())
+    assert first["msg"] == "peers ['phone']" and first["peers"] == ["phone"] and "late" not in first
+    assert second["peers"] == ["phone"]
+
+
+def test_a_full_queue_drops_lines_counts_them_in_a_line_and_never_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
+    gate = Gate()
+    monkeypatch.setattr("sys.stderr", gate)
+    monkeypatch.setattr(log_writer, "QUEUE_SIZE", 10)
+    logs.configure("info", "text")
+    LOG.info("first")
+    assert gate.entered.wait(10)  # the writer is held in its write: what comes now waits in the queue
+    for i in range(25):
+        LOG.info("line %d", i)  # returns at once: 10 queued, 15 dropped
+    LOG.error("an error is kept")  # errors may take as much room again
+    gate.open.set()
+    assert logs.flush()
+    msgs = [line["msg"] for line in gate.lines()]
+    assert msgs == ["first", *(f"line {i}" for i in range(10)), "an error is kept",
+                    "15 log lines dropped: more came than could be written"]
+    assert gate.lines()[-1]["dropped"] == 15 and gate.lines()[-1]["level"] == "WARNING"
+
+
+def test_shutdown_writes_what_is_queued_stops_the_writer_and_later_lines_are_still_written(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    logs.configure("info", "text")
+    assert len(writer_threads()) == 1
+    for i in range(100):
+        LOG.info("line %d", i)
+    logs.shutdown()
+    assert writer_threads() == []
+    LOG.info("after")  # written by the caller: nobody else is left to
+    logs.shutdown()  # idempotent
+    assert [parse_text(line)["msg"] for line in capsys.readouterr().err.splitlines()] == [
+        *(f"line {i}" for i in range(100)), "after"]
+    logs.configure("info", "text")  # configured again: a writer again, stopped by unconfigure
+    assert len(writer_threads()) == 1
+    logs.unconfigure()
+    assert writer_threads() == []
 
 
 # --- floods ---------------------------------------------------------------------------------------

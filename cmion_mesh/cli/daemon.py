@@ -220,6 +220,8 @@ def _up(args: argparse.Namespace) -> int:
                 if metrics_server is not None:
                     metrics_server.attach(metrics.Metrics(embodiment, heartbeat=service.heartbeat))
                 _run_daemon(args, embodiment, table, companion, state, stop, web, metrics_server)
+    # The log's writer thread stopped (its lines written): the lines below are written at once.
+    logs.shutdown()
     left = [t.name for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()]
     if left:
         print(f"embodiment {embodiment.name!r} stopped, but threads are still running: {', '.join(left)}", flush=True)
