@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
+import signal
 import threading
 from collections.abc import Callable
 from typing import Any, Final
@@ -51,7 +52,14 @@ class Writer:
         self.stopped = False  # then records are written at once, by the thread that logs them
         self._hurry = threading.Event()  # a flush or stop is waiting: no lingering
         self.thread = threading.Thread(target=self._run, name=WRITER_THREAD, daemon=True)
-        self.thread.start()
+        # Started with every signal blocked (a thread inherits its creator's mask): a daemon collects
+        # SIGINT/SIGTERM on its main thread with sigwait (``signals.Stopper``), and a signal the
+        # kernel handed to this thread instead would take the default action, ending the process.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, signal.valid_signals())
+        try:
+            self.thread.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
     def put(self, record: logging.LogRecord) -> None:
         if self.stopped:

@@ -454,7 +454,7 @@ def test_bare_tokens_and_an_inflated_fork_never_win(tmp_path: Path, mesh: str, c
         tc.close()
         assert refused.status == "rejected", refused
         assert "forks from the chain offered by 'b'" in refused.reason and "'b' signed two links for epoch 3" in refused.reason
-        assert _logged(c, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3")
+        wait_for(lambda: _logged(c, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3"), 5, "the log line")
         assert not (c.state / "spirit.record.json").exists()
         # 2. c cut off (a port nobody knows, no peers): the fork is accepted, and committed.
         assert c.daemon is not None
@@ -482,7 +482,7 @@ def test_bare_tokens_and_an_inflated_fork_never_win(tmp_path: Path, mesh: str, c
             assert report["equivocators"] == ["b"] and report["branches"]["c"]["equivocators"] == ["b"]
             assert report["branches"]["a"] == {"epoch": 3, "equivocators": []} and report["branches"]["c"]["epoch"] == 504
             assert (tmp_path / "state-a" / "spirit.fork.json").exists() and (c.state / "spirit.fork.json").exists()
-            assert _logged(a, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3")
+            wait_for(lambda: _logged(a, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3"), 5, "the log line")
             assert client.request("a", "mind", "message", MindMessage({"note": "x"})).status == "rejected", "a's mind is asleep"
             frozen = client.request("a", "migration", "migrate", Migrate("spirit", "c"))
             assert frozen.status == "rejected" and "frozen by a fork" in frozen.reason
@@ -573,7 +573,7 @@ def test_a_record_its_chain_does_not_back_never_runs(trio: tuple[Node, Node, Nod
         assert client.request("b", "mind", "message", MindMessage({"note": "on b"})).status == "accepted", "b keeps running"
         restore(0)
         wait_for(lambda: _stored(a.state).state == "released", 30, "a stands down for good")
-        assert _logged(a, "custody of spirit moved on without this copy: 'b' holds it at epoch 2")
+        wait_for(lambda: _logged(a, "custody of spirit moved on without this copy: 'b' holds it at epoch 2"), 5, "the log line")
         assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
         assert memory(client, "b") == ["met Ada", "on b"]
         assert b.daemon is not None

@@ -312,6 +312,7 @@ def _run_daemon(args: argparse.Namespace, embodiment: Embodiment, table: devices
     if metrics_server is not None:
         print(f"metrics of {name!r} at {metrics_server.url}/metrics (health: {metrics_server.url}/healthz)", flush=True)
         logs.event(log, "metrics served", url=f"{metrics_server.url}/metrics", health=f"{metrics_server.url}/healthz")
+    logs.flush()  # what was logged while starting (plain mode, a companion living elsewhere...) comes before "up"
     print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
           f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
           flush=True)
