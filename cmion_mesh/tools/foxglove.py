@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.tools.recording import MAX_CHANNELS, MAX_QUEUED_BYTES, MAX_QUEUED_SAMPLES, Inbox
-from cmion_mesh.tools.recording_format import SCHEMAS, Routed, mesh_filters, overflow_topic, route, route_token, token_patterns
+from cmion_mesh.tools.recording_format import SCHEMAS, Routed, follow, mesh_filters, overflow_topic, route, route_token
 from cmion_mesh.transport.base import Closeable, Sample, Transport
 
 if TYPE_CHECKING:
@@ -99,10 +99,7 @@ class FoxgloveServer:
         self._worker.start()
         self._subscriptions: list[Closeable] = []
         try:
-            for pattern in self.filters:
-                self._subscriptions.append(transport.subscribe_batches(pattern, self._on_samples))
-            for pattern in token_patterns(mesh):
-                self._subscriptions.append(transport.watch_liveliness(pattern, self._on_token))
+            self._subscriptions = follow(transport, mesh, self.filters, self._on_samples, self._on_token)
         except BaseException:
             self.close()
             raise

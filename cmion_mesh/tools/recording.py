@@ -45,13 +45,13 @@ from cmion_mesh.tools.recording_format import (
     SCHEMAS,
     Routed,
     event_line,
+    follow,
     mesh_filters,
     nanoseconds,
     overflow_topic,
     record_event,
     route,
     route_token,
-    token_patterns,
 )
 from cmion_mesh.transport.base import Closeable, Sample, Transport
 
@@ -261,10 +261,7 @@ class Recorder:
         self._writer.start()
         self._subscriptions: list[Closeable] = []
         try:
-            for pattern in self.filters:
-                self._subscriptions.append(transport.subscribe_batches(pattern, self._on_samples))
-            for pattern in token_patterns(mesh):
-                self._subscriptions.append(transport.watch_liveliness(pattern, self._on_token))
+            self._subscriptions = follow(transport, mesh, self.filters, self._on_samples, self._on_token)
         except BaseException:
             self.close()
             raise

@@ -55,7 +55,7 @@ from msgspec import UNSET, UnsetType
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.messages import Container, Event, Property, RequestAnswered, decode, decoder
-from cmion_mesh.transport.base import Sample
+from cmion_mesh.transport.base import BatchHandler, Closeable, LivelinessHandler, Sample, Transport
 
 EVENT_SCHEMA = "cmion_mesh.Event"
 STORAGE_SCHEMA = "cmion_mesh.StorageSample"
@@ -316,6 +316,21 @@ def mesh_filters(mesh: str, filters: Sequence[str] = ()) -> list[str]:
 def token_patterns(mesh: str) -> list[str]:
     """The liveliness watched, always: one pattern per kind of token (``TOKEN_KINDS``)."""
     return [f"{keys.mesh_prefix(mesh)}/{kind}/{'*' if kind == keys.ALIVE else '**'}" for kind in TOKEN_KINDS]
+
+
+def follow(transport: Transport, mesh: str, filters: Sequence[str], on_samples: BatchHandler,
+           on_token: LivelinessHandler) -> list[Closeable]:
+    """Subscribe to ``filters`` and watch every kind of token of ``mesh``, as the recorder and the live
+    Foxglove server both do; what was declared is closed again if a declaration fails."""
+    declared: list[Closeable] = []
+    try:
+        declared.extend(transport.subscribe_batches(pattern, on_samples) for pattern in filters)
+        declared.extend(transport.watch_liveliness(pattern, on_token) for pattern in token_patterns(mesh))
+    except BaseException:
+        for handle in declared:
+            handle.close()
+        raise
+    return declared
 
 
 # --- where a sample goes --------------------------------------------------------------------------
