@@ -4,9 +4,7 @@ invite it, set its policy, read and resolve its custody. ``MeshClient`` offers e
 
 from __future__ import annotations
 
-import base64
 import queue
-import secrets
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -221,6 +219,9 @@ def resolve_fork(client: CompanionClient, companion: str, keep: str, *, force: b
             f"keeping {keep!r} would make two: {', '.join(f'{h!r} (epoch {branches[h]})' for h in unreachable)} "
             f"{'holds' if len(unreachable) == 1 else 'hold'} a branch of {companion!r} and cannot be reached to stand "
             "down; bring it back, or, if it is gone for good (wiped, or revoked), say so with --gone NAME", key=key)
+    import base64  # here: only an operator's resolve needs them, and every one-shot command imports this module
+    import secrets
+
     chain_key = keys.request_key(client.mesh, keep, "migration", "chain", sender)
     answer = require_accepted(client.request(keep, "migration", "chain",
                                            MigrateChain(companion, int(kept.get("epoch", 0)), secrets.token_bytes(16)),

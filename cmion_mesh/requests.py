@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cmion_mesh import keys, logs
+from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Message, Outcome, RequestAnswered, check_value, decode, encode
 from cmion_mesh.transport.base import Matching, Transport
@@ -109,6 +109,10 @@ class Answers:
         # so that an answer costs one attribute read when nobody does.
         self._listeners: Matching | None = None
         self._keys: dict[tuple[str, str], str] = {}
+        # Here, not at the top: a one-shot command imports this module for send_request and never
+        # answers a request; the log's machinery is the serving side's (start time of one-shots).
+        from cmion_mesh import logs
+
         self._refused = logs.Throttle(log, "refused requests")
 
     def follow_listeners(self) -> None:
@@ -135,6 +139,8 @@ class Answers:
     def _log_refusal(self, component: str, request: str, sender: str, outcome: Outcome) -> None:
         reason = outcome.reason if len(outcome.reason) <= MAX_REASON else outcome.reason[:MAX_REASON] + "..."
         if outcome.code in ROUTINE_REFUSALS:
+            from cmion_mesh import logs  # loaded by __init__ already: a lookup
+
             logs.event(log, f"{component}/{request} from {sender or UNNAMED}: {outcome.code}", level=logging.DEBUG,
                        code=str(outcome.code), sender=sender or None, component=component, request=request)
             return

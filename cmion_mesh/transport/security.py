@@ -53,7 +53,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cmion_mesh import keys, logs
+from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport.base import TransportConfig
 
@@ -226,6 +226,8 @@ def load_credentials(directory: str | os.PathLike[str], name: str, trust: certs.
         if left.days < EXPIRY_WARNING_DAYS:
             date = f"{held.not_valid_after_utc:%Y-%m-%d}"
             when = f"expired on {date}" if left.total_seconds() <= 0 else f"expires in {left.days} days ({date})"
+            from cmion_mesh import logs  # only with certificates near their end: one-shots without --certs never load it
+
             logs.event(log, f"{what} {when}: issue a new one, or the mesh refuses this process", level=logging.WARNING,
                        identity=name, cert=str(path), expires=date, days_left=max(0, left.days))
     trust = trust if trust is not None else certs.Trust.load(folder)
