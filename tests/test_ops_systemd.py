@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -24,52 +23,15 @@ from cmion_mesh.ops import systemd
 from cmion_mesh.ops.heartbeat import Heartbeat
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
+from .helpers.notify import NotifySocket
+
 pytestmark = pytest.mark.timeout(60)
 
 
-class Listener:
-    """What systemd does with $NOTIFY_SOCKET: a unix datagram socket, read with a deadline."""
-
-    def __init__(self, address: str) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(address)
-        self.got: list[list[str]] = []
-
-    def next(self, timeout: float = 5.0) -> list[str]:
-        self.sock.settimeout(timeout)
-        fields = self.sock.recv(4096).decode().split("\n")
-        self.got.append(fields)
-        return fields
-
-    def until(self, field: str, timeout: float = 5.0) -> list[list[str]]:
-        """The datagrams up to and including the first holding ``field`` (bounded by their count and the timeout)."""
-        seen = []
-        for _ in range(1000):
-            fields = self.next(timeout)
-            seen.append(fields)
-            if field in fields:
-                return seen
-        raise AssertionError(f"no {field} in {seen[-5:]}")
-
-    def pending(self) -> list[list[str]]:
-        """Whatever has arrived and not been read (without waiting)."""
-        out = []
-        self.sock.setblocking(False)
-        try:
-            for _ in range(1000):
-                out.append(self.sock.recv(4096).decode().split("\n"))
-        except BlockingIOError:
-            pass
-        return out
-
-    def close(self) -> None:
-        self.sock.close()
-
-
 @pytest.fixture
-def listener(tmp_path: Path) -> Iterator[tuple[Listener, str]]:
+def listener(tmp_path: Path) -> Iterator[tuple[NotifySocket, str]]:
     path = str(tmp_path / "notify")
-    got = Listener(path)
+    got = NotifySocket(path)
     yield got, path
     got.close()
 
@@ -90,7 +52,7 @@ class Stall(Component):
         self.release.wait(30.0)  # bounded: released by the test (or its end)
 
 
-def test_notifier_speaks_to_a_path_socket_and_an_abstract_one(listener: tuple[Listener, str]) -> None:
+def test_notifier_speaks_to_a_path_socket_and_an_abstract_one(listener: tuple[NotifySocket, str]) -> None:
     got, path = listener
     with systemd.Notifier(path) as notifier:
         assert notifier.ready("up in mesh home\nsecond line")
@@ -100,7 +62,7 @@ def test_notifier_speaks_to_a_path_socket_and_an_abstract_one(listener: tuple[Li
         notifier.stopping()
         assert [got.next() for _ in range(3)] == [["STATUS=migrating"], ["WATCHDOG=1"], ["STOPPING=1"]]
     name = f"cmion-mesh-test-{uuid.uuid4().hex}"
-    abstract = Listener("\0" + name)
+    abstract = NotifySocket("\0" + name)
     try:
         with systemd.Notifier(environ={"NOTIFY_SOCKET": "@" + name}) as notifier:
             assert notifier.ready()
@@ -130,7 +92,7 @@ def test_watchdog_interval_follows_systemd() -> None:
     assert systemd.watchdog_interval({"WATCHDOG_USEC": "0"}) is None
 
 
-def test_ready_once_the_name_is_held_then_pings_then_stopping(listener: tuple[Listener, str], mesh: str, tmp_path: Path) -> None:
+def test_ready_once_the_name_is_held_then_pings_then_stopping(listener: tuple[NotifySocket, str], mesh: str, tmp_path: Path) -> None:
     got, path = listener
     network = MemoryNetwork()
     environ = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"}  # pings every 0.1 s
@@ -151,7 +113,7 @@ def test_ready_once_the_name_is_held_then_pings_then_stopping(listener: tuple[Li
 
 
 def test_a_stuck_loop_stops_the_pings_and_they_resume_when_it_turns(
-    listener: tuple[Listener, str], mesh: str, caplog: pytest.LogCaptureFixture
+    listener: tuple[NotifySocket, str], mesh: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     got, path = listener
     stall = Stall()
@@ -184,7 +146,7 @@ def test_a_stuck_loop_stops_the_pings_and_they_resume_when_it_turns(
     assert len(stuck) - said == 1, "the stall is said once, however long it lasts"
 
 
-def test_a_loop_stuck_from_the_start_is_never_reported_ready(listener: tuple[Listener, str], mesh: str) -> None:
+def test_a_loop_stuck_from_the_start_is_never_reported_ready(listener: tuple[NotifySocket, str], mesh: str) -> None:
     got, path = listener
     stall = Stall()
     with MemoryTransport(MemoryNetwork(), "robot") as transport, \

@@ -12,7 +12,6 @@ import signal
 import socket
 import subprocess
 import urllib.request
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,52 +25,16 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
+from .helpers.notify import NotifySocket
+
 pytestmark = pytest.mark.timeout(90)
 
 Samples = dict[tuple[str, frozenset[tuple[str, str]]], float]
 
 
-class Systemd:
-    """What systemd does with $NOTIFY_SOCKET: a unix datagram socket (abstract), read with a deadline."""
-
-    def __init__(self) -> None:
-        self.address = f"@cmion-test-{uuid.uuid4().hex}"
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind("\0" + self.address[1:])
-        self.got: list[list[str]] = []
-
-    def env(self, watchdog_usec: int = 1_000_000) -> dict[str, str]:
-        return {"NOTIFY_SOCKET": self.address, "WATCHDOG_USEC": str(watchdog_usec)}
-
-    def until(self, field: str, timeout: float = 30.0) -> list[list[str]]:
-        """The datagrams up to and including the first holding ``field`` (bounded by their count and the timeout)."""
-        seen = []
-        self.sock.settimeout(timeout)
-        for _ in range(1000):
-            fields = self.sock.recv(4096).decode().split("\n")
-            self.got.append(fields)
-            seen.append(fields)
-            if field in fields:
-                return seen
-        raise AssertionError(f"no {field} in {seen[-5:]}")
-
-    def pending(self) -> list[list[str]]:
-        out = []
-        self.sock.setblocking(False)
-        try:
-            for _ in range(1000):
-                out.append(self.sock.recv(4096).decode().split("\n"))
-        except BlockingIOError:
-            pass
-        return out
-
-    def close(self) -> None:
-        self.sock.close()
-
-
 @pytest.fixture
-def systemd() -> Iterator[Systemd]:
-    got = Systemd()
+def systemd() -> Iterator[NotifySocket]:
+    got = NotifySocket()
     yield got
     got.close()
 
@@ -89,14 +52,14 @@ def run_up(*args: str, env: dict[str, str] | None = None) -> subprocess.Complete
 
 
 def test_up_under_systemd_is_ready_once_it_holds_its_name_pings_the_watchdog_and_says_stopping(
-        systemd: Systemd, tmp_path: Path, mesh: str) -> None:
+        systemd: NotifySocket, tmp_path: Path, mesh: str) -> None:
     robot_at = endpoint()
     with up("robot", "--mesh", mesh, "--listen", robot_at, "--no-multicast", "--state-dir", str(tmp_path / "robot"),
             env=systemd.env(), name="robot") as robot:
-        ready = systemd.until("READY=1")
+        ready = systemd.until("READY=1", 30)
         assert ready == [["READY=1", f"STATUS=embodiment 'robot' up in mesh {mesh!r}"]], "READY=1 is the first thing said"
         # A second robot is refused its name: it never says it is ready, and leaves no state folder behind.
-        twin_systemd = Systemd()
+        twin_systemd = NotifySocket()
         try:
             twin = run_up("robot", "--mesh", mesh, "--connect", robot_at, "--listen", endpoint(), "--no-multicast",
                           "--state-dir", str(tmp_path / "twin" / "robot"), env=twin_systemd.env())
