@@ -35,7 +35,7 @@ from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.tools.recording import MAX_CHANNELS, MAX_QUEUED_BYTES, MAX_QUEUED_SAMPLES, Inbox
 from cmion_mesh.tools.recording_format import SCHEMAS, Routed, follow, mesh_filters, overflow_topic, route, route_token
-from cmion_mesh.transport.base import Closeable, Sample, Transport
+from cmion_mesh.transport.base import Closeable, Transport
 
 if TYPE_CHECKING:
     import foxglove
@@ -99,7 +99,7 @@ class FoxgloveServer:
         self._worker.start()
         self._subscriptions: list[Closeable] = []
         try:
-            self._subscriptions = follow(transport, mesh, self.filters, self._on_samples, self._on_token)
+            self._subscriptions = follow(transport, mesh, self.filters, self._inbox.put_samples, self._inbox.put_token)
         except BaseException:
             self.close()
             raise
@@ -131,15 +131,7 @@ class FoxgloveServer:
     def __exit__(self, *_: object) -> None:
         self.close()
 
-    # --- on the transport's workers: stamp and hand over, nothing more --------------------------
-
-    def _on_samples(self, batch: list[Sample]) -> None:
-        self._inbox.put((time.time_ns(), batch), len(batch), sum(len(s.payload) + len(s.key) for s in batch))
-
-    def _on_token(self, key: str, alive: bool) -> None:
-        self._inbox.put((time.time_ns(), (key, alive)), 1, len(key))
-
-    # --- on the SDK's threads: the same ------------------------------------------------------------
+    # --- on the SDK's threads: hand over, nothing more ------------------------------------------------
 
     def subscribed(self, client: int, channel: int, yes: bool) -> None:
         """A client subscribed to a channel (``yes``) or no longer is: the first one gets the kept

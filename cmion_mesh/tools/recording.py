@@ -105,6 +105,15 @@ class Inbox:
             self._cond.notify()
             return True
 
+    # The transport's workers hand over here: stamp and queue, nothing more (the recorder and the live
+    # Foxglove server both subscribe with these two).
+
+    def put_samples(self, batch: list[Sample]) -> None:
+        self.put((time.time_ns(), batch), len(batch), sum(len(s.payload) + len(s.key) for s in batch))
+
+    def put_token(self, key: str, alive: bool) -> None:
+        self.put((time.time_ns(), (key, alive)), 1, len(key))
+
     def take(self, timeout: float) -> list[Any]:
         """Everything waiting (at once), or what arrives within ``timeout``; [] when nothing did."""
         with self._cond:
@@ -261,7 +270,7 @@ class Recorder:
         self._writer.start()
         self._subscriptions: list[Closeable] = []
         try:
-            self._subscriptions = follow(transport, mesh, self.filters, self._on_samples, self._on_token)
+            self._subscriptions = follow(transport, mesh, self.filters, self._inbox.put_samples, self._inbox.put_token)
         except BaseException:
             self.close()
             raise
@@ -276,14 +285,6 @@ class Recorder:
 
     def __exit__(self, *_: object) -> None:
         self.close()
-
-    # --- on the transport's workers: stamp and hand over, nothing more --------------------------
-
-    def _on_samples(self, batch: list[Sample]) -> None:
-        self._inbox.put((time.time_ns(), batch), len(batch), sum(len(s.payload) + len(s.key) for s in batch))
-
-    def _on_token(self, key: str, alive: bool) -> None:
-        self._inbox.put((time.time_ns(), (key, alive)), 1, len(key))
 
     def describe(self, descriptions: Iterable[dict[str, Any]]) -> None:
         """Write what the embodiments said of themselves (``MeshClient.describe_all``) as metadata
