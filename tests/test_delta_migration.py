@@ -30,13 +30,13 @@ from cmion_mesh.migration.sections import SectionStore
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.memory import MemoryNetwork
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .helpers import delta_helpers, remote_helpers
 from .helpers.custody_helpers import Holder
 from .helpers.delta_helpers import carrier_config
-from .helpers.remote_helpers import Diary
+from .helpers.remote_helpers import screen_in_process
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -197,16 +197,8 @@ def test_a_section_over_the_targets_limit_is_refused_naming_it(two: tuple[Node, 
 
 @pytest.fixture
 def screen(network: MemoryNetwork, mesh: str, tmp_path: Path) -> Iterator[tuple[Embodiment, MeshClient]]:
-    body = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=tmp_path / "screen",
-                      components=[Diary()]).start()
-    try:
-        with MemoryTransport(network, "cli") as t:
-            client = MeshClient(t, mesh)
-            wait_for(lambda: body.sim.updates > 0, 5, "screen up")
-            yield body, client
-    finally:
-        body.close()
-        body.transport.close()
+    with screen_in_process(network, mesh, tmp_path / "screen") as pair:
+        yield pair
 
 
 def to_screen(client: MeshClient, op: str, message: Any, sender: str = "robot") -> Outcome:

@@ -28,11 +28,11 @@ from cmion_mesh.migration.outgoing import INLINE
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+from cmion_mesh.transport.memory import MemoryNetwork
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .helpers.custody_helpers import Holder
-from .helpers.remote_helpers import Diary, Node, diary_embodiment_config
+from .helpers.remote_helpers import Node, diary_embodiment_config, screen_in_process
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -164,16 +164,8 @@ def test_uploads_that_never_become_a_prepare_are_bounded_and_expire(
 
 @pytest.fixture
 def screen(network: MemoryNetwork, mesh: str, tmp_path: Path) -> Iterator[tuple[Embodiment, MeshClient]]:
-    body = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=tmp_path / "screen",
-                      components=[Diary()]).start()
-    try:
-        with MemoryTransport(network, "cli") as t:
-            client = MeshClient(t, mesh)
-            wait_for(lambda: body.sim.updates > 0, 5, "screen up")
-            yield body, client
-    finally:
-        body.close()
-        body.transport.close()
+    with screen_in_process(network, mesh, tmp_path / "screen") as pair:
+        yield pair
 
 
 def test_an_upload_ends_with_its_staging_and_counts_from_its_first_chunk(screen: tuple[Embodiment, MeshClient]) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -155,3 +157,24 @@ class Node:
     def stop(self) -> None:
         for daemon in self.history:
             daemon.kill()
+
+
+@contextlib.contextmanager
+def screen_in_process(network: Any, mesh: str, state: Path) -> Iterator[tuple[Any, Any]]:
+    """An embodiment "screen" with a ``Diary`` on the in-memory ``network`` (its state in ``state``), and a
+    client beside it: a migration target the test drives message by message."""
+    from cmion_mesh.body.embodiment import Embodiment
+    from cmion_mesh.client import MeshClient
+    from cmion_mesh.testing.wait import wait_for
+    from cmion_mesh.transport.memory import MemoryTransport
+
+    body = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=state,
+                      components=[Diary()]).start()
+    try:
+        with MemoryTransport(network, "cli") as t:
+            client = MeshClient(t, mesh)
+            wait_for(lambda: body.sim.updates > 0, 5, "screen up")
+            yield body, client
+    finally:
+        body.close()
+        body.transport.close()
