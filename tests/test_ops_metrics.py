@@ -8,7 +8,6 @@ import os
 import re
 import subprocess
 import sys
-import threading
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -25,13 +24,14 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import ConfigError, RequestRejected, WebServerError
-from cmion_mesh.ion import Component
 from cmion_mesh.messages import Event
 from cmion_mesh.ops import metrics as ops_metrics
 from cmion_mesh.ops.heartbeat import Heartbeat
 from cmion_mesh.ops.metrics import Metrics, MetricsServer
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+
+from .helpers.competency_helpers import Stall
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -57,20 +57,6 @@ class Shake(Competency):
         return ctx.fail("shaking is not possible today")
 
 
-class Stall(Component):
-    """Blocks the update loop on purpose until released."""
-
-    def __init__(self) -> None:
-        super().__init__("stall")
-        self.entered = threading.Event()
-        self.release = threading.Event()
-
-    def block(self) -> None:
-        self.sim.call(self._wait)
-
-    def _wait(self) -> None:
-        self.entered.set()
-        self.release.wait(30.0)  # bounded: released by the test
 
 
 def get(url: str, accept: str | None = None, host: str | None = None) -> tuple[int, str, str]:

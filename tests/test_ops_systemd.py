@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,11 +17,11 @@ import pytest
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.claim import claim_name
 from cmion_mesh.errors import ConfigError, InvalidName, Refused
-from cmion_mesh.ion import Component
 from cmion_mesh.ops import systemd
 from cmion_mesh.ops.heartbeat import Heartbeat
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
+from .helpers.competency_helpers import Stall
 from .helpers.notify import NotifySocket
 
 pytestmark = pytest.mark.timeout(60)
@@ -36,20 +35,6 @@ def listener(tmp_path: Path) -> Iterator[tuple[NotifySocket, str]]:
     got.close()
 
 
-class Stall(Component):
-    """Blocks the update loop on purpose until released: a handler stuck in the loop."""
-
-    def __init__(self) -> None:
-        super().__init__("stall")
-        self.entered = threading.Event()
-        self.release = threading.Event()
-
-    def block(self) -> None:
-        self.sim.call(self._wait)
-
-    def _wait(self) -> None:
-        self.entered.set()
-        self.release.wait(30.0)  # bounded: released by the test (or its end)
 
 
 def test_notifier_speaks_to_a_path_socket_and_an_abstract_one(listener: tuple[NotifySocket, str]) -> None:

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import queue
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from cmion_mesh.competency import Competency, RunContext
-from cmion_mesh.ion import Simulation
+from cmion_mesh.ion import Component, Simulation
 
 _CANCEL = object()
 
@@ -47,3 +48,19 @@ def pump(sim: Simulation, until: Callable[[], object], what: str, timeout: float
     while not until():
         assert time.monotonic() < deadline, f"{what}: not within {timeout:g} s"
         sim.run_once(0.05)
+
+
+class Stall(Component):
+    """Blocks the update loop on purpose until released: a handler stuck in the loop (``block``)."""
+
+    def __init__(self) -> None:
+        super().__init__("stall")
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def block(self) -> None:
+        self.sim.call(self._wait)
+
+    def _wait(self) -> None:
+        self.entered.set()
+        self.release.wait(30.0)  # bounded: released by the test (or its end)
