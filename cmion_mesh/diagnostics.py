@@ -110,12 +110,13 @@ def _name(path: str | os.PathLike[str] | None) -> str | None:
     return None if path is None else os.fspath(path)
 
 
-def load_xml(path: str | os.PathLike[str], schema: str, diagnostics: Diagnostics) -> Any:
+def load_xml(path: str | os.PathLike[str], schema: str, diagnostics: Diagnostics, *, comments: bool = False) -> Any:
     """Parse ``path`` safely and check it against ``schema``, reporting every schema violation;
-    the tree, or None when the file cannot be used (the reasons reported)."""
+    the tree, or None when the file cannot be used (the reasons reported). ``comments``: as for
+    ``xmlsafe.load``."""
     name = os.fspath(path)
     try:
-        tree = xmlsafe.load(name, None)
+        tree = xmlsafe.load(name, None, comments=comments)
     except ConfigError as exc:
         diagnostics.problem(exc)
         return None

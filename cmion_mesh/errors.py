@@ -18,6 +18,11 @@ class InvalidName(MeshError, ValueError):
 
 
 
+class InvalidArguments(MeshError, ValueError):
+    """A call's arguments do not fit what it accepts (a tool call to a body ability: a parameter
+    missing, unknown or outside its choices); nothing was sent."""
+
+
 class ConfigError(MeshError):
     """A file or setting is unusable: malformed, hostile, oversized, or semantically wrong.
 

@@ -113,7 +113,7 @@ class DenyAllResolver(etree.Resolver):
         raise ExternalResourceRefused(system_url)
 
 
-def _make_parser() -> etree.XMLPullParser:
+def _make_parser(comments: bool = False) -> etree.XMLPullParser:
     """A fresh pull parser per document: lxml parsers are not safe to share between threads.
 
     Do not add ``collect_ids=False``: lxml passes it to libxml2 as ``XML_SKIP_IDS``, which libxml2
@@ -128,7 +128,9 @@ def _make_parser() -> etree.XMLPullParser:
         dtd_validation=False,
         attribute_defaults=False,
         huge_tree=False,
-        remove_comments=True,
+        # Comments are harmless text; kept only for readers that use them (a rules file's comments
+        # describe its actions), so every other reader's trees stay free of comment nodes.
+        remove_comments=not comments,
         remove_pis=True,
     )
     parser.resolvers.add(DenyAllResolver())
@@ -278,9 +280,9 @@ def _syntax_error(exc: etree.XMLSyntaxError, name: str, text: str) -> XmlError:
     return XmlError(f"malformed XML: {message}{column}", path=name, line=line)
 
 
-def _parse(data: bytes, text: str, name: str, max_depth: int, max_elements: int) -> etree._ElementTree:
+def _parse(data: bytes, text: str, name: str, max_depth: int, max_elements: int, comments: bool = False) -> etree._ElementTree:
     """Parse in slices, checking depth and element count after each, so excess is caught early."""
-    parser = _make_parser()
+    parser = _make_parser(comments)
     depth = 0
     elements = 0
 
@@ -356,7 +358,7 @@ def _check_limits(max_bytes: int, max_depth: int, max_elements: int) -> None:
 
 
 def _loads(
-    data: bytes, schema: str | None, name: str, max_bytes: int, max_depth: int, max_elements: int
+    data: bytes, schema: str | None, name: str, max_bytes: int, max_depth: int, max_elements: int, comments: bool = False
 ) -> etree._ElementTree:
     if len(data) > max_bytes:
         raise XmlError(
@@ -366,7 +368,7 @@ def _loads(
         )
     text = _decode(data, name)
     _prescan(text, name)
-    tree = _parse(data, text, name, max_depth, max_elements)
+    tree = _parse(data, text, name, max_depth, max_elements, comments)
     _postcheck(tree, name)
     if schema is not None:
         validate(tree, schema, name)
@@ -381,15 +383,17 @@ def loads(
     max_bytes: int = DEFAULT_MAX_BYTES,
     max_depth: int = DEFAULT_MAX_DEPTH,
     max_elements: int = DEFAULT_MAX_ELEMENTS,
+    comments: bool = False,
 ) -> etree._ElementTree:
     """Parse an in-memory document (e.g. one received from the network) under the same rules as files.
 
     ``name`` is only used in error messages.  Raises ``XmlError`` for every fault in ``data``.
+    ``comments`` keeps the document's comments.
     """
     _check_limits(max_bytes, max_depth, max_elements)
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise TypeError(f"loads() wants bytes, got {type(data).__name__}")
-    return _loads(bytes(data), schema, name, max_bytes, max_depth, max_elements)
+    return _loads(bytes(data), schema, name, max_bytes, max_depth, max_elements, comments)
 
 
 def load(
@@ -399,13 +403,14 @@ def load(
     max_bytes: int = DEFAULT_MAX_BYTES,
     max_depth: int = DEFAULT_MAX_DEPTH,
     max_elements: int = DEFAULT_MAX_ELEMENTS,
+    comments: bool = False,
 ) -> etree._ElementTree:
     """Read and parse an XML file, validating it against ``schema`` (a file name such as
     ``"WorldModel.xsd"``) unless that is ``None``.
 
     The file is read by us, capped at ``max_bytes + 1`` bytes, so an oversize (or endless, e.g. a
     FIFO) file is refused without being parsed.  Unreadable files are ``XmlError`` too, so callers
-    loading configuration need to catch one family only.
+    loading configuration need to catch one family only. ``comments`` keeps the document's comments.
     """
     _check_limits(max_bytes, max_depth, max_elements)
     name = os.fspath(source)
@@ -414,7 +419,7 @@ def load(
             data = handle.read(max_bytes + 1)
     except OSError as exc:
         raise XmlError(f"cannot read file: {exc.strerror or exc}", path=name) from None
-    return _loads(data, schema, name, max_bytes, max_depth, max_elements)
+    return _loads(data, schema, name, max_bytes, max_depth, max_elements, comments)
 
 
 # --- schemas -------------------------------------------------------------------------------------

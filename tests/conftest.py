@@ -99,6 +99,7 @@ from tests.helpers.browser import chromium_browser  # noqa: E402, F401  (the rea
 TIER_NAMES = ("unit", "mesh", "system")
 
 TIERS: dict[str, str] = {
+    "test_abilities": "unit",
     "test_bench_smoke": "system",
     "test_bench_targets": "mesh",
     "test_boundaries": "unit",

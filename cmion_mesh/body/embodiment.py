@@ -26,6 +26,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import __version__, keys, logs
+from cmion_mesh.body.abilities import abilities
 from cmion_mesh.body.architecture import embodiment_name, load_architecture
 from cmion_mesh.body.execution import ExecutionSystem
 from cmion_mesh.body.library import load_library, table_for_library
@@ -265,6 +266,8 @@ class Embodiment:
             "stand_ins": self.standins(),
             "competencies": [c.name for c in self.execution.competencies],
             "actions": self.rules.actions(),
+            # The same actions as named, typed, described tools (language-model minds, MCP clients).
+            "abilities": [a.to_json() for a in abilities(self.rules)],
             "minds": [m.name for m in self.minds],
             "mind_connections": {m.name: link for m in self.minds if (link := m.connection()) is not None},
             "inhabitant": self.inhabitant,
@@ -358,5 +361,7 @@ def with_migrate_rule(rules: RuleSet) -> RuleSet:
     if rules.candidates(MindAction("Migrate", ("somewhere",))):
         return rules
     step = Step("1", "Migration", (), (("target", "$parameter1"),), 0)
-    rule = Rule(len(rules.rules), "Migrate", ("*",), None, (Plan((step,), 0),), "<built-in>", 0)
+    rule = Rule(len(rules.rules), "Migrate", ("*",), None, (Plan((step,), 0),), "<built-in>", 0,
+                "Migrate <target>: move the companion, with its memory, to the embodiment named target "
+                "(one its migration policy accepts); it then lives in that body, with that body's abilities.")
     return RuleSet((*rules.rules, rule), rules.path)

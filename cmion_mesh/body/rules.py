@@ -157,6 +157,9 @@ class Rule:
     plans: tuple[Plan, ...]
     path: str
     line: int
+    # The XML comment just before the rule (how CMION's files document a rule), whitespace folded:
+    # what a language-model mind or an MCP client is told the action does (``body/abilities.py``).
+    description: str = ""
 
     @property
     def wildcards(self) -> int:
@@ -255,7 +258,7 @@ def load_rules(path: str | os.PathLike[str], problems: list[ConfigError] | None 
     With ``problems``, a rule at fault is left out and its error appended there, so that every
     faulty rule is reported in one run (the schema was checked by the caller, ``validate``)."""
     name = os.fspath(path)
-    return _parse(xmlsafe.load(name, SCHEMA), name, problems)
+    return _parse(xmlsafe.load(name, SCHEMA, comments=True), name, problems)
 
 
 def parse_rules(tree: etree._ElementTree, path: str, problems: list[ConfigError] | None = None) -> RuleSet:
@@ -321,7 +324,15 @@ def _parse_rule(index: int, element: etree._Element, path: str) -> Rule:
     plans = tuple(
         _parse_plan(plan, f"{label}, plan {number}", len(parameters), path) for number, plan in enumerate(plan_elements, start=1)
     )
-    return Rule(index, name, parameters, subject, plans, path, _line(element))
+    return Rule(index, name, parameters, subject, plans, path, _line(element), _comment_before(element))
+
+
+def _comment_before(element: etree._Element) -> str:
+    """The text of the comment right before ``element`` (only whitespace between), folded to one line."""
+    previous = element.getprevious()
+    if not isinstance(previous, etree._Comment):
+        return ""
+    return " ".join((previous.text or "").split())
 
 
 def _parse_parameters(action: etree._Element, label: str, path: str) -> tuple[str, ...]:

@@ -112,7 +112,7 @@ KINDS: dict[str, Kind] = {
 
 def _load_rules(path: str | os.PathLike[str], diagnostics: Diagnostics) -> RuleSet | None:
     name = os.fspath(path)
-    tree = load_xml(name, RULES_SCHEMA, diagnostics)
+    tree = load_xml(name, RULES_SCHEMA, diagnostics, comments=True)
     if tree is None:
         return None
     ruleset = _collected(diagnostics, lambda problems: parse_rules(tree, name, problems))
