@@ -36,8 +36,8 @@ _EXPORTS: dict[str, str] = {
     "Mind": "cmion_mesh.mind",
     "Embodiment": "cmion_mesh.body.embodiment",
     **{name: "cmion_mesh.errors" for name in (
-        "MeshError", "ClosedError", "ConfigError", "InvalidName", "NotAlive", "NotReached", "OutcomeUnknown", "PlanError",
-        "ProtocolError", "Refused", "RequestError", "RequestRejected", "StorageError", "TransportError", "Vanished",
+        "MeshError", "ClosedError", "ConfigError", "InvalidArguments", "InvalidName", "NotAlive", "NotReached", "OutcomeUnknown",
+        "PlanError", "ProtocolError", "Refused", "RequestError", "RequestRejected", "StorageError", "TransportError", "Vanished",
         "WebServerError", "XmlError")},
 }
 
@@ -47,6 +47,7 @@ __all__ = [
     "Component",
     "ConfigError",
     "Embodiment",
+    "InvalidArguments",
     "InvalidName",
     "MeshClient",
     "MeshError",
@@ -76,6 +77,7 @@ if TYPE_CHECKING:
     from cmion_mesh.errors import (
         ClosedError,
         ConfigError,
+        InvalidArguments,
         InvalidName,
         MeshError,
         NotAlive,
