@@ -5,8 +5,9 @@ A configuration naming a robot head, a Kinect or Greta still starts: each such c
 ``describe``.
 
 * A **stand-in competency** is in the library under the competency types the port map knows for
-  the class (else its short name, CMION's usual convention), and under no other: a rule type
-  that nothing provides is an error (``validate.check_embodiment``). It is never available, so a plan step
+  the class (CMION's own, read from its sources; else its short name, CMION's usual convention),
+  and under no other: a rule type that nothing provides is a warning (``validate.check_embodiment``)
+  and fails its action when it runs. A stand-in is never available, so a plan step
   of its type fails with a reason naming the class: "competency type 'GretaBMLSender' is provided
   only by stand-in cmion.inTheWild.competencies.GretaBMLSender (no cmion-mesh equivalent; see
   docs/portmap.md)".

@@ -127,10 +127,11 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     every competency type the rules use is provided by the library or named in ``remote_types``
     (served by another process, ``serve-competency``). Returns the rules and the competencies.
 
-    A stand-in competency provides the types the port map knows for its class (else its short
-    name): a rule needing one of them fails naming the class, and the stand-in is warned about
-    with the rule types depending on it. A type that nothing provides is an error, stand-ins or
-    not (a typo must not pass for a class with no equivalent), with the closest provided type.
+    A stand-in competency provides the types the port map knows for its class (CMION's own, else
+    its short name): a rule needing one of them fails naming the class, and the stand-in is warned
+    about with the rule types depending on it. A type that nothing provides is a warning at the
+    step's line, naming the rule and the closest provided types: CMION loaded such a rule, and the
+    action failed when it ran, as it does here (``validate --strict`` makes it an error).
     Without ``diagnostics`` the first error raises its ``ConfigError`` (warnings are logged)."""
     diag = Diagnostics.raising() if diagnostics is None else diagnostics
     ruleset = _load_rules(rules, diag) if rules is not None else None
@@ -138,8 +139,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     if world_model is not None and load_xml(world_model, "WorldModel.xsd", diag) is not None:
         _collected(diag, lambda problems: load_world_model_init(world_model, problems))
     if ruleset is not None and check_types:
+        # Loaded as CMION loaded it: the action fails when it runs, with these words.
         for problem in ruleset.type_problems({c.type for c in competencies} | set(remote_types)):
-            diag.problem(problem)
+            diag.warning(f"{problem.detail}: loaded as CMION loaded it, the action fails when it runs "
+                         "(--remote-type TYPE if another process serves it)", problem.path, problem.line)
     _report_standins(competencies, ruleset, diag)
     return ruleset, competencies
 
