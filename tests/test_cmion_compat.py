@@ -359,7 +359,8 @@ def test_android_resource_names_resolve_to_xml_files() -> None:
 def test_a_file_parameter_naming_no_file_is_an_error(tmp_path: Path) -> None:
     (tmp_path / "l.xml").write_text('<CompetencyLibrary>\n<Competency ClassName="cmion.level2.competencies.AndroidMigration" '
                                     'ConstructorParameters="migrationconfig_elsewhere"/>\n</CompetencyLibrary>')
-    with pytest.raises(ConfigError, match=r"l\.xml:2: .*AndroidMigration: parameter 1 'migrationconfig_elsewhere' names no file"):
+    with pytest.raises(ConfigError, match=r"l\.xml:2: .*AndroidMigration: parameter 1 \(its device table\) "
+                                          r"'migrationconfig_elsewhere' not found \(looked beside this file"):
         load_library(tmp_path / "l.xml")
 
 

@@ -179,7 +179,8 @@ def test_android_raw_names_and_missing_tables(tmp_path: Path) -> None:
     assert table_for_library(library(tmp_path, "cmion_mesh.migration.manager:MigrationCompetency", None)) is None
     assert table_for_library(library(tmp_path, "cmion_mesh.competencies.cmion_test:TestCompetency1", "x.xml")) is None
     lib = library(tmp_path, "cmion.level2.competencies.Migration", "Nowhere.xml")
-    with pytest.raises(ConfigError, match=rf"^{lib}:1: device table 'Nowhere.xml' not found"):
+    with pytest.raises(ConfigError, match=rf"^{lib}:1: cmion.level2.competencies.Migration: parameter 1 \(its device table\) "
+                                          r"'Nowhere.xml' not found \(looked beside this file"):
         table_for_library(lib)
 
 

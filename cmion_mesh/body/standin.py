@@ -29,10 +29,11 @@ from typing import Any
 
 from cmion_mesh.body import java_classes as portmap
 from cmion_mesh.body.java_classes import Port
-from cmion_mesh.classes import find_file
+from cmion_mesh.classes import locate_file
 from cmion_mesh.competency import Competency, Done, RunContext, RunResult
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.ion import Component, Simulation
+from cmion_mesh.migration.devices import is_migration_class, table_parameter
 
 
 def unavailable_reason(stand_ins: Sequence[StandIn]) -> str:
@@ -135,7 +136,8 @@ def resolve(class_name: str, parameters: Sequence[str], *, path: str | os.PathLi
             diagnostics: Diagnostics) -> Resolved | None:
     """What the class ``class_name`` named at ``path:line`` becomes; None (reported) when nothing is
     built: an abstract base (error), a GUI add-on whose job a command does (note), a file
-    parameter naming no file (error)."""
+    parameter naming no file beside ``path`` nor in the working directory (error; one found in
+    the working directory is said in a note)."""
     name = os.fspath(path)
     if not portmap.is_java_name(class_name):
         return Resolved(class_name, class_name, None, tuple(parameters))
@@ -156,12 +158,17 @@ def resolve(class_name: str, parameters: Sequence[str], *, path: str | os.PathLi
     for index in port.file_parameters:
         if index >= len(resolved):
             continue
-        found = find_file(os.path.dirname(os.path.abspath(name)), resolved[index])
-        if found is None:
-            diagnostics.error(f"{class_name}: parameter {index + 1} {resolved[index]!r} names no file next to this one "
-                              f"(looked for it{'' if os.path.splitext(resolved[index])[1] else ' and with .xml'})", name, line)
+        located = locate_file(name, resolved[index])
+        # A Migration competency's table: the words ``library.named_table`` says too, so that the
+        # daemon's early read of the table and this loader report a missing table once.
+        what = table_parameter(class_name) if index == 0 and is_migration_class(class_name) else f"{class_name}: parameter {index + 1}"
+        note = located.note(what)
+        if note is not None:
+            diagnostics.info(note, name, line)
+        if located.path is None:
+            diagnostics.error(located.missing(what), name, line)
             return None
-        resolved[index] = str(found)
+        resolved[index] = str(located.path)
     return Resolved(class_name, port.target, port, tuple(resolved))
 
 

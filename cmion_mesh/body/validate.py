@@ -4,10 +4,10 @@ Each file is read through ``xmlsafe`` (safe parsing), checked against the XSD of
 root element, ``KINDS``; every schema violation is reported), then for meaning: rules
 (dependency graphs, parameters), libraries (every class imports and is a competency, CMION Java
 names through the port map), world models (unique names, typed values), architecture
-configurations (the referenced files, the components, built as ``up`` builds them, and that every competency type the
+configurations (the referenced files, the components, built as ``up`` builds them, and whether every competency type the
 rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
-a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
-naming file and line.
+a time: errors, warnings (stand-ins for Java classes with no equivalent, rule types nothing
+provides) and notes (a file found in the working directory), each naming file and line.
 
 An architecture configuration is checked with the files it references (and the device table its
 library's Migration competency names): when those files are validated in the same run they are
@@ -49,6 +49,14 @@ class Options:
 class Kind:
     schema: str
     check: Callable[[str, Diagnostics, Options], None]
+    #: The check reads the file and checks the schema itself (to say an absent element in CMION's
+    #: terms, not twice).
+    reads_file: bool = False
+
+    def run(self, path: str, diagnostics: Diagnostics, options: Options) -> None:
+        """The schema, then the check when the schema passed (or the check alone, ``reads_file``)."""
+        if self.reads_file or load_xml(path, self.schema, diagnostics) is not None:
+            self.check(path, diagnostics, options)
 
 
 def _collected(diagnostics: Diagnostics, load: Callable[[list[ConfigError]], object]) -> object:
@@ -103,7 +111,7 @@ KINDS: dict[str, Kind] = {
     "CompetencyLibrary": Kind("CompetencyLibrary.xsd", _library),
     "CompetencyManagerRules": Kind("CompetencyManagerRules.xsd", _rules),
     "ArchitectureConfiguration": Kind("ArchitectureConfiguration.xsd", _architecture),
-    "migrationconfig": Kind("MigrationConfig.xsd", _migrationconfig),
+    "migrationconfig": Kind("MigrationConfig.xsd", _migrationconfig, reads_file=True),
 }
 
 
@@ -203,8 +211,7 @@ def check_file(path: str | os.PathLike[str], diagnostics: Diagnostics, options: 
     kind = _kind(name, diagnostics)
     if kind is None:
         return None
-    if load_xml(name, KINDS[kind].schema, diagnostics) is not None:
-        KINDS[kind].check(name, diagnostics, options)
+    KINDS[kind].run(name, diagnostics, options)
     return kind
 
 
@@ -240,8 +247,7 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
     for report in reports:
         if report.kind is not None and report.kind != "ArchitectureConfiguration" and report.checked_with is None:
             found = Diagnostics()
-            if load_xml(report.path, KINDS[report.kind].schema, found) is not None:
-                KINDS[report.kind].check(report.path, found, options)
+            KINDS[report.kind].run(report.path, found, options)
             _distribute(found, report, by_real)
     return reports
 
