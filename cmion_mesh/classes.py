@@ -7,7 +7,9 @@ components this way, with CMION's comma-separated string constructor parameters.
 from __future__ import annotations
 
 import importlib
+import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -130,13 +132,68 @@ def find_file(folder: str | Path, value: str) -> Path | None:
     """The file a configuration names, relative to ``folder``: ``value`` itself, else ``value.xml``
     when ``value`` has no suffix (CMION for Android named raw resources without ``.xml``:
     ``compmanagerrules`` is ``compmanagerrules.xml``); None when neither is a file."""
-    candidates = [Path(folder) / value]
-    if not Path(value).suffix:
-        candidates.append(Path(folder) / f"{value}.xml")
-    for candidate in candidates:
+    for candidate in _candidates(Path(folder), value):
         try:
             if candidate.is_file():
                 return candidate.resolve()
         except (OSError, ValueError):  # a name too long for the file system, a NUL
             continue
     return None
+
+
+def _candidates(folder: Path, value: str) -> list[Path]:
+    candidates = [folder / value]
+    if not Path(value).suffix:
+        candidates.append(folder / f"{value}.xml")
+    return candidates
+
+
+@dataclass(frozen=True, slots=True)
+class Located:
+    """Where a file a configuration names was found (``locate_file``): ``path``, None when nowhere;
+    ``folders``, the folders looked in, in order; ``in_working_dir`` when it was not beside the
+    file naming it but in the working directory."""
+
+    value: str
+    path: Path | None
+    folders: tuple[Path, ...]
+    in_working_dir: bool = False
+
+    def note(self, what: str) -> str | None:
+        """What ``validate`` and ``up`` say of a file found in the working directory (once, as a note)."""
+        if not self.in_working_dir:
+            return None
+        return (f"{what} {_shown(self.value)!r} is not beside this file: found in the working directory, {self.path} "
+                "(CMION opened file names relative to its working directory)")
+
+    def missing(self, what: str) -> str:
+        """The error for a file found nowhere, naming every place looked at."""
+        places = [" or ".join(str(c) for c in _candidates(folder, self.value[:200])) for folder in self.folders]
+        if len(self.folders) == 2:
+            looked = f"looked beside this file, at {places[0]}, and in the working directory, at {places[1]}"
+        else:
+            looked = f"looked at {places[0]}"
+        return f"{what} {_shown(self.value)!r} not found ({looked})"
+
+
+def _shown(value: str) -> str:
+    return value if len(value) <= 80 else value[:80] + "..."
+
+
+def locate_file(naming_file: str | os.PathLike[str], value: str) -> Located:
+    """The file ``value`` names, as CMION found it: beside ``naming_file`` (the configuration
+    naming it), then in the working directory (CMION opened every name with ``new File(name)``,
+    relative to the folder it was started from, and projects kept files there). An absolute name
+    is looked for where it says; ``find_file`` gives the ``.xml`` of an Android raw-resource name."""
+    beside = Path(naming_file).resolve().parent
+    if Path(value).is_absolute():
+        return Located(value, find_file(beside, value), (Path(value).parent,))
+    try:
+        cwd = Path.cwd().resolve()
+    except OSError:  # the working directory was removed: there is nothing to find there
+        cwd = beside
+    found = find_file(beside, value)
+    if found is not None or cwd == beside:
+        return Located(value, found, (beside,) if cwd == beside else (beside, cwd))
+    found = find_file(cwd, value)
+    return Located(value, found, (beside, cwd), in_working_dir=found is not None)

@@ -106,6 +106,7 @@ TIERS: dict[str, str] = {
     "test_cli": "mesh",
     "test_cli_truth": "mesh",
     "test_cmion_compat": "unit",
+    "test_cmion_configs": "unit",
     "test_competencies": "unit",
     "test_cross_process": "mesh",
     "test_custody_attacks": "mesh",
@@ -189,6 +190,9 @@ TIER_OF_TEST: dict[str, str] = {
     "test_cli_truth::test_every_argument_has_help_text": "unit",
     # daemons, or the components `up` builds (a zenoh session)
     "test_cmion_compat::test_validate_builds_the_components_as_up_does": "mesh",
+    "test_cmion_configs::test_a_rule_needing_an_absent_type_loads_and_its_action_fails_with_the_reason": "mesh",
+    "test_cmion_configs::test_a_configuration_started_from_another_folder_finds_its_files_in_the_working_directory": "mesh",
+    "test_cmion_configs::test_a_file_found_nowhere_names_both_places": "mesh",
     "test_cmion_compat::test_a_misspelt_java_class_is_named_with_the_one_meant": "mesh",
     "test_cmion_compat::test_up_starts_with_standins_listed": "mesh",
     "test_cmion_compat::test_up_starts_cmion_own_test_configuration": "mesh",

@@ -293,12 +293,20 @@ def test_version_validate_and_up_judge_alike(tmp_path: Path) -> None:
     arch.mkdir()
     (arch / "ArchitectureConfiguration.xml").write_text(
         f'<ArchitectureConfiguration CompetencyManagerRulesFile="{wings}" CompetencyLibraryConfigurationFile="{library}"/>')
+    # a rule type nothing provides loads, as in CMION (its action fails when it runs): a warning,
+    # an error with --strict, and the same words, file and line from `up`, which starts
     judged = real_cli("validate", str(arch), "--json")
-    assert judged.returncode == 1 and "Wings" in json.loads(judged.stdout)[0]["error"]
-    up = real_cli("up", "robot", "--rules", str(wings), "--mesh", unique_mesh(), "--no-multicast", "--state-dir", str(tmp_path / "s"))
-    assert up.returncode == 2 and "'Wings', which no available competency provides" in up.stderr, up
-    assert f"{wings}:2" in up.stderr and f"{wings}:2" in json.loads(judged.stdout)[0]["error"], "the same words, file and line"
-    assert real_cli("validate", str(arch), "--remote-type", "Wings").returncode == 0
+    assert judged.returncode == 0, judged
+    [warned] = [d for d in json.loads(judged.stdout)[0]["diagnostics"] if "Wings" in d["message"]]
+    assert (warned["severity"], warned["path"], warned["line"]) == ("warning", str(wings), 2), warned
+    strict = real_cli("validate", str(arch), "--json", "--strict")
+    assert strict.returncode == 1 and f"{wings}:2: {warned['message']}" in json.loads(strict.stdout)[0]["error"]
+    with Daemon(cli_argv("up", "robot", "--rules", str(wings), "--mesh", unique_mesh(), "--no-multicast",
+                         "--state-dir", str(tmp_path / "s")), name="wings") as up:
+        up.wait_line("up in mesh", 30)
+        assert f"warning: {wings}:2: {warned['message']}" in up.lines, up.lines
+    served = real_cli("validate", str(arch), "--remote-type", "Wings", "--json")
+    assert served.returncode == 0 and "'Wings'" not in served.stdout
     missing = real_cli("up", "robot", "--world-model", str(tmp_path / "absent.xml"), "--mesh", unique_mesh(), "--no-multicast")
     assert missing.returncode == 2 and "absent.xml: --world-model: no such file" in missing.stderr, missing
     router = real_cli("router", "--mesh", "x")

@@ -256,5 +256,5 @@ def test_missing_competency_type_fails_the_action_with_reason(tmp_path: Path, tr
     rules = rules_file(tmp_path, '<Rule><MindAction Name="Fly"/><CompetencyExecutionPlan><Competency ID="1" Type="Wings"/>'
                                  '</CompetencyExecutionPlan></Rule>')
     with Embodiment("robot", mesh=mesh, transport=transport, rules=rules), \
-            pytest.raises(RequestRejected, match="no competency of type Wings"):
+            pytest.raises(RequestRejected, match="step 1 needs competency type 'Wings', which no competency of this embodiment provides"):
         client.act("robot", "Fly")

@@ -160,7 +160,8 @@ def test_when_every_plan_failed_the_action_fails_with_every_reason_including_pla
     action_id = b.act("Go").value["action_id"]
     end = b.ended(action_id)
     assert end["status"] == "failed"
-    assert end["reason"] == "rule at line 3: no competency of type Fly; rule at line 2: step 1 (Walk) failed: legs: stairs"
+    assert end["reason"] == ("rule at line 3, plan 1: step 1 needs competency type 'Fly', which no competency of this embodiment "
+                             "provides; rule at line 2: step 1 (Walk) failed: legs: stairs")
     assert b.attempts(action_id) == [("2", 1)], "a plan needing a type this body lacks is never started"
 
 
@@ -171,7 +172,8 @@ def test_an_action_no_rule_or_no_executable_plan_can_do_is_refused_and_reported_
     assert unknown.reason.startswith("no rule matches action 'Swim'")
     impossible = b.act("Fly", action_id="f1")
     assert impossible.code == Code.NOT_FOUND
-    assert impossible.reason == "no executable plan for 'Fly': rule at line 2: no competency of type Wings"
+    assert impossible.reason == ("no executable plan for 'Fly': rule at line 2, plan 1: step 1 needs competency type 'Wings', "
+                                 "which no competency of this embodiment provides")
     assert [(n, d["action_id"]) for n, d in b.events] == [("ActionFailed", "s1"), ("ActionFailed", "f1")]
     report = b.ask("status", ActionStatus("f1"))
     assert (report.value["status"], report.value["reason"]) == ("failed", impossible.reason)

@@ -58,7 +58,7 @@ def arm_process(mesh: str, endpoint: str) -> Daemon:
 def test_remote_competency_runs_reports_progress_cancels_and_vanishes(robot: str, client: MeshClient, mesh: str) -> None:
     events: list[Event] = []
     client.events(events.append, embodiment="robot")
-    with pytest.raises(RequestRejected, match="no competency of type Arm"):
+    with pytest.raises(RequestRejected, match="needs competency type 'Arm', which no competency of this embodiment provides"):
         client.act("robot", "Wave", ["fast", "1"])
 
     arm = arm_process(mesh, robot)

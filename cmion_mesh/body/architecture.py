@@ -9,7 +9,9 @@
       <ArchitectureComponent ClassName="cmion_mesh.minds.planner.mind:PlannerMind" ConstructorParameters="mind,spirit.json"/>
     </ArchitectureConfiguration>
 
-File names are relative to the configuration file. ``ArchitectureComponent`` entries name ION
+A file name is looked for beside the configuration file, then in the working directory, where
+CMION opened it (``new File(name)``; ``classes.locate_file``): a file found there is said in a note,
+a file found nowhere is an error naming both places. ``ArchitectureComponent`` entries name ION
 components (``package.module:Class``, subclasses of ``cmion_mesh.ion.Component``) built with
 comma-separated string parameters: minds, monitors, extra stores. A parameter starting with
 ``./`` or ``../`` is a path relative to the configuration file. ``Embodiment`` (an extension)
@@ -31,7 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.classes import construct, find_file, import_class, split_parameters
+from cmion_mesh.classes import construct, import_class, locate_file, split_parameters
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, InvalidName, MeshError
 from cmion_mesh.migration import signing
@@ -146,13 +148,13 @@ def read_architecture(path: str | os.PathLike[str], diagnostics: Diagnostics, *,
             if required:
                 diagnostics.error(f"{attribute} is required", where, line)
             return None
-        found = find_file(config.parent, value)
-        if found is None:
-            shown = value if len(value) <= 80 else value[:80] + "..."
-            looked = config.parent / value[:200]
-            also = "" if Path(value).suffix else f" and {looked}.xml"
-            diagnostics.error(f"{attribute} {shown!r} not found (looked at {looked}{also})", where, line)
-        return found
+        located = locate_file(config, value)
+        if located.path is None:
+            diagnostics.error(located.missing(attribute), where, line)
+        note = located.note(attribute)
+        if note is not None:
+            diagnostics.info(note, where, line)
+        return located.path
 
     rules = referenced("CompetencyManagerRulesFile", True)
     library = referenced("CompetencyLibraryConfigurationFile", True)

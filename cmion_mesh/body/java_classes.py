@@ -15,10 +15,13 @@ they are). Each entry says what the class was (its ``kind``) and what happens to
   that is reported unavailable (``cmion_mesh.body.standin``). So does any ``cmion.`` name that is
   not in the map.
 
-``types`` are the competency types a competency provided in CMION, where known: a stand-in
-competency is entered under them, so that rules needing them fail naming the class.
-``file_parameters`` are the positions of constructor parameters that name files (resolved
-relative to the file naming the class, ``NAME.xml`` for an Android raw-resource name).
+``types`` are the competency types a competency provided in CMION, read from CMION's sources
+(each class set ``competencyType`` in its constructor, not always to its own name:
+``VirtualEmysConnector`` provided ``VirtualEmys``, both ``Cereproc`` classes ``TTS``): a ported
+class provides them too, and a stand-in competency is entered under them, so that a rule's
+``Type`` finds what CMION found and a rule needing one fails naming the class.
+``file_parameters`` are the positions of constructor parameters that name files (looked for as
+CMION opened them, ``classes.locate_file``; ``NAME.xml`` for an Android raw-resource name).
 
 ``docs/portmap.md`` is generated from this table: ``python -m cmion_mesh.body.java_classes > docs/portmap.md``.
 """
@@ -119,7 +122,8 @@ PORT_MAP: dict[str, Port] = _ports(
          "every mind connector; a mind in another process: `cmion-mesh serve-mind`"),
     Port("cmion.addOns.samgar.SamgarCompetency", "base class", None, "competency behind a SAMGAR port: no SAMGAR in cmion-mesh"),
     # --- examples -----------------------------------------------------------------------------------
-    Port("cmion.level2.competencies.ExampleCompetency", "example", None, "template of a competency: write a Competency subclass"),
+    Port("cmion.level2.competencies.ExampleCompetency", "example", None, "template of a competency: write a Competency subclass",
+         ("DetectPerson",)),
     Port("cmion.level2.competencies.ExampleTCPCompetency", "example", None,
          "RemoteTCPCompetency example (client to localhost:453, type DetectPerson): not ported; serve the competency "
          "over the mesh instead", ("DetectPerson",)),
@@ -127,10 +131,18 @@ PORT_MAP: dict[str, Port] = _ports(
     *(Port(f"cmion.level2.competencies.test.TestCompetency{n}", "competency", f"{_TEST}:TestCompetency{n}",
            f"execution-system test competency (type {t})", (t,))
       for n, t in ((1, "TestType1"), (2, "TestType2"), (3, "TestType3"), (4, "TestType4"), (5, "TestType4"), (6, "TestType6"))),
-    Port("cmion.level2.competencies.test.TestCompetency7", "competency", None, "execution-system test competency (cancellation)"),
-    Port("cmion.level2.competencies.test.TestCompetency8", "competency", None, "execution-system test competency (cancellation)"),
-    Port("cmion.addOns.samgar.competencies.test.TestSamgarCompetency", "Samgar competency", None, "SAMGAR test competency"),
-    Port("cmion.addOns.samgar.competencies.test.TestSamgarCompetency2", "Samgar competency", None, "SAMGAR test competency"),
+    Port("cmion.level2.competencies.test.TestCompetency7", "competency", None, "execution-system test competency (cancellation)",
+         ("TestType7",)),
+    Port("cmion.level2.competencies.test.TestCompetency8", "competency", None, "execution-system test competency (cancellation)",
+         ("TestType8",)),
+    Port("cmion.addOns.samgar.competencies.test.TestSamgarCompetency", "Samgar competency", None, "SAMGAR test competency",
+         ("SamgarTester",)),
+    Port("cmion.addOns.samgar.competencies.test.TestSamgarCompetency2", "Samgar competency", None, "SAMGAR test competency",
+         ("SamgarTester2",)),
+    Port("cmion.addOns.samgar.competencies.player.LocalizeSamgarCompetency", "Samgar competency", None,
+         "Player/Stage robot localisation via SAMGAR", ("DefaultLocalization",)),
+    Port("cmion.addOns.samgar.competencies.player.NavigationSamgarCompetency", "Samgar competency", None,
+         "Player/Stage robot navigation via SAMGAR", ("DefaultNavigation",)),
     # --- scenario classes with no equivalent (stand-ins) --------------------------------------------
     Port("cmion.inTheWild.competencies.GretaBMLCreator", "competency", None,
          "InTheWild: mind action to Greta BML on the blackboard", ("GretaBMLCreator",)),
@@ -141,13 +153,14 @@ PORT_MAP: dict[str, Port] = _ports(
     Port("cmion.inTheWild.competencies.EmysAskQuestion", "competency", None, "InTheWild: asks the user through the EMYS head",
          ("EmysAskQuestion",)),
     Port("cmion.inTheWild.competencies.KinectTrackerConnector", "Samgar competency", None, "InTheWild: Kinect tracking via SAMGAR",
-         ("KinectTrackerConnector",)),
+         ("Kinect",)),
     Port("cmion.inTheWild.competencies.VirtualEmysConnector", "Samgar competency", None, "InTheWild: virtual EMYS head via SAMGAR",
-         ("VirtualEmysConnector",)),
+         ("VirtualEmys",)),
     Port("cmion.inTheWild.competencies.EmysEmotion", "competency", None, "InTheWild: EMYS head emotion", ("EmysEmotion",)),
     Port("cmion.inTheWild.competencies.EmysGaze", "competency", None, "InTheWild: EMYS head gaze", ("EmysGaze",)),
-    Port("cmion.inTheWild.competencies.Cereproc", "competency", None, "InTheWild: CereProc speech synthesis", ("Cereproc",)),
+    Port("cmion.inTheWild.competencies.Cereproc", "competency", None, "InTheWild: CereProc speech synthesis", ("TTS",)),
     Port("cmion.inTheWild.competencies.FaceDetect", "competency", None, "InTheWild: face detection", ("FaceDetect",)),
+    Port("cmion.inTheWild.competencies.ProcessTextInput", "competency", None, "InTheWild: typed user input", ("ProcessTextInput",)),
     Port("cmion.emysTK.SimpleTalk", "competency", None, "EMYS toolkit: one-shot TCP speech command", ("SimpleTalk",)),
     Port("cmion.emysTK.SimpleAnimation", "competency", None, "EMYS toolkit: one-shot TCP animation command", ("SimpleAnimation",)),
     Port("cmion.inTheWild.ai.DIAgent", "mind connector", None, "InTheWild dialogue mind (Java-serialised server on 5228)"),
@@ -162,9 +175,20 @@ PORT_MAP: dict[str, Port] = _ports(
          ("RobotFaceControl",)),
     Port("cmion.TeamBuddy.competencies.Speak", "competency", None, "TeamBuddy: speech", ("Speak",)),
     Port("cmion.TeamBuddy.competencies.MoveToUser", "competency", None, "TeamBuddy: robot navigation", ("MoveToUser",)),
+    # TeamBuddy classes known by their name and type only (read from CMION's sources)
+    *(Port(f"cmion.TeamBuddy.competencies.{c}", "competency", None, "TeamBuddy scenario competency", (t,))
+      for c, t in (("BlackBoardRemover", "BlackBoardRemover"), ("DoorMotion", "DoorMotion"), ("EMYSHead", "EMYSHead"),
+                   ("ExecutionMonitor", "ExecutionMonitor"), ("GoogleCalendarChecker", "GoogleCalendarChecker"),
+                   ("IdleDream", "IdleDream"), ("IdleSpeak", "IdleSpeak"), ("Navigate", "Navigation"), ("PhoneRing", "PhoneRing"),
+                   ("PowerMonitor", "PowerMonitor"), ("TestCommSAM", "Test"), ("UserMonitor", "UserMonitor"), ("Wait", "Wait"),
+                   ("WaitBoolean", "WaitBoolean"), ("WaitTimeout", "WaitTimeout"), ("WebUIProxy", "WebUIProxy"),
+                   ("WorldModelRemover", "WorldModelRemover"))),
     Port("cmion.TeamBuddy.competencies.FaceDetect", "Samgar competency", None, "TeamBuddy: face detection via SAMGAR",
          ("FaceDetect",)),
     Port("cmion.TeamBuddy.competencies.Motion", "Samgar competency", None, "TeamBuddy: motion detection via SAMGAR", ("Motion",)),
+    Port("cmion.TeamBuddy.competencies.Cereproc", "competency", None, "TeamBuddy: CereProc speech synthesis", ("TTS",)),
+    Port("teambuddyInterface.InterfaceCompetency", "competency", None, "TeamBuddy interface competency (a class outside cmion.)",
+         ("InterfaceCompetency",)),
     Port("cmion.personalguide.mind.SimpleMind", "mind connector", None, "PersonalGuide (Android) mind"),
     Port("cmion.personalguide.competencies.FaceAnimator", "competency", None, "PersonalGuide (Android): face animation",
          ("FaceAnimator",)),
@@ -174,8 +198,9 @@ PORT_MAP: dict[str, Port] = _ports(
 
 
 def is_java_name(class_name: str) -> bool:
-    """A CMION Java class name (``cmion.x.Y``), as opposed to a Python ``package.module:Class``."""
-    return class_name.startswith(JAVA_PREFIX) and ":" not in class_name
+    """A CMION Java class name (``cmion.x.Y``, or a class of the map outside ``cmion.``: TeamBuddy's
+    ``teambuddyInterface.InterfaceCompetency``), as opposed to a Python ``package.module:Class``."""
+    return class_name in PORT_MAP or (class_name.startswith(JAVA_PREFIX) and ":" not in class_name)
 
 
 def lookup(class_name: str) -> Port | None:
@@ -218,11 +243,15 @@ def markdown() -> str:
         "  whose plan needs it fails naming the class. A `cmion.` name not in this table is a stand-in too",
         "  (the warning names the class of this table it is probably a misspelling of, if one is close).",
         "",
-        "A stand-in competency provides the types listed below (CMION's own type where known), else the",
-        "class's short name (CMION's usual convention), and no other: a competency type that rules use and",
-        "nothing provides is an error, stand-ins or not (with the closest type that is provided), so a",
-        "misspelt type is not mistaken for a class with no equivalent. `validate --strict` makes every",
-        "stand-in an error.",
+        "The types are CMION's own, read from its sources (each class set `competencyType` in its",
+        "constructor, not always to its own name: `VirtualEmysConnector` provided `VirtualEmys`, both",
+        "`Cereproc` classes `TTS`; a SAMGAR class could take another from a parameter, the one listed is",
+        "its default), so a rule's `Type` finds what CMION found. A ported class provides them, a",
+        "stand-in competency is entered under them (a class not in this table: under its short name,",
+        "CMION's usual convention), and under no other. A competency type that rules use and nothing",
+        "provides loads, as in CMION: `validate` and `up` warn at the rule's step with the closest types",
+        "provided, and the action fails when it runs, with the same words. `validate --strict` makes",
+        "every stand-in, and every such rule, an error.",
         "",
         "| CMION class | kind | cmion-mesh | types | note |",
         "|---|---|---|---|---|",

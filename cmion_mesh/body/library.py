@@ -19,7 +19,7 @@ from cmion_mesh.classes import construct, split_parameters
 from cmion_mesh.competency import Competency
 from cmion_mesh.diagnostics import Diagnostics, load_xml
 from cmion_mesh.errors import ConfigError, MeshError
-from cmion_mesh.migration.devices import DeviceTable, is_migration_class, read_device_table, resolve_table
+from cmion_mesh.migration.devices import DeviceTable, is_migration_class, locate_table, read_device_table, table_parameter
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,13 +111,19 @@ def named_table(library: str | os.PathLike[str], diagnostics: Diagnostics) -> Pa
     for entry in read_library(lib, diagnostics):
         if not is_migration_class(entry.class_name) or not entry.parameters or not entry.parameters[0]:
             continue
-        path = resolve_table(lib, entry.parameters[0], entry.class_name)
+        # The words of the library's loader (``standin.resolve``): one problem, one report.
+        located = locate_table(lib, entry.parameters[0])
+        what = table_parameter(entry.class_name)
+        note = located.note(what)
+        if note is not None:
+            diagnostics.info(note, lib, entry.line)
+        path = located.path
+        if path is None:
+            diagnostics.error(located.missing(what), lib, entry.line)
+            return None
         if found is not None and found[0] != path:
             diagnostics.error(f"two Migration competencies name different device tables ({found[0].name} at line "
                        f"{found[1]}, {path.name})", lib, entry.line)
-            return None
-        if not path.is_file():
-            diagnostics.error(f"device table {entry.parameters[0]!r} not found (looked at {path})", lib, entry.line)
             return None
         found = (path, entry.line)
     return found[0] if found is not None else None

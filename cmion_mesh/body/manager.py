@@ -15,7 +15,8 @@ Events (data: ``ActionReport``, its ``status`` saying which): ``ActionStarted`` 
 ``ActionSucceeded``, ``ActionFailed``, ``ActionCancelled``, each carrying the action id.
 
 Rules are tried most specific first (see ``rules``); within a rule its plans in file order. A
-plan that needs a competency type this embodiment does not have is skipped (as CMION did); when a
+plan that needs a competency type this embodiment does not have is skipped (as CMION did), its
+reason the words ``validate`` and ``up`` warned with (``rules.missing_types``); when a
 plan fails, the next untried candidate runs; when none is left the action fails with every
 reason collected.
 
@@ -38,7 +39,7 @@ import msgspec
 
 from cmion_mesh import keys, logs
 from cmion_mesh.body.execution import DEFAULT_PLAN_DEADLINE, ExecutionSystem
-from cmion_mesh.body.rules import Plan, Rule, RuleSet
+from cmion_mesh.body.rules import Plan, Rule, RuleSet, missing_types
 from cmion_mesh.errors import MeshError
 from cmion_mesh.ion import Component
 from cmion_mesh.messages import Act, ActionReport, ActionState, ActionStatus, CancelAction, Code, RunStatus
@@ -145,10 +146,10 @@ class CompetencyManager(Component):
         candidates: deque[tuple[Rule, Plan]] = deque()
         skipped = []
         for rule in rules:
-            for plan in rule.plans:
-                missing = {s.type for s in plan.steps} - types
-                if missing:
-                    skipped.append(f"rule at line {rule.line}: no competency of type {', '.join(sorted(missing))}")
+            for number, plan in enumerate(rule.plans, start=1):
+                missing = missing_types(plan, types)
+                if missing is not None:
+                    skipped.append(f"rule at line {rule.line}, plan {number}: {missing}")
                 else:
                     candidates.append((rule, plan))
         if not candidates:

@@ -40,7 +40,10 @@ Differences from CMION 2011:
 * ``$BB(...)`` and ``$WM(...)`` tokens are new;
 * files are checked when loaded, not when an action first needs them: parameter numbers must run
   1..n, step IDs must be unique, dependencies must exist and be acyclic, and no step may use a
-  ``$parameterN`` the rule can never supply.  Each fault is a ``ConfigError`` naming file and line;
+  ``$parameterN`` the rule can never supply.  Each fault is a ``ConfigError`` naming file and line.
+  A step whose competency type nothing provides is not one of them: CMION loaded such a rule and
+  the action failed when it ran, and so it is here (``validate`` and ``up`` warn, ``type_problems``;
+  the manager fails the action with the same words, ``missing_types``);
 * a plan with no steps is allowed (the DTD says ``Competency*``) and trivially succeeds;
 * ``Rule.index`` counts from 0, so ``ruleset.rules[rule.index] is rule``.
 """
@@ -68,6 +71,8 @@ __all__ = [
     "RuleSet",
     "Step",
     "load_rules",
+    "missing_types",
+    "needs",
     "parse_rules",
     "substitute",
     "substitute_step",
@@ -215,28 +220,20 @@ class RuleSet:
         return {s.type for r in self.rules for p in r.plans for s in p.steps}
 
     def check_types(self, available: Collection[str]) -> None:
-        """``ConfigError`` at the first step (file order) whose type no competency in ``available`` provides.
-
-        Strict on purpose: a plan that can never run is a configuration mistake to report at
-        start-up, even when an alternative plan could still serve the action.
-        """
+        """``ConfigError`` at the first step (file order) whose type no competency in ``available``
+        provides. ``validate`` and ``up`` do not refuse such a rule (CMION loaded it, and the action
+        failed when it ran): they warn with ``type_problems``; this is for code that wants the refusal."""
         problems = self.type_problems(available)
         if problems:
             raise problems[0]
 
     def type_problems(self, available: Collection[str]) -> list[ConfigError]:
-        """Every step (file order) whose type no competency in ``available`` provides, as errors at
-        its line, with the closest available type (a misspelling, most often)."""
-        have = sorted(set(available))
-
-        def hint(missing: str) -> str:
-            close = difflib.get_close_matches(missing, have, n=1)
-            return f" (did you mean {close[0]!r}?)" if close else ""
-
+        """Every step (file order) whose type no competency in ``available`` provides, at its line,
+        naming the rule and the closest available types (a misspelling, most often): the words of
+        the action's failure when it runs (``missing_types``)."""
         return [
-            ConfigError(f"rule {rule.describe()!r}, plan {number}: step {s.id} needs competency type {s.type!r}, "
-                        f"which no available competency provides{hint(s.type)}", path=self.path, line=s.line)
-            for rule in self.rules for number, plan in enumerate(rule.plans, start=1) for s in plan.steps if s.type not in have
+            ConfigError(f"rule {rule.describe()!r}, plan {number}: {needs(s, available)}", path=self.path, line=s.line)
+            for rule in self.rules for number, plan in enumerate(rule.plans, start=1) for s in plan.steps if s.type not in available
         ]
 
     def type_lines(self) -> dict[str, list[int]]:
@@ -247,6 +244,23 @@ class RuleSet:
                 for s in plan.steps:
                     lines.setdefault(s.type, []).append(s.line)
         return lines
+
+
+def needs(step: Step, available: Collection[str]) -> str:
+    """Why ``step`` cannot run here, with the closest of the ``available`` types."""
+    close = difflib.get_close_matches(step.type, sorted(set(available)), n=3)
+    closest = f" (closest: {', '.join(repr(c) for c in close)})" if close else ""
+    return f"step {step.id} needs competency type {step.type!r}, which no competency of this embodiment provides{closest}"
+
+
+def missing_types(plan: Plan, available: Collection[str]) -> str | None:
+    """Why ``plan`` cannot run with the competency types ``available`` (each missing type once, at
+    its first step), or None when it can."""
+    first: dict[str, Step] = {}
+    for s in plan.steps:
+        if s.type not in available:
+            first.setdefault(s.type, s)
+    return "; ".join(needs(s, available) for s in first.values()) or None
 
 
 # --- loading --------------------------------------------------------------------------------------

@@ -5,8 +5,9 @@ A configuration naming a robot head, a Kinect or Greta still starts: each such c
 ``describe``.
 
 * A **stand-in competency** is in the library under the competency types the port map knows for
-  the class (else its short name, CMION's usual convention), and under no other: a rule type
-  that nothing provides is an error (``validate.check_embodiment``). It is never available, so a plan step
+  the class (CMION's own, read from its sources; else its short name, CMION's usual convention),
+  and under no other: a rule type that nothing provides is a warning (``validate.check_embodiment``)
+  and fails its action when it runs. A stand-in is never available, so a plan step
   of its type fails with a reason naming the class: "competency type 'GretaBMLSender' is provided
   only by stand-in cmion.inTheWild.competencies.GretaBMLSender (no cmion-mesh equivalent; see
   docs/portmap.md)".
@@ -28,10 +29,11 @@ from typing import Any
 
 from cmion_mesh.body import java_classes as portmap
 from cmion_mesh.body.java_classes import Port
-from cmion_mesh.classes import find_file
+from cmion_mesh.classes import locate_file
 from cmion_mesh.competency import Competency, Done, RunContext, RunResult
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.ion import Component, Simulation
+from cmion_mesh.migration.devices import is_migration_class, table_parameter
 
 
 def unavailable_reason(stand_ins: Sequence[StandIn]) -> str:
@@ -134,7 +136,8 @@ def resolve(class_name: str, parameters: Sequence[str], *, path: str | os.PathLi
             diagnostics: Diagnostics) -> Resolved | None:
     """What the class ``class_name`` named at ``path:line`` becomes; None (reported) when nothing is
     built: an abstract base (error), a GUI add-on whose job a command does (note), a file
-    parameter naming no file (error)."""
+    parameter naming no file beside ``path`` nor in the working directory (error; one found in
+    the working directory is said in a note)."""
     name = os.fspath(path)
     if not portmap.is_java_name(class_name):
         return Resolved(class_name, class_name, None, tuple(parameters))
@@ -155,12 +158,17 @@ def resolve(class_name: str, parameters: Sequence[str], *, path: str | os.PathLi
     for index in port.file_parameters:
         if index >= len(resolved):
             continue
-        found = find_file(os.path.dirname(os.path.abspath(name)), resolved[index])
-        if found is None:
-            diagnostics.error(f"{class_name}: parameter {index + 1} {resolved[index]!r} names no file next to this one "
-                              f"(looked for it{'' if os.path.splitext(resolved[index])[1] else ' and with .xml'})", name, line)
+        located = locate_file(name, resolved[index])
+        # A Migration competency's table: the words ``library.named_table`` says too, so that the
+        # daemon's early read of the table and this loader report a missing table once.
+        what = table_parameter(class_name) if index == 0 and is_migration_class(class_name) else f"{class_name}: parameter {index + 1}"
+        note = located.note(what)
+        if note is not None:
+            diagnostics.info(note, name, line)
+        if located.path is None:
+            diagnostics.error(located.missing(what), name, line)
             return None
-        resolved[index] = str(found)
+        resolved[index] = str(located.path)
     return Resolved(class_name, port.target, port, tuple(resolved))
 
 

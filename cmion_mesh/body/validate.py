@@ -4,10 +4,10 @@ Each file is read through ``xmlsafe`` (safe parsing), checked against the XSD of
 root element, ``KINDS``; every schema violation is reported), then for meaning: rules
 (dependency graphs, parameters), libraries (every class imports and is a competency, CMION Java
 names through the port map), world models (unique names, typed values), architecture
-configurations (the referenced files, the components, built as ``up`` builds them, and that every competency type the
+configurations (the referenced files, the components, built as ``up`` builds them, and whether every competency type the
 rules use is provided by the library). Problems are collected (``diagnostics``), not raised one at
-a time: errors, warnings (stand-ins for Java classes with no equivalent) and notes, each
-naming file and line.
+a time: errors, warnings (stand-ins for Java classes with no equivalent, rule types nothing
+provides) and notes (a file found in the working directory), each naming file and line.
 
 An architecture configuration is checked with the files it references (and the device table its
 library's Migration competency names): when those files are validated in the same run they are
@@ -49,6 +49,14 @@ class Options:
 class Kind:
     schema: str
     check: Callable[[str, Diagnostics, Options], None]
+    #: The check reads the file and checks the schema itself (to say an absent element in CMION's
+    #: terms, not twice).
+    reads_file: bool = False
+
+    def run(self, path: str, diagnostics: Diagnostics, options: Options) -> None:
+        """The schema, then the check when the schema passed (or the check alone, ``reads_file``)."""
+        if self.reads_file or load_xml(path, self.schema, diagnostics) is not None:
+            self.check(path, diagnostics, options)
 
 
 def _collected(diagnostics: Diagnostics, load: Callable[[list[ConfigError]], object]) -> object:
@@ -103,7 +111,7 @@ KINDS: dict[str, Kind] = {
     "CompetencyLibrary": Kind("CompetencyLibrary.xsd", _library),
     "CompetencyManagerRules": Kind("CompetencyManagerRules.xsd", _rules),
     "ArchitectureConfiguration": Kind("ArchitectureConfiguration.xsd", _architecture),
-    "migrationconfig": Kind("MigrationConfig.xsd", _migrationconfig),
+    "migrationconfig": Kind("MigrationConfig.xsd", _migrationconfig, reads_file=True),
 }
 
 
@@ -127,10 +135,11 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     every competency type the rules use is provided by the library or named in ``remote_types``
     (served by another process, ``serve-competency``). Returns the rules and the competencies.
 
-    A stand-in competency provides the types the port map knows for its class (else its short
-    name): a rule needing one of them fails naming the class, and the stand-in is warned about
-    with the rule types depending on it. A type that nothing provides is an error, stand-ins or
-    not (a typo must not pass for a class with no equivalent), with the closest provided type.
+    A stand-in competency provides the types the port map knows for its class (CMION's own, else
+    its short name): a rule needing one of them fails naming the class, and the stand-in is warned
+    about with the rule types depending on it. A type that nothing provides is a warning at the
+    step's line, naming the rule and the closest provided types: CMION loaded such a rule, and the
+    action failed when it ran, as it does here (``validate --strict`` makes it an error).
     Without ``diagnostics`` the first error raises its ``ConfigError`` (warnings are logged)."""
     diag = Diagnostics.raising() if diagnostics is None else diagnostics
     ruleset = _load_rules(rules, diag) if rules is not None else None
@@ -138,8 +147,10 @@ def check_embodiment(rules: str | os.PathLike[str] | None, library: str | os.Pat
     if world_model is not None and load_xml(world_model, "WorldModel.xsd", diag) is not None:
         _collected(diag, lambda problems: load_world_model_init(world_model, problems))
     if ruleset is not None and check_types:
+        # Loaded as CMION loaded it: the action fails when it runs, with these words.
         for problem in ruleset.type_problems({c.type for c in competencies} | set(remote_types)):
-            diag.problem(problem)
+            diag.warning(f"{problem.detail}: loaded as CMION loaded it, the action fails when it runs "
+                         "(--remote-type TYPE if another process serves it)", problem.path, problem.line)
     _report_standins(competencies, ruleset, diag)
     return ruleset, competencies
 
@@ -200,8 +211,7 @@ def check_file(path: str | os.PathLike[str], diagnostics: Diagnostics, options: 
     kind = _kind(name, diagnostics)
     if kind is None:
         return None
-    if load_xml(name, KINDS[kind].schema, diagnostics) is not None:
-        KINDS[kind].check(name, diagnostics, options)
+    KINDS[kind].run(name, diagnostics, options)
     return kind
 
 
@@ -237,8 +247,7 @@ def validate_paths(paths: Iterable[str], *, remote_types: Iterable[str] = ()) ->
     for report in reports:
         if report.kind is not None and report.kind != "ArchitectureConfiguration" and report.checked_with is None:
             found = Diagnostics()
-            if load_xml(report.path, KINDS[report.kind].schema, found) is not None:
-                KINDS[report.kind].check(report.path, found, options)
+            KINDS[report.kind].run(report.path, found, options)
             _distribute(found, report, by_real)
     return reports
 

@@ -15,8 +15,9 @@
     </migrationconfig>
 
 CMION found the file through the Migration competency's ``ConstructorParameters`` in the
-competency library (``table_for_library``); the name is relative to the library's folder, and an
-Android raw-resource name without ``.xml`` (``migrationconfig``) means ``<name>.xml``.
+competency library (``table_for_library``); the name is looked for beside the library, then in the
+working directory (where CMION opened it), and an Android raw-resource name without ``.xml``
+(``migrationconfig``) means ``<name>.xml``.
 
 What each part becomes (``docs/invitations.md`` says it for users):
 
@@ -42,10 +43,12 @@ import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from lxml import etree
+
 from cmion_mesh import keys, xmlsafe
-from cmion_mesh.classes import current_name
-from cmion_mesh.diagnostics import Diagnostics, load_xml
-from cmion_mesh.errors import InvalidName
+from cmion_mesh.classes import Located, current_name, locate_file
+from cmion_mesh.diagnostics import Diagnostics
+from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.transport.base import TransportConfig
 
 SCHEMA = "MigrationConfig.xsd"
@@ -136,10 +139,24 @@ def load_device_table(path: str | os.PathLike[str]) -> DeviceTable:
 def read_device_table(path: str | os.PathLike[str], diagnostics: Diagnostics) -> DeviceTable | None:
     """``load_device_table`` reporting every problem to ``diagnostics``; None when there is one."""
     name = os.fspath(path)
-    tree = load_xml(name, SCHEMA, diagnostics)
-    if tree is None:
+    try:
+        tree = xmlsafe.load(name, None)
+    except ConfigError as exc:
+        diagnostics.problem(exc)
         return None
     root = tree.getroot()
+    absent = _absent(root)
+    for parent, child in absent:
+        why, add = CMION_NEEDED[child]
+        diagnostics.error(f"no <{child}> in <{parent.tag}>: CMION 2011 could not run this table either ({why}); add {add}",
+                          name, xmlsafe.sourceline(parent))
+    # The schema says the same of an absent element in its own words: each problem is reported once.
+    said = {xmlsafe.sourceline(parent) for parent, _ in absent}
+    schema = [p for p in xmlsafe.schema_problems(tree, SCHEMA, name) if not (p.line in said and "Missing child element" in p.detail)]
+    for violation in schema:
+        diagnostics.problem(violation)
+    if absent or schema:
+        return None
     usable = True
 
     def problem(message: str, line: int | None) -> None:
@@ -186,6 +203,29 @@ def read_device_table(path: str | os.PathLike[str], diagnostics: Diagnostics) ->
                        agent.get("active", "").lower() == "true", tuple(devices))
 
 
+#: The elements CMION's Migration competency could not run without: what it read there, and what
+#: to add. (``devicename`` and ``inviteport`` it could: an empty name and no invitation port.)
+CMION_NEEDED: dict[str, tuple[str, str]] = {
+    "configuration": ("its Migration competency read its own settings there",
+                      "<configuration> holding <listenport> and <agent>"),
+    "devices": ("its Migration competency read the devices it knew there", "<devices/> (empty when it knows none)"),
+    "listenport": ("its Migration competency listened on that port", '<listenport value="PORT"/>'),
+    "agent": ("its Migration competency read there whether the companion is born here",
+              '<agent active="false"/> (or "true" on the embodiment where the companion is born)'),
+}
+
+
+def _absent(root: etree._Element) -> list[tuple[etree._Element, str]]:
+    """The elements of ``CMION_NEEDED`` missing, each with the element that should hold it."""
+    if root.tag != "migrationconfig":
+        return []  # not a device table at all: the schema says so
+    missing = [(root, child) for child in ("configuration", "devices") if root.find(child) is None]
+    config = root.find("configuration")
+    if config is not None:
+        missing += [(config, child) for child in ("listenport", "agent") if config.find(child) is None]
+    return missing
+
+
 def _invalid(value: str, what: str) -> str:
     """Why ``value`` cannot be a name, or ``""``."""
     try:
@@ -199,14 +239,17 @@ def is_migration_class(class_name: str) -> bool:
     return current_name(class_name.strip()) in MIGRATION_CLASSES
 
 
-def resolve_table(library: str | os.PathLike[str], parameter: str, class_name: str = "") -> Path:
-    """Where a Migration competency's parameter points: relative to the library's folder; an
-    Android raw-resource name (no suffix) is ``<name>.xml``."""
-    base = Path(library).resolve().parent
-    candidate = base / parameter
-    if not candidate.suffix and (class_name.strip() == ANDROID_MIGRATION or not candidate.exists()):
-        candidate = candidate.with_name(candidate.name + ".xml")
-    return candidate
+def table_parameter(class_name: str) -> str:
+    """How problems name a Migration competency's table parameter: the library's loader and the
+    daemon's early read of the table say the same words, so a problem is reported once."""
+    return f"{class_name.strip()}: parameter 1 (its device table)"
+
+
+def locate_table(library: str | os.PathLike[str], parameter: str) -> Located:
+    """Where a Migration competency's parameter points: beside the library, else in the working
+    directory (as CMION opened it, ``classes.locate_file``); an Android raw-resource name (no
+    suffix) is ``<name>.xml``."""
+    return locate_file(library, parameter)
 
 
 def birth(table: DeviceTable | None, configured: str | None) -> str | None:
