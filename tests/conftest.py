@@ -137,6 +137,7 @@ TIERS: dict[str, str] = {
     "test_quality": "system",
     "test_record": "unit",
     "test_remote_competency": "mesh",
+    "test_remote_mind": "unit",
     "test_requests_answered": "mesh",
     "test_ros2_definitions": "unit",
     "test_ros2_robot": "system",
