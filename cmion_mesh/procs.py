@@ -116,8 +116,9 @@ class Daemon:
     """A child process whose output lines are collected; a context manager that always stops it."""
 
     def __init__(self, argv: Sequence[str], *, env: dict[str, str] | None = None, name: str = "", stdin: bool = False,
-                 die_with_parent: bool = False) -> None:
+                 die_with_parent: bool = False, cwd: str | os.PathLike[str] | None = None) -> None:
         """``stdin``: a pipe to the child's standard input (``send`` writes a line to it); else none.
+        ``cwd``: the folder it runs in (default: this process's).
         ``die_with_parent``: see ``child_setup`` (only from a thread that lives as long as this process)."""
         self.name = name or os.path.basename(argv[0])
         self.argv = list(argv)
@@ -127,7 +128,7 @@ class Daemon:
             full_env.update(env)
         self.proc = subprocess.Popen(
             self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
-            env=full_env, text=True, start_new_session=True, preexec_fn=child_setup(die_with_parent) if die_with_parent else None,
+            env=full_env, text=True, start_new_session=True, cwd=cwd, preexec_fn=child_setup(die_with_parent) if die_with_parent else None,
         )
         self.lines: list[str] = []
         self._queue: queue.SimpleQueue[str | None] = queue.SimpleQueue()
