@@ -31,7 +31,7 @@ def test_every_code_block_of_the_tutorial_is_a_file_or_region_of_examples() -> N
 def test_the_tutorial_quotes_the_example_competency_rules_and_mind() -> None:
     texts = quotable()
     blocks = code_blocks(TUTORIAL.read_text())
-    for name in ("blink/competency.py#class", "blink/mind.py#class", "blink/CompetencyManagerRules.xml",
+    for name in ("blink/competency.py", "blink/mind.py", "blink/CompetencyManagerRules.xml",
                  "blink/CompetencyLibrary.xml", "blink/lamp/ArchitectureConfiguration.xml"):
         assert texts[name] in blocks, f"the tutorial does not show {name}"
 

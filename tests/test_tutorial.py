@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shlex
+import signal
 import subprocess
 from contextlib import ExitStack
 from pathlib import Path
@@ -23,11 +24,12 @@ pytestmark = pytest.mark.timeout(180)
 
 #: The script's regions in order, and what each is: "setup" (cd, export), "once" (commands that
 #: end, each must succeed), "terminal" (one command that runs until stopped), "fails" (exit 1),
-#: "refused" (exit 2).
+#: "refused" (exit 2); "launch" (the launch file: its own test, below).
 STEPS = {
     "setup": "setup", "validate": "once", "terminal-lamp": "terminal", "act-lamp": "once", "act-fails": "fails",
     "terminal-desk": "terminal", "terminal-competency": "terminal", "act-desk": "once", "mind-clash": "refused",
     "terminal-mind": "terminal", "watch": "once", "migrate": "once", "migrate-back": "once",
+    "terminal-launch": "launch",
 }
 #: Verbs that take no mesh options.
 OFFLINE = {"validate"}
@@ -63,6 +65,8 @@ class Tutorial:
         verb = words[1]
         if verb in OFFLINE:
             return cli_argv(*words[1:])
+        if verb == "launch":
+            return cli_argv(*words[1:], "--mesh", self.mesh)  # the file says loopback: it meets nothing else
         net = ["--mesh", self.mesh, "--no-multicast", *(x for e in self.endpoints for x in ("--connect", e))]
         if verb == "up":
             endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -83,7 +87,7 @@ class Tutorial:
     def terminal(self, line: str) -> Daemon:
         words = shlex.split(line)
         process = self.stack.enter_context(Daemon(self.argv(line), env=self.env, cwd=self.cwd, name=words[1]))
-        process.wait_line("up in mesh" if words[1] == "up" else "serving embodiment", 30)
+        process.wait_line({"up": "up in mesh", "launch": "all ready"}.get(words[1], "serving embodiment"), 30)
         return process
 
 
@@ -174,3 +178,27 @@ def test_a_remote_mind_started_before_its_embodiment_acts_once_it_is_there(mesh:
             return done.stdout.rpartition("=")[2].strip() if done.returncode == 0 else ""
 
         wait_for(lambda: last() == "4", 30, "the watcher's first action (Blink 4) ran on the desk")
+
+
+def test_the_launch_file_starts_it_all(mesh: str, tmp_path: Path) -> None:
+    """``launch blink/blink.launch.toml``: the lamp, the desk, its Light and the watcher, in order;
+    the options it prints reach them."""
+    steps = script_regions()
+    with ExitStack() as stack:
+        tutorial = Tutorial(mesh, tmp_path, stack)
+        for line in steps["setup"]:
+            tutorial.setup(line)
+        tutorial.env["XDG_STATE_HOME"] = str(tmp_path)  # the daemons' default state folders
+        (launch,) = steps["terminal-launch"]
+        launcher = tutorial.terminal(launch)
+        reach = shlex.split(launcher.wait_line("all ready", 1).partition("cmion-mesh peers ")[2])
+        assert reach[:2] == ["--mesh", mesh] and "--no-multicast" in reach
+
+        def last(embodiment: str) -> str:
+            done = subprocess.run(cli_argv("bb", "get", embodiment, "light/last", *reach), capture_output=True, text=True,
+                                  timeout=60, stdin=subprocess.DEVNULL)
+            return done.stdout.rpartition("=")[2].strip() if done.returncode == 0 else ""
+
+        wait_for(lambda: last("desk") == "4", 30, "the watcher's first action (Blink 4) ran on the desk")
+        assert last("lamp") == "1"  # the keeper's blink when its companion was born there
+        assert launcher.stop(signal.SIGINT) == 0, launcher.lines[-20:]

@@ -26,7 +26,6 @@ def blink_times(value: Any) -> int:
     return times
 
 
-# tutorial: begin class
 class Blink(Competency):
     """Blinks the light ``Times`` times (a competency of type ``Light``). Its one constructor
     parameter is how long the light stays on, in seconds."""
@@ -53,4 +52,3 @@ class Blink(Competency):
             ctx.bb_set("light/blinks", blinks)
         ctx.bb_set("light/last", times)
         return True
-# tutorial: end class

@@ -12,7 +12,6 @@ from cmion_mesh import Mind
 from cmion_mesh.messages import ActionReport
 
 
-# tutorial: begin class
 class Keeper(Mind):
     """Blinks ``times`` times when it starts awake (a mind in a process of its own), and, each time
     its companion arrives in a body, once per body it has lived in so far: that count is its
@@ -44,4 +43,3 @@ class Keeper(Mind):
 
     def restore(self, state: dict[str, Any]) -> None:
         self.visits = int(state.get("visits", 0))
-# tutorial: end class

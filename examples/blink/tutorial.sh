@@ -56,3 +56,7 @@ cmion-mesh bb get desk light/last
 cmion-mesh migrate blinky --to lamp
 cmion-mesh bb get lamp light/last
 # tutorial: end migrate-back
+
+# tutorial: begin terminal-launch
+cmion-mesh launch blink/blink.launch.toml
+# tutorial: end terminal-launch
