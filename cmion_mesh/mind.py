@@ -22,11 +22,12 @@ A remote action comes from any component's ``RemoteAction`` event whose data is 
 an invitation, or a person (``cmion-mesh remote-action``: the request ``.../rq/embodiment/remote_action``).
 
 The same class runs inside the daemon (named in the architecture config) or in another process
-(``ion.serve``, ``cmion-mesh serve-mind``): there its simulation carries the embodiment's name, so its requests and
-subscriptions travel over zenoh. The key-space protocol is therefore only: requests
-``.../rq/manager/act|cancel``, events ``.../ev/manager/Action*`` and ``.../ev/wm/*``, events
-``.../ev/*/RemoteAction``, and the mind's own ``.../rq/<mind>/sleep|wake|message|state``. Any
-zenoh client can be a mind. Several minds may drive one body (each has its own component name).
+(``body.remote_mind.serve_mind``, ``cmion-mesh serve-mind``): there its simulation carries the
+embodiment's name, so its requests and subscriptions travel over zenoh, and it is added
+(``on_start`` runs) once its embodiment is reachable. The key-space protocol is therefore only:
+requests ``.../rq/manager/act|cancel``, events ``.../ev/manager/Action*`` and ``.../ev/wm/*``,
+events ``.../ev/*/RemoteAction``, and the mind's own ``.../rq/<mind>/sleep|wake|message|state``. Any
+zenoh client can be a mind. Several minds may drive one body, each under a name of its own.
 
 ``state()`` / ``restore()`` hold the mind's plain-data state, which migration packs.
 """
@@ -242,7 +243,10 @@ class Mind(Component):
 
     # --- to override --------------------------------------------------------------------------
 
-    def on_start(self) -> None: ...
+    def on_start(self) -> None:
+        """Once, when the mind can reach its body: added to a daemon, or, in a process of its own,
+        once its embodiment is alive (``body.remote_mind``). A daemon's minds are asleep then
+        (``act`` is refused) until their companion lives there: see ``on_arrived``."""
     def on_action_succeeded(self, report: ActionReport) -> None: ...
     def on_action_failed(self, report: ActionReport) -> None: ...
     def on_action_cancelled(self, report: ActionReport) -> None: ...

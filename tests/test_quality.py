@@ -23,7 +23,7 @@ def run(tool: str, *args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_ruff_clean() -> None:
-    result = run("ruff", "check", "cmion_mesh", "tests", "bench", "embodiments")
+    result = run("ruff", "check", "cmion_mesh", "tests", "bench", "embodiments", "examples")
     assert result.returncode == 0, result.stdout + result.stderr
 
 
