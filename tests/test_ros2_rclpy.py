@@ -192,7 +192,7 @@ def bb(client: MeshClient, path: str) -> Any:
 
 
 def test_drive_say_and_a_sensor_reach_a_real_rclpy_robot(dds_body: tuple[Daemon, str, MeshClient], tmp_path: Path) -> None:
-    _, _, client = dds_body
+    daemon, _, client = dds_body
     with RclpyRobot(tmp_path, "--battery-hz", "20") as robot:
         # Drive: Twists on /cmd_vel for the duration, then a zero Twist, last.
         assert client.act(BODY, "Drive", ["0.2", "0.5", "0.3"], timeout=60).status == "succeeded"
@@ -213,6 +213,9 @@ def test_drive_say_and_a_sensor_reach_a_real_rclpy_robot(dds_body: tuple[Daemon,
         assert all(step >= 5 for step in steps), written
         assert set(bb(client, "ros2/battery")) >= {"voltage", "percentage", "header"}
         assert bb(client, "ros2/battery")["voltage"] == 12.0
+    # The daemon stops its rclpy node with itself: nothing left running.
+    assert daemon.stop() == 0
+    assert any("stopped cleanly (no thread left)" in line for line in daemon.lines), daemon.lines[-5:]
 
 
 def test_a_fibonacci_action_server_driven_by_the_generic_action_competency(dds_body: tuple[Daemon, str, MeshClient],
@@ -300,3 +303,18 @@ def test_the_same_rules_and_competencies_over_rmw_zenoh_against_the_standin(tmp_
         assert (robot.event("goal")["x"], robot.event("goal")["y"]) == (4.0, 2.5)
         assert bb(client, "goal/state") == "succeeded" and bb(client, "goal/result")["error_code"] == 0
         assert set(bb(client, "goal/feedback")) >= {"current_pose", "distance_remaining"}
+
+
+def test_the_rclpy_link_stops_cleanly_and_its_close_is_idempotent(ros_domain: int) -> None:
+    import threading
+
+    from cmion_mesh.ros2.rclpy_link import RclpyLink
+
+    with RclpyLink("cmion_link_test", domain=ros_domain) as link:
+        assert link.path == "/cmion_link_test"
+        spinning = [t for t in threading.enumerate() if t.name == "rclpy-cmion_link_test"]
+        assert len(spinning) == 1 and spinning[0].is_alive()
+        link.publisher("cmd_vel", "geometry_msgs/msg/Twist").publish({"linear": {"x": 0.1}})
+    link.close()  # twice: harmless
+    assert not spinning[0].is_alive()
+    assert not link.node.context.ok()
