@@ -317,7 +317,7 @@ class Ros2Action(Ros2GoalCompetency):
     prefixes = ("goal.",)
 
     def __init__(self, *parameters: str, name: str | None = None) -> None:
-        given = dict(p.partition("=")[::2] for p in parameters if "=" in p)
+        given = {key.strip(): value for key, _, value in (p.partition("=") for p in parameters)}
         kind = given.get("competency_type", "").strip()
         for required in ("action", "action_type"):
             if not given.get(required, "").strip():
