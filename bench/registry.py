@@ -214,6 +214,13 @@ BENCHMARKS: list[Benchmark] = [
         "a ROS 2 robot as a body: mind action -> Nav2 goal at the ROS 2 node, goal result -> action succeeded",
     ),
     Benchmark(
+        "ros2_rclpy",
+        "bench.ros2_rclpy:run",
+        ("ros2_rclpy",),
+        "a DDS robot as a body: Drive -> first Twist at a real rclpy node, goal -> accepted by a real rclpy action server, "
+        "beside rmw_zenoh",
+    ),
+    Benchmark(
         "flood",
         "bench.flood:run",
         ("flood",),

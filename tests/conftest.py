@@ -143,6 +143,7 @@ TIERS: dict[str, str] = {
     "test_remote_mind": "unit",
     "test_requests_answered": "mesh",
     "test_ros2_definitions": "unit",
+    "test_ros2_rclpy": "system",
     "test_ros2_robot": "system",
     "test_ros2_standin": "system",
     "test_ros2_wire": "unit",

@@ -203,3 +203,40 @@ def test_malformed_messages_are_reported_without_flooding(monkeypatch: pytest.Mo
         wait_for(lambda: len(reports) == 2, 10, "the next report")
         # the next report counts the 49 held back since the first
         assert reports[1].endswith("(49 more refused since the last report)"), reports[1]
+
+
+def test_an_action_loaded_from_its_action_file_has_the_installed_type_hashes() -> None:
+    """An action outside rosbags' store (test_msgs' Fibonacci) loads from its .action file in a ROS
+    share folder, for the rmw_zenoh way; its hashes are those rosidl wrote beside it."""
+    import json
+    import sys
+    from pathlib import Path
+
+    share = Path(sys.prefix) / "share" / "test_msgs" / "action"
+    if not (share / "Fibonacci.json").is_file():
+        pytest.skip("test_msgs is not installed (the ros2 extra: pip install 'cmion-mesh[ros2]')")
+    installed = {h["type_name"]: h["hash_string"] for h in json.loads((share / "Fibonacci.json").read_text())["type_hashes"]}
+    types = Types()
+    assert not types.known("test_msgs/action/Fibonacci_SendGoal")
+    assert types.known_action("test_msgs/action/Fibonacci")
+    for part in ("SendGoal", "GetResult", "FeedbackMessage", "Goal", "Result", "Feedback"):
+        name = f"test_msgs/action/Fibonacci_{part}"
+        assert types.hash(name) == installed[name], name
+    assert not types.known_action("test_msgs/action/NoSuchAction")
+
+
+def test_generic_action_parameters() -> None:
+    from cmion_mesh.ros2.competencies import Ros2Action
+
+    nav = Ros2Action("action=navigate_to_pose", "action_type=nav2_msgs/action/NavigateToPose", "competency_type=Dock",
+                     "goal.pose.header.frame_id=map", "goal.behavior_tree=\"\"")
+    assert (nav.type, nav.name, nav.bb) == ("Dock", "Dock", "navigate_to_pose")
+    assert nav.fixed == {"pose": {"header": {"frame_id": "map"}}, "behavior_tree": ""}
+    with pytest.raises(ConfigError, match="give action="):
+        Ros2Action("action_type=nav2_msgs/action/NavigateToPose")
+    with pytest.raises(ConfigError, match="not an action type"):
+        Ros2Action("action=x", "action_type=std_msgs/msg/String")
+    with pytest.raises(ConfigError, match="not a ROS 2 Jazzy type known here"):
+        Ros2Action("action=x", "action_type=my_msgs/action/Nothing")
+    with pytest.raises(ConfigError, match=r"transport 'dds' \(one of: rmw_zenoh, rclpy\)"):
+        Ros2Action("action=x", "action_type=nav2_msgs/action/NavigateToPose", "transport=dds")

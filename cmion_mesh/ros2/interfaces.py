@@ -14,10 +14,14 @@ them. ``plain`` turns a message into blackboard values.
 
 from __future__ import annotations
 
+import array
 import copy
 import math
+import os
+import sys
 import threading
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 import numpy
@@ -81,6 +85,34 @@ class Types:
 
     def known(self, type_name: str) -> bool:
         return type_name in self._store.fielddefs or type_name in self._services
+
+    def known_action(self, type_name: str) -> bool:
+        """Whether ``type_name`` is an action known here, after looking for its ``.action`` file."""
+        try:
+            return self.find_action(type_name)
+        except ConfigError:
+            return False
+
+    def find_action(self, type_name: str) -> bool:
+        """Register the action ``type_name`` from its ``.action`` file in a ROS share folder
+        (``$AMENT_PREFIX_PATH``'s, this Python's, as the ``ros2`` extra's wheels install them),
+        unless it is known already; whether it is known now."""
+        if self.known(f"{type_name}_SendGoal"):
+            return True
+        pkg, kind, name = split_type(type_name)
+        if kind != "action":
+            return False
+        prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p] + [sys.prefix]
+        for prefix in prefixes:
+            path = Path(prefix) / "share" / pkg / "action" / f"{name}.action"
+            if path.is_file():
+                parts = path.read_text(encoding="utf-8").split("\n---")
+                if len(parts) != 3:
+                    raise ConfigError(f"{path}: an action definition has three parts separated by ---, not {len(parts)}")
+                goal, result, feedback = (part.lstrip("-").strip("\n") for part in parts)
+                self.register_action(type_name, goal, result, feedback)
+                return True
+        return False
 
     def string_fields(self, type_name: str) -> list[str]:
         """The names of the string fields of a message type (``data`` for ``std_msgs/msg/String``)."""
@@ -203,10 +235,12 @@ class Types:
 
 
 def plain(message: Any, *, limit: int = 64) -> Any:
-    """A message as plain values for the blackboard (dicts, lists, numbers, strings); sequences
+    """A message (of rosbags or of rclpy) as plain values for the blackboard (dicts, lists, numbers, strings); sequences
     longer than ``limit`` are cut to it (a laser scan is not a blackboard value)."""
-    if isinstance(message, numpy.ndarray):
+    if isinstance(message, (numpy.ndarray, array.array)):
         return [plain(v) for v in message.tolist()[:limit]]
+    if isinstance(message, bytes):
+        return list(message[:limit])
     if isinstance(message, (list, tuple)):
         return [plain(v) for v in message[:limit]]
     if isinstance(message, float):
@@ -217,5 +251,9 @@ def plain(message: Any, *, limit: int = 64) -> Any:
         return plain(message.item())
     fields = getattr(message, "__dataclass_fields__", None)
     if fields is None:
-        return str(message)
+        # An rclpy message (``ros2/rclpy_link.py``): its generated class lists its fields.
+        listed = getattr(message, "get_fields_and_field_types", None)
+        if not callable(listed):
+            return str(message)
+        fields = listed()
     return {name: plain(getattr(message, name)) for name in fields if not name.startswith("__")}

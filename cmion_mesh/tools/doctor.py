@@ -5,12 +5,15 @@ Looks at the network interfaces (up, multicast-capable, addresses), the effectiv
 zenoh peers it connected to, the embodiments alive in this mesh (and what is wrong there: two
 daemons with one name, a companion two embodiments claim), and embodiments alive in *other*
 meshes (the most common mistake: a different ``--mesh``); and the ROS 2 nodes (rmw_zenoh) this
-session can see, by domain, for a ``ros_robot`` beside a ROS 2 robot.
+session can see, by domain, for a ``ros_robot`` beside a ROS 2 robot; with rclpy installed (the
+``ros2`` extra), the ROS 2 graph an rclpy node sees on ``$ROS_DOMAIN_ID`` (DDS robots).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import os
 import socket
 import subprocess
 import time
@@ -19,7 +22,7 @@ from typing import Any
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient, mesh_problems
-from cmion_mesh.errors import ExitCode
+from cmion_mesh.errors import ExitCode, MeshError
 from cmion_mesh.ros2.wire import ADMIN_SPACE, parse_token
 from cmion_mesh.transport.base import TransportConfig
 
@@ -93,6 +96,7 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     report["problems"].extend(f"{d['name']} does not answer: {d['error']}" for d in described if d.get("error"))
     report["embodiments"] = here
     report["ros2"] = ros2_nodes(ros_tokens)
+    report["ros2_rclpy"] = rclpy_graph(timeout)
     report["other_meshes"] = elsewhere
     if not report["session"]["connected_to"]:
         report["problems"].append("no zenoh peer or router reached")
@@ -112,6 +116,18 @@ def ros2_nodes(tokens: list[str]) -> dict[str, list[str]]:
         if entity is not None and entity.kind == "NN":
             found.setdefault(str(entity.domain), set()).add(f"{entity.node_path} (zenoh {entity.zid})")
     return {domain: sorted(nodes) for domain, nodes in sorted(found.items(), key=lambda kv: int(kv[0]))}
+
+
+def rclpy_graph(timeout: float) -> dict[str, Any] | None:
+    """What an rclpy node sees on ``$ROS_DOMAIN_ID`` (its RMW's discovery), or None without rclpy."""
+    if importlib.util.find_spec("rclpy") is None:
+        return None
+    from cmion_mesh.ros2.rclpy_link import graph
+
+    try:
+        return graph(int(os.environ.get("ROS_DOMAIN_ID") or 0), timeout=max(5.0, timeout))
+    except (MeshError, ValueError) as exc:
+        return {"error": f"ROS 2 through rclpy: {exc}"}
 
 
 def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: bool = False) -> int:
@@ -141,6 +157,12 @@ def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: b
             print(f"ROS 2 nodes (rmw_zenoh) on domain {domain}: {', '.join(nodes)}")
     else:
         print("ROS 2 nodes (rmw_zenoh): none visible (for a ROS 2 robot, connect to its zenoh router: docs/ros2.md)")
+    graph = report["ros2_rclpy"]
+    if graph is not None and "error" in graph:
+        print(graph["error"])
+    elif graph is not None:
+        print(f"ROS 2 graph (rclpy, {graph['rmw']}) on domain {graph['domain']}: nodes {', '.join(graph['nodes']) or 'none'}; "
+              f"actions {', '.join(graph['actions']) or 'none'}; topics {', '.join(graph['topics']) or 'none'}")
     for problem in report["problems"]:
         print(f"problem: {problem}")
     for hint in report["hints"]:
