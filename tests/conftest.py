@@ -104,6 +104,8 @@ TIERS: dict[str, str] = {
     "test_bench_targets": "mesh",
     "test_boundaries": "unit",
     "test_cli": "mesh",
+    "test_cli_habits": "mesh",
+    "test_cli_help": "unit",
     "test_cli_truth": "mesh",
     "test_cmion_compat": "unit",
     "test_cmion_configs": "unit",

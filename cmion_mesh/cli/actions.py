@@ -12,7 +12,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.cli.common import Spinner, join_timeout_option, mesh_options, table, timeout_option
+from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, table, timeout_option
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import mesh_problems
 from cmion_mesh.errors import ExitCode
@@ -25,11 +25,18 @@ CANCEL_WAIT = 10.0
 
 
 def peers_arguments(p: argparse.ArgumentParser) -> None:
-    timeout_option(p, 3.0, "longest wait for the whole mesh to answer (it returns as soon as every live embodiment has)")
+    p.description = ("Without NAME: one row per embodiment alive in the mesh (who inhabits it, its competency "
+                     "types, the actions its rules accept, its version, since when it runs); the table wraps to "
+                     "the terminal's width. With NAME: everything that embodiment says of itself (describe), "
+                     "one field a line. It waits until every live embodiment has answered, at most --timeout.")
+    p.add_argument("name", nargs="?", metavar="NAME", help="one embodiment: everything it says of itself")
+    timeout_option(p, 3.0, "longest wait for the answers (it returns as soon as every live embodiment has answered)")
     mesh_options(p)
 
 
 def cmd_peers(args: argparse.Namespace) -> int:
+    if args.name:
+        return _peer(args, keys.check_name(args.name, "embodiment"))
     with session(args) as client, Spinner("looking for embodiments", enabled=not args.json):
         peers = client.describe_all(timeout=args.timeout)
     for problem in mesh_problems(peers):
@@ -47,10 +54,57 @@ def cmd_peers(args: argparse.Namespace) -> int:
             rows.append((p["name"], "?", f"({p['error']})", "", "", ""))
             continue
         frozen = [f"{c} (FROZEN: custody fork)" for c, r in (p.get("custody") or {}).items() if isinstance(r, dict) and r.get("frozen")]
-        rows.append((p["name"], p.get("inhabitant") or ", ".join(frozen) or "-", ",".join(p.get("competency_types", [])) or "-",
-                     "; ".join(p.get("actions", [])) or "-", p.get("version", "?"), since))
+        rows.append((p["name"], p.get("inhabitant") or ", ".join(frozen) or "-",
+                     ", ".join(map(item, p.get("competency_types", []))) or "-",
+                     "; ".join(map(item, p.get("actions", []))) or "-", p.get("version", "?"), since))
     table(rows)
     return ExitCode.OK
+
+
+#: ``peers NAME``: describe's fields in the order people read them, with their labels.
+PEER_FIELDS = (("name", "embodiment"), ("inhabitant", "inhabitant"), ("custody", "custody"), ("actions", "actions"),
+               ("competency_types", "competency types"), ("competencies", "competencies"), ("stand_ins", "stand-ins"),
+               ("minds", "minds"), ("mind_connections", "mind connections"), ("admits", "admits companions"),
+               ("devices", "device table"), ("alive", "sees alive"), ("duplicates", "duplicates"), ("damaged", "damaged"),
+               ("migration_transfer", "last migration sent"), ("publications_dropped", "publications dropped"),
+               ("mesh", "mesh"), ("host", "host"), ("pid", "pid"), ("version", "version"), ("started_at", "up since"),
+               ("zenoh_id", "zenoh id"), ("companion_key", "companion key"))
+
+
+def _peer(args: argparse.Namespace, name: str) -> int:
+    with session(args) as client, Spinner(f"asking {name}", enabled=not args.json):
+        client.join(name, timeout=args.timeout)
+        described = client.describe(name, timeout=args.timeout)
+    if args.json:
+        print(json.dumps(described))
+        return ExitCode.OK
+    known = {field for field, _ in PEER_FIELDS}
+    fields = [*PEER_FIELDS, *((f, f.replace("_", " ")) for f in sorted(described) if f not in known)]
+    width = max(len(label) for field, label in fields if field in described)
+    for field, label in fields:
+        if field not in described:
+            continue
+        value = described[field]
+        if field == "admits" and value is None:
+            value = "any"  # no --admit: every companion may migrate in
+        if field == "started_at" and isinstance(value, int | float):
+            value = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(value))
+        lines = _readable(value)
+        print(f"{label + ':':<{width + 1}} {lines[0]}")
+        for line in lines[1:]:
+            print(f"{'':<{width + 1}} {line}")
+    return ExitCode.OK
+
+
+def _readable(value: Any) -> list[str]:
+    """A describe field as lines: lists joined, maps one entry a line, none as '-'."""
+    if value is None or value in ({}, [], ""):
+        return ["-"]
+    if isinstance(value, list):
+        return [", ".join(str(v) if not isinstance(v, dict | list) else json.dumps(v) for v in value)]
+    if isinstance(value, dict):
+        return [f"{k}: {json.dumps(v) if isinstance(v, dict | list) else v}" for k, v in value.items()]
+    return [str(value)]
 
 
 def act_arguments(p: argparse.ArgumentParser) -> None:
@@ -126,7 +180,6 @@ def remote_action_arguments(p: argparse.ArgumentParser) -> None:
                      "action (FAtiMA hears ACTION-FINISHED SUBJECT NAME PARAMETERS), as from a sensor that saw it "
                      "(CMION's RemoteActionSimulator). The name, each parameter and the subject are one word each. "
                      "Unlike `act`, nothing is run: the body only perceives.")
-    p.epilog = "example: cmion-mesh remote-action robot Greet Spirit --subject Visitor"
     p.add_argument("embodiment", help="the embodiment whose minds perceive it")
     p.add_argument("action", help="the action's name, e.g. Greet")
     p.add_argument("parameters", nargs="*", help="its parameters, e.g. Spirit")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import shutil
 import sys
 import threading
 import time
@@ -76,20 +77,64 @@ def json_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="machine-readable output (JSON)")
 
 
+# One meaning per option, in every command: ``--timeout`` is how long to wait for the outcome (the
+# answer, the handshake's end, the mesh's descriptions); ``--join`` how long to look for the peers
+# the command needs before it asks (``--join-timeout`` and ``--discover-timeout``, its older
+# names, still work).
 def timeout_option(parser: argparse.ArgumentParser, default: float, what: str) -> None:
     parser.add_argument("--timeout", type=float, default=default, metavar="SECONDS", help=f"{what} (default: %(default)s s)")
 
 
-def join_timeout_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--join-timeout", "--discover-timeout", dest="join_timeout", type=float, default=5.0, metavar="SECONDS",
-                        help="how long to wait for the embodiment to be found in the mesh (default: %(default)s s)")
+def join_timeout_option(parser: argparse.ArgumentParser, default: float = 5.0) -> None:
+    parser.add_argument("--join", "--join-timeout", "--discover-timeout", dest="join_timeout", type=float, default=default,
+                        metavar="SECONDS", help="how long to look for the embodiments it needs in the mesh before it gives up "
+                                                "(default: %(default)s s)")
 
 
-def table(rows: Sequence[tuple[str, ...]]) -> None:
-    """Print ``rows`` (the first one the header) as aligned columns, each cell at most 40 characters."""
-    widths = [min(40, max(len(r[i]) for r in rows)) for i in range(len(rows[0]))]
+def table(rows: Sequence[tuple[str, ...]], width: int | None = None) -> None:
+    """Print ``rows`` (the first one the header) as aligned columns that fit ``width`` (default: the
+    terminal's): the widest columns are narrowed first and their cells wrap at spaces onto more
+    lines, so no word is ever cut (a word longer than its column overflows it whole). ``item``
+    keeps a list's item on one line. Into a pipe or a file nothing wraps: one line a row, whole,
+    for grep and scripts."""
+    if width is None:
+        width = shutil.get_terminal_size().columns if sys.stdout.isatty() else sys.maxsize
+    for line in table_lines(rows, width):
+        print(line)
+
+
+def table_lines(rows: Sequence[tuple[str, ...]], width: int) -> list[str]:
+    import textwrap  # only where a table is printed
+
+    columns = len(rows[0])
+    natural = [max(len(r[i]) for r in rows) for i in range(columns)]
+    # No column narrower than its longest word or its header, nor than 8, unless that is its whole width.
+    floor = [min(natural[i], max(8, len(rows[0][i]), *(len(w) for r in rows for w in r[i].split(" ")))) for i in range(columns)]
+    widths = list(natural)
+    for _ in range(sum(natural)):  # bounded: each round narrows one column by one
+        if sum(widths) + 2 * (columns - 1) <= width:
+            break
+        shrinkable = [i for i in range(columns) if widths[i] > floor[i]]
+        if not shrinkable:
+            break
+        widths[max(shrinkable, key=lambda i: widths[i])] -= 1
+    lines: list[str] = []
     for row in rows:
-        print("  ".join(cell[:40].ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
+        cells = [textwrap.wrap(cell, w, break_long_words=False, break_on_hyphens=False) or [""]
+                 for cell, w in zip(row, widths, strict=True)]
+        for n in range(max(len(c) for c in cells)):
+            line = "  ".join((c[n] if n < len(c) else "").ljust(w) for c, w in zip(cells, widths, strict=True))
+            lines.append(line.rstrip().replace(_KEEP, " "))
+    return lines
+
+
+#: A space that does not wrap (textwrap breaks at ASCII white space only).
+_KEEP = "\xa0"
+
+
+def item(text: str) -> str:
+    """``text`` as one unbreakable item of a table's cell (``GoTo *`` never split after GoTo)."""
+    return text.replace(" ", _KEEP)
 
 
 class Spinner:

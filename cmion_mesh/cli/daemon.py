@@ -309,6 +309,11 @@ def _run_daemon(args: argparse.Namespace, embodiment: Embodiment, table: devices
         print(f"web body of {embodiment.name!r} at {body.address} (senses: {', '.join(body.snapshot()['senses']) or 'none'}"
               + ("; without its key the page only watches)" if body.key else ")"), flush=True)
         logs.event(log, "web body served", url=body.address)  # its key, if any, is never logged
+    for mind in embodiment.minds:
+        link = mind.connection()  # a mind outside this process (FAtiMA) connects to its connector here
+        if link is not None and link.get("listening"):
+            print(f"{link.get('protocol', 'mind')} connector {mind.name!r} of {name!r} listening at {link['listening']} "
+                  "(start the mind pointed there: docs/fatima.md)", flush=True)
     if metrics_server is not None:
         print(f"metrics of {name!r} at {metrics_server.url}/metrics (health: {metrics_server.url}/healthz)", flush=True)
         logs.event(log, "metrics served", url=f"{metrics_server.url}/metrics", health=f"{metrics_server.url}/healthz")

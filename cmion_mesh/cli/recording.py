@@ -11,7 +11,7 @@ import threading
 import time
 from typing import Any
 
-from cmion_mesh.cli.common import join_timeout_option, mesh_options
+from cmion_mesh.cli.common import join_timeout_option, json_option, mesh_options
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, ExitCode
@@ -31,7 +31,7 @@ def record_arguments(p: argparse.ArgumentParser) -> None:
                      "(duration, counts per channel, migrations, embodiments, drops, truncation). See docs/record.md.")
     p.add_argument("filters", nargs="*", metavar="FILTER",
                    help="key expressions of what to record, relative to cmion/<mesh>/ (e.g. robot/ev/** */wm/**) or absolute "
-                        "(default: the whole mesh; liveliness is always recorded); `info FILE...` summarises recordings instead")
+                        "(default: the whole mesh; liveliness is always recorded); `record info FILE...` summarises recordings")
     p.add_argument("-o", "--output", metavar="FILE", help="the file (default: cmion-<mesh>-<date>-<time>.mcap here)")
     p.add_argument("--force", action="store_true", help="overwrite FILE if it exists (default: refuse)")
     p.add_argument("--split-size", metavar="SIZE",
@@ -44,8 +44,7 @@ def record_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    if args.filters[:1] == ["info"]:
-        return record_info(args.filters[1:], args.json)
+    check_filters(args.filters)
     if args.split_time is not None and args.split_time <= 0:
         raise ConfigError(f"--split-time {args.split_time:g} must be more than 0 seconds")
     stop = Stopper()  # before any thread starts
@@ -78,11 +77,32 @@ def cmd_record(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
-def record_info(files: list[str], as_json: bool) -> int:
-    if not files:
-        raise ConfigError("record info: name the recording (cmion-mesh record info FILE.mcap)")
-    summaries = [info(path) for path in files]
-    if as_json:
+def check_filters(filters: list[str]) -> None:
+    """A word that is no key filter is a usage error, said before anything is recorded: a typo of
+    ``info`` (``record infoo x.mcap`` would otherwise record, its words taken as filters) or a file."""
+    import difflib
+
+    for text in filters:
+        if "/" in text or "*" in text:
+            continue
+        if difflib.get_close_matches(text, ["info"], n=1, cutoff=0.6):
+            raise ConfigError(f"record: {text!r} is no key filter (did you mean 'info'? cmion-mesh record info FILE)")
+        if text.endswith(".mcap"):
+            raise ConfigError(f"record: {text!r} is no key filter (to write it: record -o {text}; to read it: record info {text})")
+
+
+def record_info_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Summarise recordings made by `cmion-mesh record`: the mesh, when the file (or the part of a "
+                     "split recording) started, its duration, counts per channel, the migrations and their steps, "
+                     "the embodiments and what they said of themselves, requests answered, drops, and whether the "
+                     "file is truncated (a killed recorder: read up to its last complete chunk). See docs/record.md.")
+    p.add_argument("files", nargs="+", metavar="FILE", help="a recording (.mcap); several: one summary each")
+    json_option(p)
+
+
+def cmd_record_info(args: argparse.Namespace) -> int:
+    summaries = [info(path) for path in args.files]
+    if args.json:
         print(json.dumps(summaries[0] if len(summaries) == 1 else summaries))
     else:
         print("\n\n".join(format_info(s) for s in summaries))
@@ -92,7 +112,7 @@ def record_info(files: list[str], as_json: bool) -> int:
 def replay_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Publish the events of an MCAP recording (cmion-mesh record) into --mesh, their keys "
                      "rewritten to it, in order, spaced as recorded divided by --rate. Storage, liveliness "
-                     "and raw samples are not replayed. Waits (--join-timeout) for a subscriber of the first "
+                     "and raw samples are not replayed. Waits (--join) for a subscriber of the first "
                      "event before publishing. See docs/record.md.")
     p.add_argument("file", metavar="FILE", help="the recording (.mcap)")
     p.add_argument("--rate", type=float, default=1.0,

@@ -11,7 +11,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.cli.common import mesh_options, timeout_option
+from cmion_mesh.cli.common import join_timeout_option, mesh_options, timeout_option
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import STORE_LABELS, MeshClient
 from cmion_mesh.errors import ConfigError, ExitCode, InvalidName, RequestRejected
@@ -85,7 +85,8 @@ def store_arguments(parser: argparse.ArgumentParser, store: str) -> None:
         if action == "remove":
             ap.add_argument("--container", action="store_true", help="the path names a container"
                             + (" (implied for an entity)" if world else ""))
-        timeout_option(ap, 5.0, "seconds to wait for the embodiment and its answer")
+        timeout_option(ap, 5.0, "seconds to wait for the answer")
+        join_timeout_option(ap)
         mesh_options(ap)
         ap.set_defaults(store=store)
 
@@ -126,7 +127,7 @@ def cmd_store(args: argparse.Namespace) -> int:
     if args.action == "add":
         keys.check_name(args.entity, "entity")
     with session(args) as client:
-        client.join(args.embodiment, timeout=args.timeout)
+        client.join(args.embodiment, timeout=args.join_timeout)
         prefix = keys.storage_key(args.mesh, args.embodiment, store, ()) + "/"
         where = f"{args.embodiment}'s {STORE_LABELS[store]}"
         if args.action in ("get", "tree"):

@@ -22,7 +22,7 @@ def doctor_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    return run_doctor(transport_config(args), mesh=args.mesh, timeout=args.timeout, as_json=args.json)
+    return run_doctor(transport_config(args), mesh=args.mesh, timeout=args.timeout, as_json=args.json, certs=bool(args.certs))
 
 
 def router_arguments(parser: argparse.ArgumentParser) -> None:

@@ -224,6 +224,17 @@ def _record(client: MeshClient, path: str, stack: contextlib.ExitStack) -> Recor
     return recorder
 
 
+def attach_commands(mesh: str, endpoint: str) -> list[str]:
+    """What ``demo --web`` prints so that tools in another terminal join its mesh: the demo's daemons
+    scout nobody (a mesh of their own), so a tool connects to one of them, which brings the rest."""
+    join = f"--mesh {mesh} --no-multicast --connect {endpoint}"
+    return ["attach from another terminal:",
+            f"  cmion-mesh record {join} -o demo.mcap",
+            f"  cmion-mesh view {join} --web 127.0.0.1:8091",
+            f"  cmion-mesh foxglove {join}",
+            f"  cmion-mesh peers {join}"]
+
+
 def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None,
              record: str | None = None) -> int:
     """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons).
@@ -248,6 +259,8 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
                 if web:
                     for name, address in web_pages(scenario, stack).items():
                         tl.say(f"{name}: {address}")
+                    for line in attach_commands(mesh, scenario.endpoints["robot"]):
+                        tl.say(line)
                     if sys.stdin.isatty():
                         input("open the screen's page, then press Enter: the operator types the command ")
                 run_scenario(client, scenario, tl, play=not web, timeout=900.0 if web else 90.0)

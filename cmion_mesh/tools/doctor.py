@@ -6,7 +6,10 @@ zenoh peers it connected to, the embodiments alive in this mesh (and what is wro
 daemons with one name, a companion two embodiments claim), and embodiments alive in *other*
 meshes (the most common mistake: a different ``--mesh``); and the ROS 2 nodes (rmw_zenoh) this
 session can see, by domain, for a ``ros_robot`` beside a ROS 2 robot; with rclpy installed (the
-``ros2`` extra), the ROS 2 graph an rclpy node sees on ``$ROS_DOMAIN_ID`` (DDS robots).
+``ros2`` extra), the ROS 2 graph an rclpy node sees on ``$ROS_DOMAIN_ID`` (DDS robots). Reaching
+nobody without ``--certs``, it asks each ``--connect`` endpoint whether it speaks TLS (a TLS
+handshake, nothing more): an authenticated mesh's members accept TLS links only, which a plain
+session cannot open.
 """
 
 from __future__ import annotations
@@ -61,7 +64,37 @@ def _addresses() -> dict[str, list[str]]:
     return result
 
 
-def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, Any]:
+#: How long doctor waits for an endpoint's answer to a TLS hello.
+TLS_PROBE_WAIT = 1.0
+
+
+def speaks_tls(endpoint: str, timeout: float = TLS_PROBE_WAIT) -> bool:
+    """Whether the zenoh listener at ``endpoint`` (``tcp/host:port`` or ``tls/host:port``) answers a
+    TLS hello: it does when it is a member of an authenticated mesh (mutual TLS, which refuses this
+    session's plain links). Only the handshake's first answer counts; nothing is authenticated."""
+    import ssl
+
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    if proto not in ("tcp", "tls") or not port.isdigit() or not host:
+        return False
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE  # a probe: whose certificate it is does not matter here
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as raw, \
+                context.wrap_socket(raw, do_handshake_on_connect=False) as tls:
+            tls.do_handshake()
+        return True  # the server finished a handshake: TLS
+    except ssl.SSLError as exc:
+        # A TLS server that wants our certificate says so in TLS (an alert); a plain one says nothing
+        # TLS can read (EOF, or bytes that are no TLS record).
+        return "ALERT" in str(exc).upper()
+    except OSError:
+        return False
+
+
+def diagnose(config: TransportConfig, mesh: str, timeout: float, *, certs: bool = False) -> dict[str, Any]:
     from cmion_mesh.transport.zenoh import ZenohTransport
 
     report: dict[str, Any] = {"mesh": mesh, "interfaces": interfaces(), "problems": [], "hints": []}
@@ -100,6 +133,12 @@ def diagnose(config: TransportConfig, mesh: str, timeout: float) -> dict[str, An
     report["other_meshes"] = elsewhere
     if not report["session"]["connected_to"]:
         report["problems"].append("no zenoh peer or router reached")
+        tls = [endpoint for endpoint in config.connect if not certs and speaks_tls(endpoint)]
+        if tls:
+            report["problems"].append(f"{', '.join(tls)} speak{'s' if len(tls) == 1 else ''} TLS only: members of an "
+                                      "authenticated mesh, which this session without --certs cannot join")
+            report["hints"].append("give the mesh's certificates: --certs DIR (and --identity NAME, an operator's "
+                                   "certificate: cmion-mesh certs issue DIR NAME --role operator); see docs/security.md")
     if not here and elsewhere:
         first = sorted(elsewhere)[0]
         report["hints"].append(f"embodiments exist in other meshes {sorted(elsewhere)}: did you mean --mesh {first}?")
@@ -130,10 +169,10 @@ def rclpy_graph(timeout: float) -> dict[str, Any] | None:
         return {"error": f"ROS 2 through rclpy: {exc}"}
 
 
-def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: bool = False) -> int:
+def run_doctor(config: TransportConfig, *, mesh: str, timeout: float, as_json: bool = False, certs: bool = False) -> int:
     """Print the diagnosis (``as_json``: one JSON document); 0 when embodiments were found and no
-    duplicate (of a name or of a companion), else 1."""
-    report = diagnose(config, mesh, timeout)
+    duplicate (of a name or of a companion), else 1. ``certs``: the session has certificates."""
+    report = diagnose(config, mesh, timeout, certs=certs)
     healthy = bool(report["embodiments"]) and not any("DUPLICATE" in p for p in report["problems"])
     code = ExitCode.OK if healthy else ExitCode.FAILED
     if as_json:

@@ -299,6 +299,9 @@ class Recorder:
     def _meta_for(self, index: int) -> dict[str, dict[str, str]]:
         meta = {name: dict(value) for name, value in self._meta.items()}
         meta["cmion-mesh"]["part"] = str(index)
+        if index:  # each part says when it started; the recording's own start stays beside it
+            meta["cmion-mesh"]["recording_started"] = meta["cmion-mesh"]["started"]
+            meta["cmion-mesh"]["started"] = _iso(time.time())
         meta["cmion-mesh"]["alive_at_start"] = ",".join(sorted(self._alive))
         return meta
 

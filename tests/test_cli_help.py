@@ -1,0 +1,136 @@
+"""The command line's manners, in this process: a typo gets one line saying what was meant (exit 2),
+every verb's --help has a description and an example, ``record info`` is a verb of its own (its
+typo records nothing), tables wrap instead of cutting words, split recordings' parts each say when
+they started, and the one meaning of --timeout and --join."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import time
+from pathlib import Path
+
+import pytest
+
+from cmion_mesh.cli import main as cli
+from cmion_mesh.cli.common import item, table_lines
+from cmion_mesh.messages import Event, encode
+from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.tools.recording import Recorder
+from cmion_mesh.tools.recording_reader import info
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+
+
+def run(*argv: str) -> tuple[int, str, str]:
+    """``cmion-mesh ARGV`` in this process: its exit code, standard output and error."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = cli.main(list(argv))
+        except SystemExit as exc:  # argparse leaves by SystemExit (usage errors, --help)
+            code = int(exc.code or 0)
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.mark.parametrize(("argv", "meant"), [
+    (["peer"], "'peers'"),
+    (["peers", "--mehs", "x"], "'--mesh'"),
+    (["peers", "--jsn"], "'--json'"),
+    (["bb", "gett", "robot"], "'get'"),
+    (["act", "robot", "GoTo", "--timout", "3"], "'--timeout'"),
+    (["record", "infoo", "x.mcap"], "'info'"),
+])
+def test_a_typo_gets_one_line_saying_what_was_meant(argv: list[str], meant: str) -> None:
+    code, out, err = run(*argv)
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and f"did you mean {meant}?" in err, err
+
+
+def test_record_infoo_records_nothing_and_a_file_is_no_filter(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert run("record", "infoo", "x.mcap")[0] == 2
+    code, _, err = run("record", "visit.mcap")
+    assert code == 2 and "record -o visit.mcap" in err and "record info visit.mcap" in err
+    assert list(tmp_path.iterdir()) == [], "no recording was started"
+
+
+def test_record_info_has_its_own_help_and_verb() -> None:
+    code, out, _ = run("record", "info", "--help")
+    assert code == 0 and out.startswith("usage: cmion-mesh record info [-h] [--json] FILE [FILE ...]")
+    assert "Summarise recordings" in out and "FILTER" not in out and "--split-size" not in out
+    code, _, err = run("record", "info")
+    assert code == 2 and "FILE" in err and err.count("\n") == 1
+    code, _, err = run("record", "info", "/nonexistent/a.mcap")
+    assert code == 2 and "a.mcap" in err
+
+
+VERBS = [*([verb] for verb in cli.COMMANDS), *([verb, word] for verb, word in cli.SUBVERBS)]
+
+
+@pytest.mark.parametrize("verb", VERBS, ids=" ".join)
+def test_every_verb_has_a_description_and_an_example_in_its_help(verb: list[str]) -> None:
+    code, out, _ = run(*verb, "--help")
+    assert code == 0
+    usage, _, rest = out.partition("\n\n")
+    description = rest.split("\n\n", 1)[0]
+    assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
+    assert "\nexample" in out and f"  cmion-mesh {verb[0]} " in out.rsplit("\nexample", 1)[1], out
+
+
+def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> None:
+    parser = cli.whole_parser()
+    helps = {}
+
+    def walk(p: object, path: str) -> None:
+        import argparse
+
+        assert isinstance(p, argparse.ArgumentParser)
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, f"{path} {name}")
+            elif "--timeout" in action.option_strings or "--join" in action.option_strings:
+                helps[f"{path} {action.option_strings[0]}"] = (action.dest, action.help or "")
+
+    walk(parser, "cmion-mesh")
+    joins = {k: v for k, v in helps.items() if k.endswith("--join")}
+    timeouts = {k: v for k, v in helps.items() if k.endswith("--timeout")}
+    assert joins and timeouts
+    assert all(dest == "join_timeout" and "look for" in text for dest, text in joins.values())
+    assert not any("found in the mesh" in text or "for the embodiment and" in text for _, text in timeouts.values()), timeouts
+    # The older spellings still parse, to the same place.
+    for spelling in ("--join", "--join-timeout", "--discover-timeout"):
+        args = cli.build_parser("act").parse_args(["act", "robot", "GoTo", spelling, "7"])
+        assert args.join_timeout == 7.0 and args.timeout == 120.0
+    args = cli.build_parser("bb").parse_args(["bb", "get", "robot", "--timeout", "2", "--join", "9"])
+    assert (args.timeout, args.join_timeout) == (2.0, 9.0)
+
+
+def test_a_table_wraps_at_spaces_and_never_cuts_a_word() -> None:
+    actions = "; ".join(item(a) for a in ["Say * *", "GoTo *", "Greet *", "Express *", "Migrate *", "AVeryLongActionNameIndeed *"])
+    types = ", ".join(["Animation", "CommandInput", "LanguageGeneration", "Migration", "Navigation", "SpeechSynthesis"])
+    rows = [("EMBODIMENT", "COMPETENCY TYPES", "ACTIONS"), ("robot", types, actions), ("screen", "-", "-")]
+    for width in (250, 80, 64, 30):
+        lines = table_lines(rows, width)
+        # Narrower than its longest words, a table overflows rather than cut one.
+        assert all(len(line) <= max(width, 64) for line in lines), (width, lines)
+        text = " ".join(" ".join(lines).split())
+        for word in [*types.replace(",", "").split(), "AVeryLongActionNameIndeed", "Say * *", "GoTo *"]:
+            assert word in text, (width, word, lines)
+    assert len(table_lines(rows, 250)) == 3, "wide enough: one line a row"
+    assert len(table_lines(rows, 64)) > 3
+
+
+def test_each_part_of_a_split_recording_says_when_it_started(tmp_path: Path) -> None:
+    with MemoryTransport(MemoryNetwork(), "mesh") as t:
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.01) as recorder:
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: (tmp_path / "q-0000.mcap").exists() and recorder.stats.samples == 1, 10, "the first tick")
+            between = time.time()
+            wait_for(lambda: time.time() > between + 0.002, 1, "the clock to move on")  # parts' stamps are in ms
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
+            wait_for(lambda: len(recorder.stats.files) == 2, 10, "the second part")
+        files = recorder.stats.files
+    first, second = info(files[0]), info(files[1])
+    assert first["started"] < second["started"], (first["started"], second["started"])
+    assert second["started"] >= time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(between)), "the part's own start"
