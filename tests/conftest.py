@@ -129,6 +129,7 @@ TIERS: dict[str, str] = {
     "test_lan": "system",
     "test_launch": "mesh",
     "test_manager": "unit",
+    "test_mcp": "mesh",
     "test_migration": "unit",
     "test_migration_crash": "mesh",
     "test_migration_network": "system",

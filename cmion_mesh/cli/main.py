@@ -70,6 +70,8 @@ COMMANDS: dict[str, Command] = {
                        "move a companion to another embodiment (waits for the handshake's end)"),
     "custody": Command("actions", "custody_arguments", "cmd_custody",
                        "a companion's custody across the mesh: who holds it, forks of its chain and how to resolve them"),
+    "mcp": Command("mcp", "mcp_arguments", "cmd_mcp",
+                   "serve a companion to MCP clients: its body's actions as tools, its world model as resources"),
     "invite": Command("actions", "invite_arguments", "cmd_invite",
                       "have an empty embodiment invite the companion (CMION's migration invitation)"),
     "router": Command("tools", "router_arguments", "cmd_router",
