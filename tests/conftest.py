@@ -106,6 +106,7 @@ TIERS: dict[str, str] = {
     "test_cli": "mesh",
     "test_cli_truth": "mesh",
     "test_cmion_compat": "unit",
+    "test_companion_view": "unit",
     "test_competencies": "unit",
     "test_cross_process": "mesh",
     "test_custody_attacks": "mesh",

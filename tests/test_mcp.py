@@ -15,6 +15,7 @@ import anyio
 import mcp_types as types
 import pytest
 from mcp import Client, StdioServerParameters
+from mcp.client.subscriptions import ResourceUpdated
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event
@@ -100,6 +101,12 @@ def abilities_of(s: Scenario, body: str) -> list[str]:
         return [a["tool"] for a in client.describe(body)["abilities"] if a["action"] != "Migrate"]
 
 
+def set_policy(s: Scenario, accepts: list[str] | None) -> None:
+    with mesh_client(s) as client:
+        client.join("robot")
+        client.set_policy("spirit", accepts)
+
+
 def text(result: types.CallToolResult) -> str:
     return " ".join(c.text for c in result.content if isinstance(c, types.TextContent))
 
@@ -112,6 +119,16 @@ def test_tools_follow_the_companion_and_actions_return_their_outcome(bodies: Sce
         inbox = Inbox()
         async with stdio(bodies, "--allow-actions", inbox=inbox) as client:
             assert tool_names(await client.list_tools()) == ["migrate", "peers", *robot]
+            seen = len(inbox.notifications)
+            await anyio.to_thread.run_sync(set_policy, bodies, ["robot", "phone"])  # the screen is not accepted
+            await inbox.wait(types.ToolListChangedNotification, after=seen)
+            assert (await client.list_tools()).tools[0].input_schema["properties"]["target"]["enum"] == []
+            refused = await client.call_tool("migrate", {"target": "screen"})
+            assert refused.is_error and "'screen' is not an embodiment the companion may move to now" in text(refused)
+            seen = len(inbox.notifications)
+            await anyio.to_thread.run_sync(set_policy, bodies, None)
+            await inbox.wait(types.ToolListChangedNotification, after=seen)
+            assert (await client.list_tools()).tools[0].input_schema["properties"]["target"]["enum"] == ["screen"]
             ok = await client.call_tool("GoTo", {"location": "Kitchen"})
             assert not ok.is_error and ok.structured_content["status"] == "succeeded", ok
             assert ok.structured_content["embodiment"] == "robot"
@@ -174,6 +191,7 @@ def test_a_cancelled_call_cancels_the_action_in_the_body(bodies: Scenario) -> No
     assert any(m and "step" in m and "to Lab" in m for _, m in progress), progress
 
 
+@pytest.mark.filterwarnings("ignore:resources/subscribe is removed")
 def test_world_model_is_read_and_subscribed(bodies: Scenario) -> None:
     async def main() -> None:
         inbox = Inbox()
@@ -219,9 +237,53 @@ def test_streamable_http_on_loopback(bodies: Scenario, tmp_path: Path) -> None:
         assert url.startswith("http://127.0.0.1:") and url.endswith("/mcp")
 
         async def main() -> None:
-            async with Client(url) as client:  # mode "auto": the SDK's newest protocol when the server has it
+            async with Client(url) as client:  # mode "auto": the SDK's newest protocol (2026-07-28) when the server has it
                 assert "GoTo" in tool_names(await client.list_tools())
                 ok = await client.call_tool("GoTo", {"location": "Kitchen"})
                 assert not ok.is_error and ok.structured_content["status"] == "succeeded", ok
+                uri = "cmion-mesh://spirit/world-model"
+                async with client.listen(tools_list_changed=True, resource_subscriptions=[uri]) as events:
+                    written = await anyio.to_thread.run_sync(lambda: cli("wm", "set", "robot", "Self.mood", "calm", *net(bodies)))
+                    assert written.returncode == 0, written
+                    with anyio.fail_after(15):
+                        async for event in events:
+                            if isinstance(event, ResourceUpdated) and event.uri == uri:
+                                break
+                read = (await client.read_resource(uri)).contents[0]
+                assert isinstance(read, types.TextResourceContents) and '"Self/mood": "calm"' in read.text
+
+        anyio.run(main)
+
+
+def test_a_body_that_vanishes_mid_action_gives_outcome_unknown_naming_it(tmp_path: Path) -> None:
+    mesh, endpoint = unique_mesh(), f"tcp/127.0.0.1:{free_port()}"
+    robot = Daemon(cli_argv("up", "robot", "--mesh", mesh, "--listen", endpoint, "--no-multicast",
+                            "--state-dir", str(tmp_path / "robot")), name="robot")
+    with robot:
+        robot.wait_line("up in mesh", 30)
+        assert cli("wm", "set", "robot", "Lab/travelSteps", "100000", "--mesh", mesh, "--no-multicast",
+                   "--connect", endpoint).returncode == 0
+        argv = cli_argv("mcp", "spirit", "--allow-actions", "--mesh", mesh, "--no-multicast", "--connect", endpoint)
+
+        async def main() -> None:
+            params = StdioServerParameters(command=argv[0], args=argv[1:], env=dict(os.environ))
+            async with Client(params, mode="legacy") as client:
+                started = anyio.Event()
+
+                async def on_progress(value: float, total: float | None, message: str | None) -> None:
+                    started.set()
+
+                results: list[types.CallToolResult] = []
+                async with anyio.create_task_group() as group:
+                    async def call() -> None:
+                        results.append(await client.call_tool("GoTo", {"location": "Lab"}, progress_callback=on_progress))
+
+                    group.start_soon(call)
+                    with anyio.fail_after(20):
+                        await started.wait()
+                    robot.kill()
+                result = results[0]
+                assert result.is_error and text(result).startswith("outcome unknown: robot left the mesh"), result
+                assert result.structured_content["status"] == "unknown"
 
         anyio.run(main)

@@ -7,13 +7,13 @@ import argparse
 import socket
 import sys
 
-from cmion_mesh.cli.common import join_timeout_option, mesh_options
+from cmion_mesh.cli.common import mesh_options
 from cmion_mesh.cli.session import session
 from cmion_mesh.errors import ConfigError, ExitCode
 from cmion_mesh.transport import security
 
 #: Where ``--http`` alone serves.
-DEFAULT_HTTP = "127.0.0.1:8765"
+DEFAULT_HTTP = "127.0.0.1:8766"
 LOOPBACK = frozenset({"127.0.0.1", "::1", "localhost"})
 
 
@@ -23,16 +23,16 @@ def mcp_arguments(p: argparse.ArgumentParser) -> None:
                      "peers; its resources are that body's world model and blackboard (subscribe to follow changes). "
                      "Over stdio by default (what desktop clients start), or streamable HTTP with --http. Read-only "
                      "unless --allow-actions: tools are listed, calls that act are refused. See docs/mcp.md.")
-    p.epilog = ("example: cmion-mesh mcp spirit --allow-actions   (a desktop client's command)\n"
-                "         cmion-mesh mcp spirit --http 127.0.0.1:8765 --allow-actions   (then http://127.0.0.1:8765/mcp)")
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = ("example: cmion-mesh mcp spirit --allow-actions (what a desktop client starts); "
+                "cmion-mesh mcp spirit --http --allow-actions (then http://127.0.0.1:8766/mcp)")
     p.add_argument("companion", help="the companion to serve, e.g. spirit")
     p.add_argument("--http", nargs="?", const=DEFAULT_HTTP, metavar="HOST:PORT",
                    help=f"serve streamable HTTP at /mcp instead of stdio (default address: {DEFAULT_HTTP}; loopback "
                         "unless an address says otherwise)")
     p.add_argument("--allow-actions", action="store_true",
                    help="let clients act (the body's actions, migrate); refused otherwise")
-    join_timeout_option(p)
+    p.add_argument("--join-timeout", "--discover-timeout", dest="join_timeout", type=float, default=5.0, metavar="SECONDS",
+                   help="how long to look for the embodiment the companion lives in (default: %(default)s s)")
     mesh_options(p, json_output=False)
 
 
@@ -50,16 +50,19 @@ def cmd_mcp(args: argparse.Namespace) -> int:
     if args.certs:
         print(security.describe(certs_dir=args.certs, identity=args.identity), file=sys.stderr, flush=True)
     try:
-        with session(args) as client, CompanionServer(client, args.companion, allow_actions=args.allow_actions) as server:
+        with session(args) as client, CompanionServer(client, args.companion, allow_actions=args.allow_actions,
+                                                      join_timeout=args.join_timeout) as server:
             if sock is None:
-                print(f"mcp server of companion {args.companion!r} in mesh {args.mesh!r} on stdio ({mode})",
-                      file=sys.stderr, flush=True)
-                anyio.run(server.serve_stdio)
+                def on_stdio() -> None:  # stdout is the protocol's: what a person reads goes to stderr
+                    print(f"mcp server of companion {args.companion!r} (on {server.host}) in mesh {args.mesh!r} on stdio "
+                          f"({mode})", file=sys.stderr, flush=True)
+
+                anyio.run(server.serve_stdio, on_stdio)
                 return ExitCode.OK
 
             def ready(url: str) -> None:
-                print(f"mcp server of companion {args.companion!r} in mesh {args.mesh!r} at {url} ({mode}; Ctrl-C to stop)",
-                      flush=True)
+                print(f"mcp server of companion {args.companion!r} (on {server.host}) in mesh {args.mesh!r} at {url} "
+                      f"({mode}; Ctrl-C to stop)", flush=True)
                 if args.allow_actions and sock is not None and sock.getsockname()[0] not in LOOPBACK:
                     print(f"warning: anyone who reaches {url} may act on mesh {args.mesh!r}", file=sys.stderr, flush=True)
 

@@ -459,6 +459,8 @@ class MigrationManager(Component):
         self.refresh_sections(identity)
         self._keep(record, identity)
         request.accept(identity.sections.get(POLICY_SECTION))
+        # Who offers the companion's moves (an MCP server, a mind's tools) hears that they changed.
+        self.raise_event("PolicyChanged", {"companion": identity.companion, "accepts": accepts})
 
 
 def _log_damaged(companion: str, error: str) -> None:

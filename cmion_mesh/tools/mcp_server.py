@@ -7,9 +7,10 @@ This module is the I/O around it:
 
 * **following the companion**: the custody liveliness tokens say who holds it (the holder at the
   highest epoch: a target claims the next epoch as it receives it, and withdraws if the handshake
-  is abandoned); when the holder changes, the new host is described and the clients are told
-  (tools and resources list changed, both resources updated). Presence changes re-list the
-  ``migrate`` targets.
+  is abandoned), and so do the arrival events (``MigrationOccurred``..., all a member's
+  certificate may follow in secure mode); when the host changes, the new one is described and
+  the clients are told (tools and resources list changed, both resources updated). Presence
+  changes re-list the ``migrate`` targets.
 * **notifications** in both eras the SDK serves: to the sessions of the handshake era directly
   (``notifications/tools/list_changed``, ``resources/updated`` to those that subscribed), and to
   ``subscriptions/listen`` streams of the 2026 era through the SDK's in-memory bus.
@@ -26,11 +27,13 @@ threads (``anyio.to_thread``); zenoh callbacks only hand their sample to the loo
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+import signal
 import socket
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from typing import Any, TypeVar
 
@@ -38,6 +41,7 @@ import anyio
 import anyio.to_thread
 import mcp_types as types
 import msgspec
+from anyio.abc import TaskStatus
 from mcp.server.lowlevel.server import NotificationOptions, Server
 from mcp.server.session import ServerSession
 from mcp.server.subscriptions import InMemorySubscriptionBus, ListenHandler, ResourcesListChanged, ResourceUpdated, ToolsListChanged
@@ -56,6 +60,7 @@ from cmion_mesh.tools.companion_view import (
     store_document,
 )
 from cmion_mesh.transport.base import Closeable
+from cmion_mesh.web.server import _Server as UvicornServer  # uvicorn's, waiting for shutdown without polling
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -67,6 +72,8 @@ CANCEL_WAIT = 10.0
 MIGRATE_TIMEOUT = 60.0
 DESCRIBE_TIMEOUT = 3.0
 READ_TIMEOUT = 5.0
+#: The events by which an embodiment says the companion lives there now.
+ARRIVALS = frozenset({"MigrationOccurred", "CompanionResumed", "CompanionBorn"})
 #: How long custody tokens are let settle before the host they name is taken as the companion's.
 SETTLE = 0.1
 
@@ -86,8 +93,9 @@ class CompanionServer:
     """The MCP server of ``companion`` in the mesh of ``client``. ``serve_stdio`` or ``serve_http``
     (each returns when the client leaves, or on Ctrl-C); ``close`` (idempotent) stops following."""
 
-    def __init__(self, client: MeshClient, companion: str, *, allow_actions: bool = False) -> None:
+    def __init__(self, client: MeshClient, companion: str, *, allow_actions: bool = False, join_timeout: float = 5.0) -> None:
         self.client = client
+        self.join_timeout = join_timeout
         self.companion = keys.check_name(companion, "companion")
         self.allow_actions = allow_actions
         self.host: str | None = None
@@ -122,10 +130,10 @@ class CompanionServer:
 
     # --- starting and stopping ------------------------------------------------------------------
 
-    async def start(self, *, timeout: float = 5.0) -> None:
+    async def start(self) -> None:
         """Find the companion, describe its body, and follow it (on the running loop)."""
         self._loop = asyncio.get_running_loop()
-        host = await self._thread(partial(self.client.find_companion, self.companion, timeout=timeout))
+        host = await self._thread(partial(self.client.find_companion, self.companion, timeout=self.join_timeout))
         description = await self._thread(partial(self.client.describe, host, timeout=DESCRIBE_TIMEOUT))
         presence = self.client.presence
         self.alive = presence.alive()
@@ -136,6 +144,8 @@ class CompanionServer:
         self._handles.append(presence.listen(lambda name, alive: self._later(self._on_presence, name, alive)))
         self._handles.append(transport.watch_liveliness(keys.custody_pattern(self.client.mesh),
                                                         lambda key, alive: self._later(self._on_custody, key, alive)))
+        # The arrivals too: in secure mode a member may follow events but not custody tokens.
+        self._handles.append(self.client.events(self._on_migration_event, component="migration"))
 
     def close(self) -> None:
         if self._closed:
@@ -156,31 +166,31 @@ class CompanionServer:
     def __exit__(self, *_: object) -> None:
         self.close()
 
-    async def serve_stdio(self) -> None:
+    async def serve_stdio(self, on_ready: Callable[[], None] = lambda: None) -> None:
+        """Serve the client on this process's stdin and stdout until it leaves (EOF)."""
         from mcp.server.stdio import stdio_server
 
         await self.start()
+        on_ready()
+        # No signal handling of our own here: the SDK reads stdin in a worker thread that a cancel
+        # cannot interrupt. A client ends the server by closing its stdin (then exit 0); SIGINT is
+        # exit 130, SIGTERM the default, as for any stdio server.
         async with stdio_server() as (read, write):
             await self.server.run(read, write, self._options())
 
     async def serve_http(self, sock: socket.socket, on_ready: Callable[[str], None]) -> None:
-        """Serve streamable HTTP on the bound ``sock`` (at ``/mcp``) until Ctrl-C."""
+        """Serve streamable HTTP on the bound ``sock`` (at ``/mcp``) until SIGINT/SIGTERM."""
         import uvicorn
 
         await self.start()
         host, port = sock.getsockname()[:2]
-        app = self.server.streamable_http_app(host=host)
-        config = uvicorn.Config(app, log_level="warning", lifespan="on")
-        server = uvicorn.Server(config)
-        started = asyncio.get_running_loop().create_task(server.serve(sockets=[sock]))
-        for _ in range(1000):  # bounded: uvicorn starts within a few ms, the task's failure ends the wait
-            if server.started or started.done():
-                break
-            await asyncio.sleep(0.01)
-        if server.started:
-            shown = f"[{host}]" if ":" in host else host
-            on_ready(f"http://{shown}:{port}/mcp")
-        await started
+        shown = f"[{host}]" if ":" in host else host
+        server = _HttpServer(uvicorn.Config(self.server.streamable_http_app(host=host), log_level="warning", lifespan="on"),
+                             lambda _loop: on_ready(f"http://{shown}:{port}/mcp"))
+        async with anyio.create_task_group() as group:
+            await group.start(_on_signal, server.stop)
+            await server.serve(sockets=[sock])
+            group.cancel_scope.cancel()
 
     def _options(self) -> Any:
         return self.server.create_initialization_options(NotificationOptions(resources_changed=True, tools_changed=True))
@@ -230,6 +240,23 @@ class CompanionServer:
         if best != self.host and not self._closed:
             self._move(best)
 
+    def _on_migration_event(self, event: Event) -> None:
+        # A zenoh worker: an arrival of this companion, or a change of its policy, is handed to the loop.
+        if isinstance(event.data, dict) and event.data.get("companion") == self.companion:
+            if event.name in ARRIVALS:
+                self._later(self._arrived, event.embodiment)
+            elif event.name == "PolicyChanged":
+                self._later(self._policy_changed, event.embodiment, event.data.get("accepts"))
+
+    def _arrived(self, host: str) -> None:
+        if host != self.host and not self._closed:
+            self._move(host)
+
+    def _policy_changed(self, host: str, accepts: Any) -> None:
+        if host == self.host:
+            self.description = {**self.description, "policy": accepts if isinstance(accepts, list) else None}
+            self._retool()
+
     def _on_presence(self, name: str, alive: bool) -> None:
         if alive:
             self.alive.add(name)
@@ -240,7 +267,7 @@ class CompanionServer:
 
     def _move(self, host: str | None) -> None:
         """The companion now lives on ``host`` (None: nowhere to be seen)."""
-        log.info("companion %s now on %s", self.companion, host or "(nowhere)")
+        log.debug("companion %s now on %s", self.companion, host or "(nowhere)")
         self.host = host
         self._describing += 1
         generation = self._describing
@@ -477,7 +504,8 @@ class CompanionServer:
                     with anyio.CancelScope(shield=True):
                         await self._cancel(host, action_id, ended)
                     raise
-                report = await self._thread(run.result, ACTION_TIMEOUT)
+                # The end heard (the common case): no request, so no worker thread; else it asks the manager.
+                report = run.report if run.report is not None else await self._thread(run.result, ACTION_TIMEOUT)
         finally:
             self._runs.pop(action_id, None)
         return self._outcome(host, report)
@@ -501,6 +529,23 @@ class CompanionServer:
             return _text_result(f"{action} succeeded on {host}", error=False, structured=data)
         reason = f": {report.reason}" if report.reason else ""
         return _text_result(f"{action} {report.status} on {host}{reason}", error=True, structured=data)
+
+
+class _HttpServer(UvicornServer):
+    """uvicorn's server, stopped by ``_on_signal`` rather than by handlers of its own (which would
+    raise the signal again once stopped: a Ctrl-C would end in a traceback-free but failed exit)."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        yield
+
+
+async def _on_signal(then: Callable[[], None], *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
+    with anyio.open_signal_receiver(signal.SIGINT, signal.SIGTERM) as signals:
+        task_status.started()  # the handlers are in place: what the start line promises holds from now on
+        async for _ in signals:
+            then()
+            return
 
 
 def _close_all(handles: list[Closeable]) -> None:
