@@ -22,6 +22,7 @@ from cmion_mesh.messages import Event
 from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.tools.demo import Scenario, stop_bodies
+from cmion_mesh.transport import certs
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
@@ -287,3 +288,29 @@ def test_a_body_that_vanishes_mid_action_gives_outcome_unknown_naming_it(tmp_pat
                 assert result.structured_content["status"] == "unknown"
 
         anyio.run(main)
+
+
+def test_secure_mode_speaks_as_a_certificate_and_the_access_rules_apply(tmp_path: Path) -> None:
+    pki = tmp_path / "pki"
+    certs.init(pki)
+    certs.issue(pki, "robot")
+    certs.issue(pki, "phone")  # a member: another embodiment's identity
+    certs.issue(pki, "admin", role="operator")
+    mesh, port = unique_mesh(), free_port()
+    common = ["--mesh", mesh, "--certs", str(pki), "--no-multicast"]
+    with Daemon(cli_argv("up", "robot", "--name", "robot", *common, "--listen", f"tcp/127.0.0.1:{port}",
+                         "--state-dir", str(tmp_path / "robot")), name="robot") as robot:
+        robot.wait_line("up in mesh", 30)
+
+        async def main(identity: str) -> types.CallToolResult:
+            argv = cli_argv("mcp", "spirit", "--allow-actions", *common, "--identity", identity, "--connect", f"tls/127.0.0.1:{port}")
+            params = StdioServerParameters(command=argv[0], args=argv[1:], env=dict(os.environ))
+            async with Client(params, mode="legacy") as client:
+                assert "GoTo" in tool_names(await client.list_tools())  # a member may read what the body offers
+                return await client.call_tool("GoTo", {"location": "Kitchen"})
+
+        operator = anyio.run(main, "admin")
+        assert not operator.is_error and operator.structured_content["status"] == "succeeded", operator
+        member = anyio.run(main, "phone")
+        assert member.is_error and member.structured_content["status"] == "not_reached", member
+        assert text(member).startswith("not delivered, nothing was done") and "an operator's certificate may act" in text(member)

@@ -51,7 +51,7 @@ def cmd_mcp(args: argparse.Namespace) -> int:
         print(security.describe(certs_dir=args.certs, identity=args.identity), file=sys.stderr, flush=True)
     try:
         with session(args) as client, CompanionServer(client, args.companion, allow_actions=args.allow_actions,
-                                                      join_timeout=args.join_timeout) as server:
+                                                      join_timeout=args.join_timeout, secure=bool(args.certs)) as server:
             if sock is None:
                 def on_stdio() -> None:  # stdout is the protocol's: what a person reads goes to stderr
                     print(f"mcp server of companion {args.companion!r} (on {server.host}) in mesh {args.mesh!r} on stdio "

@@ -14,10 +14,8 @@ This module is the I/O around it:
 * **notifications** in both eras the SDK serves: to the sessions of the handshake era directly
   (``notifications/tools/list_changed``, ``resources/updated`` to those that subscribed), and to
   ``subscriptions/listen`` streams of the 2026 era through the SDK's in-memory bus.
-* **actions**: a tool call is ``MeshClient.start_action`` on the host; the run's events (the
-  competencies' ``Progress``, the plan's steps) become progress notifications; a cancelled call
-  cancels the action in the body and waits (bounded) for its end; every outcome is a tool result,
-  failures with ``isError`` and the reason, a body that vanished as "outcome unknown" naming it.
+* **tool calls**: ``tools/mcp_calls.py`` (actions with progress and cancellation, ``migrate``,
+  ``peers``); this module checks the call first (a tool the body has, arguments, read-only).
 
 Threads: the MCP server runs on one asyncio loop; mesh requests, which wait, run in worker
 threads (``anyio.to_thread``); zenoh callbacks only hand their sample to the loop
@@ -28,11 +26,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import signal
 import socket
-import uuid
 from collections.abc import Callable, Iterator
 from functools import partial
 from typing import Any, TypeVar
@@ -40,7 +36,6 @@ from typing import Any, TypeVar
 import anyio
 import anyio.to_thread
 import mcp_types as types
-import msgspec
 from anyio.abc import TaskStatus
 from mcp.server.lowlevel.server import NotificationOptions, Server
 from mcp.server.session import ServerSession
@@ -48,29 +43,16 @@ from mcp.server.subscriptions import InMemorySubscriptionBus, ListenHandler, Res
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import InvalidArguments, MeshError, NotAlive, OutcomeUnknown, RequestRejected, Vanished
-from cmion_mesh.messages import ActionReport, Event
-from cmion_mesh.tools.companion_view import (
-    ResourceSpec,
-    ToolSpec,
-    belongs_to,
-    companion_resources,
-    companion_tools,
-    progress_message,
-    store_document,
-)
+from cmion_mesh.errors import InvalidArguments, MeshError
+from cmion_mesh.messages import Event
+from cmion_mesh.tools.companion_view import ResourceSpec, ToolSpec, companion_resources, companion_tools, store_document
+from cmion_mesh.tools.mcp_calls import DESCRIBE_TIMEOUT, ToolCalls, text_result
 from cmion_mesh.transport.base import Closeable
 from cmion_mesh.web.server import _Server as UvicornServer  # uvicorn's, waiting for shutdown without polling
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
-#: Longest wait for an action's outcome.
-ACTION_TIMEOUT = 600.0
-#: After a cancelled call, how long the body is given to end the action before it is left.
-CANCEL_WAIT = 10.0
-MIGRATE_TIMEOUT = 60.0
-DESCRIBE_TIMEOUT = 3.0
 READ_TIMEOUT = 5.0
 #: The events by which an embodiment says the companion lives there now.
 ARRIVALS = frozenset({"MigrationOccurred", "CompanionResumed", "CompanionBorn"})
@@ -85,15 +67,12 @@ def _connection_of(session: ServerSession) -> object:
     return getattr(session, "_connection", session)
 
 
-def _text_result(text: str, *, error: bool, structured: dict[str, Any] | None = None) -> types.CallToolResult:
-    return types.CallToolResult(content=[types.TextContent(text=text)], structured_content=structured, is_error=error)
-
-
 class CompanionServer:
     """The MCP server of ``companion`` in the mesh of ``client``. ``serve_stdio`` or ``serve_http``
     (each returns when the client leaves, or on Ctrl-C); ``close`` (idempotent) stops following."""
 
-    def __init__(self, client: MeshClient, companion: str, *, allow_actions: bool = False, join_timeout: float = 5.0) -> None:
+    def __init__(self, client: MeshClient, companion: str, *, allow_actions: bool = False, join_timeout: float = 5.0,
+                 secure: bool = False) -> None:
         self.client = client
         self.join_timeout = join_timeout
         self.companion = keys.check_name(companion, "companion")
@@ -109,7 +88,7 @@ class CompanionServer:
         self._sessions: dict[object, ServerSession] = {}  # handshake-era connections, by connection
         self._subscribed: dict[str, set[object]] = {}  # uri -> connections that subscribed to it
         self._pending_updates: set[str] = set()
-        self._runs: dict[str, Callable[[str, str, dict[str, Any]], None]] = {}  # action id -> its progress hook
+        self.calls = ToolCalls(client, self.companion, secure=secure)
         self._handles: list[Closeable] = []
         self._host_handles: list[Closeable] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -341,9 +320,7 @@ class CompanionServer:
             self._later(self._run_event, str(event.data["run_id"]).split("#", 1)[0], event)
 
     def _run_event(self, action_id: str, event: Event) -> None:
-        hook = self._runs.get(action_id)
-        if hook is not None and belongs_to(action_id, event.data):
-            hook(event.name, event.component, dict(event.data))
+        self.calls.run_event(action_id, event)
 
     # --- notifications (loop) --------------------------------------------------------------------
 
@@ -424,112 +401,15 @@ class CompanionServer:
         spec = self.tools.get(params.name)
         if spec is None:
             where = f"in {self.host} now, which offers" if self.host else "nowhere to be seen now: it has only"
-            return _text_result(f"no tool {params.name!r}: {self.companion} lives {where} {', '.join(self.tools)}", error=True)
+            return text_result(f"no tool {params.name!r}: {self.companion} lives {where} {', '.join(self.tools)}", error=True)
         if not spec.read_only and not self.allow_actions:
-            return _text_result(f"refused: this MCP server is read-only ({spec.name} would act on {self.host}); "
+            return text_result(f"refused: this MCP server is read-only ({spec.name} would act on {self.host}); "
                                 "start it with --allow-actions to let clients act", error=True)
         try:
             arguments = spec.arguments(params.arguments)
         except InvalidArguments as exc:
-            return _text_result(str(exc), error=True)
-        try:
-            if spec.kind == "peers":
-                return await self._peers()
-            if spec.kind == "migrate":
-                return await self._migrate(arguments[0])
-            assert spec.ability is not None
-            return await self._act(ctx, spec, arguments)
-        except (Vanished, OutcomeUnknown) as exc:
-            return _text_result(f"outcome unknown: {exc}", error=True, structured={"status": "unknown", "reason": str(exc)})
-        except RequestRejected as exc:
-            return _text_result(f"refused: {exc}", error=True, structured={"status": "refused", "reason": str(exc)})
-        except MeshError as exc:
-            return _text_result(str(exc), error=True, structured={"status": "failed", "reason": str(exc)})
-
-    async def _peers(self) -> types.CallToolResult:
-        described = await self._thread(partial(self.client.describe_all, timeout=DESCRIBE_TIMEOUT))
-        peers = [{"name": d.get("name"), "inhabitant": d.get("inhabitant"), "actions": d.get("actions", []),
-                  **({"error": d["error"]} if d.get("error") else {})} for d in described]
-        return _text_result(json.dumps(peers), error=False, structured={"peers": peers})
-
-    async def _migrate(self, target: str) -> types.CallToolResult:
-        # A handshake, once started, cannot be called back (the companion must end up in exactly one
-        # place): a cancelled call leaves it to finish, in its worker thread.
-        result = await self._thread(partial(self.client.migrate, self.companion, target, timeout=MIGRATE_TIMEOUT))
-        text = f"{self.companion} migrated from {result.get('source')} to {target}; the tools are now {target}'s"
-        return _text_result(text, error=False, structured={"status": "succeeded", **{k: result[k] for k in result
-                                                                                      if isinstance(result[k], str | int)}})
-
-    async def _act(self, ctx: Any, spec: ToolSpec, arguments: tuple[str, ...]) -> types.CallToolResult:
-        assert spec.ability is not None
-        host = self.host
-        if host is None:
-            raise NotAlive(f"{self.companion} lives nowhere to be seen now: no body to act with")
-        action = spec.ability.action
-        action_id = f"mcp-{uuid.uuid4().hex[:12]}"
-        loop = asyncio.get_running_loop()
-        ended = asyncio.Event()
-
-        def on_end() -> None:  # a transport worker: the loop sets it
-            loop.call_soon_threadsafe(ended.set)
-        steps = 0
-        progress: asyncio.Queue[str] = asyncio.Queue()
-
-        def hook(name: str, component: str, data: dict[str, Any]) -> None:
-            message = progress_message(name, component, data)
-            if message is not None:
-                progress.put_nowait(message)
-
-        self._runs[action_id] = hook
-        try:
-            run = await self._thread(partial(self.client.start_action, host, action, arguments, action_id=action_id,
-                                             join_timeout=DESCRIBE_TIMEOUT,
-                                             on_end=on_end))
-            with run:
-                try:
-                    while not ended.is_set():
-                        waiter = asyncio.ensure_future(progress.get())
-                        ending = asyncio.ensure_future(ended.wait())
-                        try:
-                            await asyncio.wait({waiter, ending}, timeout=ACTION_TIMEOUT, return_when=asyncio.FIRST_COMPLETED)
-                        finally:
-                            waiter.cancel()
-                            ending.cancel()
-                        if waiter.done() and not waiter.cancelled():
-                            steps += 1
-                            await ctx.session.report_progress(steps, None, waiter.result())
-                        elif not ending.done():
-                            break  # the timeout: asked below
-                except anyio.get_cancelled_exc_class():
-                    with anyio.CancelScope(shield=True):
-                        await self._cancel(host, action_id, ended)
-                    raise
-                # The end heard (the common case): no request, so no worker thread; else it asks the manager.
-                report = run.report if run.report is not None else await self._thread(run.result, ACTION_TIMEOUT)
-        finally:
-            self._runs.pop(action_id, None)
-        return self._outcome(host, report)
-
-    async def _cancel(self, host: str, action_id: str, ended: asyncio.Event) -> None:
-        """The client cancelled the call: cancel the action in the body, and give it a moment to end
-        (its worker and watch are closed after), so that nothing is left running unseen."""
-        try:
-            await self._thread(self.client.cancel, host, action_id)
-        except MeshError as exc:
-            log.warning("cancelling %s on %s: %s", action_id, host, exc)
-            return
-        with anyio.move_on_after(CANCEL_WAIT):
-            await ended.wait()
-
-    def _outcome(self, host: str, report: ActionReport) -> types.CallToolResult:
-        data = msgspec.to_builtins(report)
-        data["embodiment"] = host
-        action = " ".join([report.name, *report.parameters])
-        if report.status == "succeeded":
-            return _text_result(f"{action} succeeded on {host}", error=False, structured=data)
-        reason = f": {report.reason}" if report.reason else ""
-        return _text_result(f"{action} {report.status} on {host}{reason}", error=True, structured=data)
-
+            return text_result(str(exc), error=True)
+        return await self.calls.call(ctx.session, spec, arguments, self.host)
 
 class _HttpServer(UvicornServer):
     """uvicorn's server, stopped by ``_on_signal`` rather than by handlers of its own (which would
