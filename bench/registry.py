@@ -245,6 +245,13 @@ BENCHMARKS: list[Benchmark] = [
         "growth curves: event throughput vs subscribers, wildcard get vs blackboard size, discovery vs daemons",
     ),
     Benchmark(
+        "mcp",
+        "bench.mcp:run",
+        ("mcp",),
+        "MCP tools/call -> outcome over stdio (the SDK's client spawning `cmion-mesh mcp`), beside MeshClient.act",
+        default=False,  # needs the optional `mcp` extra
+    ),
+    Benchmark(
         "view",
         "bench.view:run",
         ("view",),

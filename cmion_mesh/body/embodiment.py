@@ -271,6 +271,8 @@ class Embodiment:
             "minds": [m.name for m in self.minds],
             "mind_connections": {m.name: link for m in self.minds if (link := m.connection()) is not None},
             "inhabitant": self.inhabitant,
+            # The embodiments the companion living here accepts (its policy section; None: any).
+            "policy": self.migration.policy() if self.migration is not None else None,
             "companion_key": self.migration.public_key() if self.migration is not None else None,
             "admits": sorted(self.migration.admit) if self.migration is not None and self.migration.admit is not None else None,
             "damaged": dict(self.migration.damaged) if self.migration is not None else {},

@@ -102,6 +102,10 @@ COMMANDS: dict[str, Command] = {
     "custody": Command("actions", "custody_arguments", "cmd_custody",
                        "a companion's custody across the mesh: who holds it, forks of its chain and how to resolve them",
                        "cmion-mesh custody show spirit\ncmion-mesh custody resolve spirit --keep robot"),
+    "mcp": Command("mcp", "mcp_arguments", "cmd_mcp",
+                   "serve a companion to MCP clients: its body's actions as tools, its world model as resources",
+                   "cmion-mesh mcp spirit --allow-actions           # what a desktop client starts\n"
+                   "cmion-mesh mcp spirit --http --allow-actions    # then http://127.0.0.1:8766/mcp"),
     "invite": Command("actions", "invite_arguments", "cmd_invite",
                       "have an empty embodiment invite the companion (CMION's migration invitation)",
                       "cmion-mesh invite screen"),

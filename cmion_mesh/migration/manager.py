@@ -189,6 +189,13 @@ class MigrationManager(Component):
         """The last migration from here: bytes of the document sent and in all (``MigrationSucceeded``'s ``transfer``)."""
         return self.outgoing.last_transfer
 
+    def policy(self) -> list[str] | None:
+        """The embodiments the companion living here accepts (its ``policy`` section), None for any
+        or when nobody lives here (loop thread, as ``describe``)."""
+        policy = self.identity.sections.get(POLICY_SECTION) if self.identity is not None else None
+        accepts = policy.get("accepts") if isinstance(policy, dict) else None
+        return [str(a) for a in accepts] if isinstance(accepts, list) else None
+
     def custody_report(self) -> dict[str, Any]:
         """What ``describe`` says of custody here: for the companion held here, its state, epoch,
         whether a fork freezes it and the evidence (plain data)."""
@@ -452,6 +459,8 @@ class MigrationManager(Component):
         self.refresh_sections(identity)
         self._keep(record, identity)
         request.accept(identity.sections.get(POLICY_SECTION))
+        # Who offers the companion's moves (an MCP server, a mind's tools) hears that they changed.
+        self.raise_event("PolicyChanged", {"companion": identity.companion, "accepts": accepts})
 
 
 def _log_damaged(companion: str, error: str) -> None:
