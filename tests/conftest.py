@@ -164,6 +164,7 @@ TIERS: dict[str, str] = {
     "test_transport": "mesh",
     "test_up_service": "mesh",
     "test_view": "system",
+    "test_view_graph": "system",
     "test_view_server": "unit",
     "test_webbody": "system",
     "test_webbody_protocol": "unit",
