@@ -33,6 +33,7 @@ from cmion_mesh.tools.recording_reader import RecordingReader
 from cmion_mesh.web.view import MeshView
 
 MAX_MESSAGES = 1_000_000
+SEEK_SLACK_NS = 1_000
 SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 10.0)
 #: Metadata values the recorder wrote as JSON (it writes strings as they are).
 _JSON_FIELDS = frozenset({"alive", "duplicates", "competency_types", "stand_ins", "competencies", "actions", "minds",
@@ -170,7 +171,7 @@ class RecordingPlayer:
                 self._speed = speed
             elif action == "seek":
                 try:
-                    at = int(float(message.get("position", "")) * 1e9)
+                    at = round(float(message.get("position", "")) * 1e9)
                 except (TypeError, ValueError):
                     return "seek: a position in seconds (the recording's clock)"
                 self._seek(min(max(at, self.start), self.end))
@@ -209,7 +210,9 @@ class RecordingPlayer:
         back = at < self._now() or at < self._position
         start = 0 if back else self._index
         end = start
-        while end < len(self.items) and self.items[end][0] <= at:
+        # A position comes in seconds (a float: sub-microsecond digits lost), as the pages know
+        # each message's time: what was at that moment, to the microsecond, is included.
+        while end < len(self.items) and self.items[end][0] <= at + SEEK_SLACK_NS:
             end += 1
         self.view.feed_replay([item for _, item in self.items[start:end]], reset=back)
         self._index = end

@@ -200,9 +200,10 @@ class Model:
     def inhabit(self, name: str, companion: str | None) -> dict[str, Any] | None:
         """What an event says at once (the description that follows confirms it)."""
         card = self.embodiments.get(name)
-        if card is None or card.get("description") is None:
+        if card is None:
             return None
-        card["description"] = {**card["description"], "inhabitant": companion}
+        # Not described yet (or a recording that holds no description): what the event says, alone.
+        card["description"] = {**(card.get("description") or {}), "inhabitant": companion}
         return card
 
     def custody_token(self, holder: str, companion: str, epoch: int, alive: bool) -> dict[str, Any]:
