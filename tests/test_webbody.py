@@ -159,14 +159,25 @@ def test_the_arrival_is_shown_once_when_it_happens_and_a_page_opened_later_shows
         state = json.loads(context.request.get(screen_url + "/state").text())
         assert state["companion"] == "spirit" and state["transition"] is None, state["transition"]
 
+        # A line said stays readable once spoken, until the next.
+        report = client.act("screen", "Greet", ["Guest"], timeout=30)
+        assert report.status == "succeeded", report
+        watching.wait_for_function("document.getElementById('speech').textContent.includes('welcome to the building') "
+                                   "&& document.getElementById('speech').dataset.speaking === 'false'", timeout=WAIT_MS)
+
         later = context.new_page()
         later.goto(screen_url)
         later.wait_for_selector('body[data-connected="true"][data-companion="spirit"]', timeout=WAIT_MS)
-        seq = later.evaluate("state.seq")
-        client.act("screen", "Express", ["wave"], timeout=30)  # a state or two more for both pages
-        later.wait_for_function("s => state.seq > s", arg=seq, timeout=WAIT_MS)
-        assert later.is_visible("#face") and later.evaluate("window.captions") == []
-        assert later.get_attribute("body", "data-transition") == ""
+        assert "welcome to the building" in (later.text_content("#speech") or "")
+        # A gesture reads as what it is: the hand, and the words for those who do not see it.
+        with client.start_action("screen", "Express", ["wave"]) as waving:
+            later.wait_for_function("document.getElementById('gesture').textContent === 'spirit waves' "
+                                    "&& document.body.dataset.expression === 'wave'", timeout=WAIT_MS)
+            assert later.is_visible("#face") and later.is_visible("#hand")
+            screenshot(later, "screen-opened-later-waving")
+            later.wait_for_function("document.getElementById('gesture').textContent === ''", timeout=WAIT_MS)
+            assert waving.action_id
+        assert later.evaluate("window.captions") == [] and later.get_attribute("body", "data-transition") == ""
         assert watching.evaluate("window.captions") == ["spirit arrives from robot"], watching.evaluate("window.captions")
         screenshot(later, "screen-opened-later")
     finally:
