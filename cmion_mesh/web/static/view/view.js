@@ -437,7 +437,10 @@ function eventLine(e) {
       const epoch = d.epoch !== undefined ? ` (epoch ${d.epoch})` : "";
       if (e.name === "MigrationStarting") return `${who}: ${c} leaves for ${d.target}`;
       if (e.name === "MigrationStep") return `${who}: ${c}'s handshake with ${d.peer}: ${d.step}${epoch}`;
-      if (e.name === "MigrationOccurred") return `${who}: ${c} arrived${d.why ? ` (${d.why})` : ""}${epoch}`;
+      if (e.name === "MigrationOccurred") {
+        const why = typeof d.why === "string" && d.why.startsWith("arrived ") ? d.why : `arrived${d.why ? ` (${d.why})` : ""}`;
+        return `${who}: ${c} ${why}${epoch}`;
+      }
       if (e.name === "MigrationSucceeded") return `${who}: ${c} handed over to ${d.target}${epoch}`;
       if (e.name === "MigrationFailed") return `${who}: ${c} could not go to ${d.target || "?"}${d.reason ? `: ${d.reason}` : ""}`;
       if (e.name === "MigrationDropped") return `${who}: ${c}'s arrival from ${d.source || "?"} dropped${d.reason ? `: ${d.reason}` : ""}`;
