@@ -174,6 +174,8 @@ TIERS: dict[str, str] = {
     "test_tutorial": "mesh",
     "test_up_service": "mesh",
     "test_view": "system",
+    "test_view_graph": "system",
+    "test_view_player": "unit",
     "test_view_server": "unit",
     "test_webbody": "system",
     "test_webbody_protocol": "unit",

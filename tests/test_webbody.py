@@ -28,11 +28,12 @@ from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import Daemon, cli_argv, free_port
-from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.tools.demo import Scenario, start_bodies, stop_bodies, web_address
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web import speech
+from cmion_mesh.web.body import ARRIVAL_SHOWN
 from tests.helpers.browser import screenshot
 
 WAIT = 60.0
@@ -123,6 +124,64 @@ def test_the_screen_shows_the_companion_arriving_and_yes_answers_its_question(ch
     finally:
         wide.close()
         narrow.close()
+
+
+#: Installed before the page's script: every text the arrival caption ever shows, in order.
+CAPTIONS = """
+window.captions = [];
+document.addEventListener("DOMContentLoaded", () => {
+  const caption = document.getElementById("transition");
+  new MutationObserver(() => { if (caption.textContent) window.captions.push(caption.textContent); })
+    .observe(caption, { childList: true, characterData: true, subtree: true });
+});
+"""
+
+
+def test_the_arrival_is_shown_once_when_it_happens_and_a_page_opened_later_shows_the_companion_at_rest(
+        chromium_browser: Any, bodies: Scenario, client: MeshClient) -> None:
+    screen_url = web_address(bodies.daemons["screen"])
+    context = chromium_browser.new_context(viewport={"width": 1280, "height": 800})
+    try:
+        context.add_init_script(CAPTIONS)
+        watching = context.new_page()
+        watching.goto(screen_url)
+        watching.wait_for_selector('body[data-connected="true"][data-companion=""]', timeout=WAIT_MS)
+        migrate_once_seen(client, "spirit", "screen")
+        watching.wait_for_selector('body[data-companion="spirit"]', timeout=WAIT_MS)
+        watching.wait_for_function("document.getElementById('transition').textContent === 'spirit arrives from robot'",
+                                   timeout=WAIT_MS)
+        screenshot(watching, "screen-arriving")
+        # The state changes while the arrival is news (the mind wakes, says something...); then the
+        # caption goes, and it does not come back with the states that follow.
+        client.set_property("screen", keys.BLACKBOARD, "", "probe", 1)
+        watching.wait_for_function("document.getElementById('transition').textContent === '' "
+                                   "&& document.body.dataset.transition === ''", timeout=int((ARRIVAL_SHOWN + 10) * 1000))
+        state = json.loads(context.request.get(screen_url + "/state").text())
+        assert state["companion"] == "spirit" and state["transition"] is None, state["transition"]
+
+        # A line said stays readable once spoken, until the next.
+        report = client.act("screen", "Greet", ["Guest"], timeout=30)
+        assert report.status == "succeeded", report
+        watching.wait_for_function("document.getElementById('speech').textContent.includes('welcome to the building') "
+                                   "&& document.getElementById('speech').dataset.speaking === 'false'", timeout=WAIT_MS)
+
+        later = context.new_page()
+        later.goto(screen_url)
+        later.wait_for_selector('body[data-connected="true"][data-companion="spirit"]', timeout=WAIT_MS)
+        assert "welcome to the building" in (later.text_content("#speech") or "")
+        # A gesture reads as what it is: the hand, and the words for those who do not see it.
+        with client.start_action("screen", "Express", ["wave"]) as waving:
+            later.wait_for_function("document.getElementById('gesture').textContent === 'spirit waves' "
+                                    "&& document.body.dataset.expression === 'wave'", timeout=WAIT_MS)
+            assert later.is_visible("#face") and later.is_visible("#hand")
+            screenshot(later, "screen-opened-later-waving")
+            later.wait_for_function("document.getElementById('gesture').textContent === ''", timeout=WAIT_MS)
+            assert waving.action_id
+        assert later.evaluate("window.captions") == [] and later.get_attribute("body", "data-transition") == ""
+        assert watching.evaluate("window.captions") == ["spirit arrives from robot"], watching.evaluate("window.captions")
+        screenshot(later, "screen-opened-later")
+    finally:
+        context.close()
 
 
 def test_a_page_input_the_body_does_not_sense_is_refused_with_a_reason(chromium_browser: Any, mesh: str, tmp_path: Path) -> None:

@@ -76,6 +76,9 @@ KEEP_UTTERANCES = 8
 MAX_COMMAND = 200
 #: Valence beyond which the face shows the mind's mood rather than a neutral look.
 MOOD_THRESHOLD = 0.15
+#: How long an arrival is news (seconds): after it, the state says the companion is simply here,
+#: so a page opened later shows the face at rest, not the arrival again.
+ARRIVAL_SHOWN = 4.0
 LAYOUTS = ("auto", "screen", "phone")
 MIGRATION_EVENTS = frozenset({"MigrationOccurred", "CompanionResumed", "MigrationStarting", "MigrationSucceeded",
                               "MigrationFailed", "CompanionDamaged", "CustodyFork", "CustodySuperseded",
@@ -270,9 +273,17 @@ class WebBody(Component):
                 page.ready.set()
 
     def snapshot(self) -> dict[str, Any]:
+        now = time.time()
         with self._lock:
             # A deep copy through JSON: what a page gets is what JSON can carry, and never shared state.
-            copied: dict[str, Any] = json.loads(json.dumps({"type": "state", "seq": next(self._seq), "time": time.time(), **self._state}))
+            copied: dict[str, Any] = json.loads(json.dumps({"type": "state", "seq": next(self._seq), "time": now, **self._state}))
+        transition = copied["transition"]
+        if transition is not None and transition.get("kind") == "arriving":
+            until = float(transition.get("at", 0.0)) + ARRIVAL_SHOWN
+            if now >= until:
+                copied["transition"] = None  # the arrival is over: the companion is here
+            else:
+                transition["until"] = until
         return copied
 
     def _changed(self, **changes: Any) -> None:

@@ -20,6 +20,10 @@ Read-only unless ``allow_actions``: a page may then send mind actions and migrat
 view sends as its own requests (with ``--certs``, under its own identity and access rules); when
 not allowed they are refused here, whatever the page sends.
 
+A recording played through the view (``view --recording``) is the same view with no mesh: a
+``Playback`` (``tools/view_player.py``) feeds it what the recording holds, through the same
+handlers (``feed_*``), at the recording's pace; the pages pause, speed it up and seek.
+
 Here: ``MeshView`` (the Starlette application, joining the mesh, the WebSocket to each page, the
 actions) and ``spawn_view``. What the view knows and what waits for each page (``Model``, ``Page``,
 ``TreeWatch``), plain state with no I/O: ``web/view_model.py``.
@@ -53,7 +57,7 @@ from cmion_mesh.messages import Container, Event, ExecutionStatus, Property, dec
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport.base import Closeable, Sample
 from cmion_mesh.web.server import host_allowed, same_origin
-from cmion_mesh.web.view_model import STORES, Model, Page, TreeWatch, entry_json, event_json
+from cmion_mesh.web.view_model import STORES, Model, Page, Playback, TreeWatch, entry_json, event_json
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +75,11 @@ REDESCRIBE = frozenset({
     "CompanionDamaged", "CustodyFork", "CustodySuperseded", "CustodyStoodDown", "CustodyResolved", "CompetencyAppeared",
     "CompetencyVanished", "MindConnected", "MindDisconnected",
 })
+
+#: Descriptions asked again, at most, while an embodiment does not yet see every embodiment the
+#: view sees (their links come up after the view's): then the graph's links are right.
+RECHECKS = 5
+RECHECK_FIRST = 0.3
 
 Schedule = Callable[..., None]
 
@@ -102,12 +111,16 @@ class MeshView:
     mesh once the web server's loop runs (``schedule`` is ``WebServer.call_soon``). A context
     manager; ``close`` (idempotent) leaves the mesh and stops the thread pools."""
 
-    def __init__(self, client: MeshClient, *, allow_actions: bool = False, loopback: bool = False) -> None:
+    def __init__(self, client: MeshClient | None, *, allow_actions: bool = False, loopback: bool = False,
+                 mesh: str = "") -> None:
         self.client = client
         self.loopback = loopback
-        self.mesh = client.mesh
-        self.allow_actions = allow_actions
-        self.model = Model(client.mesh)
+        self.mesh = client.mesh if client is not None else mesh
+        self.allow_actions = allow_actions and client is not None
+        self.model = Model(self.mesh)
+        self.playback: Playback | None = None
+        self._muted = False  # a seek replays many things at once: the pages get one snapshot after
+        self._rechecks: dict[str, int] = {}
         self.pages: set[Page] = set()
         self.trees: dict[str, TreeWatch] = {}
         self._pages_made = 0
@@ -136,16 +149,57 @@ class MeshView:
     def start(self, schedule: Schedule) -> None:
         """Watch the mesh; every handler hands what it got to the loop with ``schedule``."""
         self._schedule = schedule
+        if self.client is None:
+            return  # a recording: ``feed_*`` says what happens
         transport = self.client.transport
         prefix = keys.mesh_prefix(self.mesh)
         with self._lock:
             if self._closed:
                 return
             self._handles.append(self.client.events(lambda e: self._later(self._on_event, e, time.time())))
-            self._handles.append(transport.watch_liveliness(f"{prefix}/{keys.ALIVE}/*",
-                                                            lambda k, a: self._later(self._on_alive, k.rsplit("/", 1)[-1], a)))
+            self._handles.append(transport.watch_liveliness(
+                f"{prefix}/{keys.ALIVE}/*", lambda k, a: self._later(self._on_alive, k.rsplit("/", 1)[-1], a, time.time())))
             self._handles.append(transport.watch_liveliness(keys.custody_pattern(self.mesh),
-                                                            lambda k, a: self._later(self._on_custody, k, a)))
+                                                            lambda k, a: self._later(self._on_custody, k, a, time.time())))
+
+    # --- a recording played through the view (any thread) -----------------------------------
+
+    def feed_alive(self, name: str, alive: bool, when: float) -> None:
+        self._later(self._on_alive, name, alive, when)
+
+    def feed_custody(self, key: str, alive: bool, when: float) -> None:
+        self._later(self._on_custody, key, alive, when)
+
+    def feed_event(self, event: Event, when: float) -> None:
+        self._later(self._on_event, event, when)
+
+    def feed_description(self, name: str, description: dict[str, Any], when: float) -> None:
+        self._later(self._on_described, name, description, None, when)
+
+    def feed_playback(self, status: dict[str, Any]) -> None:
+        self._later(self._change, {"type": "playback", "playback": status})
+
+    def feed_replay(self, items: list[tuple[str, tuple[Any, ...]]], *, reset: bool) -> None:
+        """Apply many feeds at once (a seek), each ``(kind, args)`` with kind ``alive``, ``custody``,
+        ``event`` or ``description`` (the ``feed_*`` of that name); ``reset``: from an empty view.
+        The pages then get one snapshot, not each change."""
+        self._later(self._replay, items, reset)
+
+    def _replay(self, items: list[tuple[str, tuple[Any, ...]]], reset: bool) -> None:
+        handlers: dict[str, Callable[..., None]] = {
+            "alive": self._on_alive, "custody": self._on_custody, "event": self._on_event,
+            "description": lambda name, d, when: self._on_described(name, d, None, when)}
+        if reset:
+            self.model = Model(self.mesh)
+        self._muted = True
+        try:
+            for kind, args in items:
+                handlers[kind](*args)
+        finally:
+            self._muted = False
+        for page in self.pages:
+            page.resync = True
+            page.wake.set()
 
     def _later(self, fn: Callable[..., None], *args: Any) -> None:
         """From any thread: run ``fn`` on the loop; never blocks."""
@@ -188,56 +242,94 @@ class MeshView:
     # --- what the mesh says (loop) ----------------------------------------------------------
 
     def _change(self, item: dict[str, Any], pages: set[Page] | None = None) -> None:
+        if self._muted:
+            return
         for page in self.pages if pages is None else pages:
             page.change(item)
 
-    def _card(self, card: dict[str, Any] | None) -> None:
+    def _card(self, card: dict[str, Any] | None, when: float) -> None:
         if card is not None:
             self._change({"type": "embodiment", "card": card})
+            self._frame(when)
 
-    def _on_alive(self, name: str, alive: bool) -> None:
-        self._card(self.model.alive(name, alive))
+    def _frame(self, when: float) -> None:
+        frame = self.model.frame(when)
+        if frame is not None:
+            self._change({"type": "frame", "frame": frame})
+
+    def _on_alive(self, name: str, alive: bool, when: float) -> None:
+        self._card(self.model.alive(name, alive), when)
+        if self.client is None:
+            return
+        # Who sees whom (the graph's links) changed for the others too: ask them again.
+        for other, card in self.model.embodiments.items():
+            if other != name and card["alive"]:
+                self._rechecks.pop(other, None)
+                self._describe(other)
         if alive:
+            client = self.client
             self._describe(name)
-            self._ask(lambda: self.client.request(name, "execution", "status", ExecutionStatus(), timeout=DESCRIBE_TIMEOUT),
+            self._ask(lambda: client.request(name, "execution", "status", ExecutionStatus(), timeout=DESCRIBE_TIMEOUT),
                       lambda outcome, error: self._on_status(name, outcome))
 
     def _describe(self, name: str) -> None:
+        client = self.client
+        if client is None:
+            return
         if name in self._describing:
             self._describing[name] = True  # ask once more when this one answers
             return
         self._describing[name] = False
-        self._ask(lambda: self.client.describe(name, timeout=DESCRIBE_TIMEOUT),
-                  lambda description, error: self._on_described(name, description, error))
+        self._ask(lambda: client.describe(name, timeout=DESCRIBE_TIMEOUT),
+                  lambda description, error: self._on_described(name, description, error, time.time()))
 
-    def _on_described(self, name: str, description: dict[str, Any] | None, error: str | None) -> None:
+    def _on_described(self, name: str, description: dict[str, Any] | None, error: str | None, when: float) -> None:
         again = self._describing.pop(name, False)
         card = self.model.embodiments.get(name)
         if card is not None and card["alive"]:
-            self._card(self.model.described(name, description, error))
+            self._card(self.model.described(name, description, error), when)
             if again:
                 self._describe(name)
+            elif description is not None and self.client is not None:
+                self._recheck(name, description)
+
+    def _recheck(self, name: str, description: dict[str, Any]) -> None:
+        """Ask ``name`` again, a little later, while it does not see every embodiment the view sees
+        (its own links may come up after the view's); a few times at most, then the graph says
+        what it said. Nothing is asked once they agree: an idle mesh stays idle."""
+        seen = set(description.get("alive") or ())
+        alive = {n for n, c in self.model.embodiments.items() if c["alive"]}
+        if alive <= seen:
+            self._rechecks.pop(name, None)
+            return
+        tries = self._rechecks.get(name, 0)
+        if tries >= RECHECKS:
+            return
+        self._rechecks[name] = tries + 1
+        asyncio.get_running_loop().call_later(RECHECK_FIRST * 2 ** tries, self._describe, name)
 
     def _on_status(self, name: str, outcome: Any) -> None:
-        if outcome is not None and getattr(outcome, "status", "") == "accepted":
+        if outcome is not None and getattr(outcome, "status", "") == "accepted" and not self._muted:
             for plan in self.model.status(name, outcome.value):
                 self._change({"type": "plan", "plan": plan})
 
-    def _on_custody(self, key: str, alive: bool) -> None:
+    def _on_custody(self, key: str, alive: bool, when: float) -> None:
         try:
             holder, companion, epoch = key.split("/")[-3:]
             change = self.model.custody_token(holder, companion, int(epoch), alive)
         except ValueError:
             return  # not a custody token of this grammar
         self._change(change)
+        self._frame(when)
 
     def _on_event(self, event: Event, received: float) -> None:
         item = event_json(event, received)
         self.model.ring.append(item)
-        for page in self.pages:
-            page.event(item)
+        if not self._muted:
+            for page in self.pages:
+                page.event(item)
         if event.component == "migration":
-            migration = self.model.migration_event(event)
+            migration = self.model.migration_event(event, received)
             if migration is not None:
                 self._change({"type": "migration", "migration": migration})
         elif event.component == "execution":
@@ -246,9 +338,11 @@ class MeshView:
                 self._change({"type": "plan", "plan": plan})
         data = event.data if isinstance(event.data, dict) else {}
         if event.name in ("MigrationOccurred", "CompanionResumed", "CompanionBorn"):
-            self._card(self.model.inhabit(event.embodiment, str(data.get("companion") or "") or None))
-        elif event.name == "MigrationSucceeded":
-            self._card(self.model.inhabit(event.embodiment, None))
+            self._card(self.model.inhabit(event.embodiment, str(data.get("companion") or "") or None), received)
+        elif event.name == "MigrationSucceeded" or (event.name == "MigrationStep" and data.get("step") == "handed"):
+            # ``handed`` is the source's commit: the companion is no longer its own, whether or not
+            # its ``MigrationSucceeded`` follows (a recording may end before).
+            self._card(self.model.inhabit(event.embodiment, None), received)
         if event.name in REDESCRIBE and self.model.embodiments.get(event.embodiment, {}).get("alive"):
             self._describe(event.embodiment)
 
@@ -261,6 +355,10 @@ class MeshView:
         if not name or not keys.is_name(name):
             return
         page.selected = name
+        if self.client is None:
+            page.change({"type": "trees", "embodiment": name, "ready": True, "truncated": False,
+                         "stores": {s: [] for s in STORES}, "error": "a recording: its stores are not shown here"})
+            return
         watch = self.trees.get(name)
         if watch is None:
             watch = TreeWatch(name)
@@ -290,7 +388,9 @@ class MeshView:
 
     def _watch_trees(self, watch: TreeWatch) -> None:
         name = watch.embodiment
-        transport = self.client.transport
+        client = self.client
+        assert client is not None  # a recording's view watches no trees (``_select``)
+        transport = client.transport
 
         def subscribe() -> dict[str, Any]:
             handles = []
@@ -313,7 +413,7 @@ class MeshView:
                 handles.append(transport.subscribe(f"{prefix}/**", on_sample))
             self._later(self._adopt_handles, watch, handles)
             # Subscribed first, read second: a change between the two is not lost (``touched``).
-            return {store: self.client.read_store(name, store, timeout=DESCRIBE_TIMEOUT) for store in STORES}
+            return {store: client.read_store(name, store, timeout=DESCRIBE_TIMEOUT) for store in STORES}
 
         self._ask(subscribe, lambda stores, error: self._on_trees_read(watch, stores, error))
 
@@ -358,6 +458,10 @@ class MeshView:
         def answer(status: str, reason: str = "", value: Any = None) -> None:
             page.change({"type": "action_result", "id": token, "action": kind, "status": status, "reason": reason, "value": value})
 
+        client = self.client
+        if client is None:
+            answer("refused", "this view plays a recording: there is no mesh to act on")
+            return
         if not self.allow_actions:
             answer("refused", "this view is read-only: start `cmion-mesh view --allow-actions` to act on the mesh")
             return
@@ -369,7 +473,7 @@ class MeshView:
                 parameters = [str(p) for p in message.get("parameters") or []]
 
                 def run() -> Any:
-                    with self.client.start_action(embodiment, name, parameters, on_end=stop.set) as action:
+                    with client.start_action(embodiment, name, parameters, on_end=stop.set) as action:
                         stop.wait(ACTION_TIMEOUT)  # set by the action's end, or by ``close``
                         return msgspec.to_builtins(action.result(ACTION_TIMEOUT))
             else:
@@ -377,7 +481,7 @@ class MeshView:
                 target = keys.check_name(str(message.get("target", "")), "target")
 
                 def run() -> Any:
-                    return self.client.migrate(companion, target, timeout=ACTION_TIMEOUT)
+                    return client.migrate(companion, target, timeout=ACTION_TIMEOUT)
         except MeshError as exc:
             answer("refused", str(exc))
             return
@@ -423,7 +527,8 @@ class MeshView:
         return JSONResponse(msgspec.to_builtins({**self.model.snapshot(), "allow_actions": self.allow_actions}))
 
     def _snapshot(self, page: Page) -> dict[str, Any]:
-        out = {**self.model.snapshot(), "allow_actions": self.allow_actions, "dropped": page.dropped, "page": page.number}
+        out = {**self.model.snapshot(), "allow_actions": self.allow_actions, "dropped": page.dropped, "page": page.number,
+               "playback": self.playback.status() if self.playback is not None else None}
         watch = self.trees.get(page.selected) if page.selected else None
         if watch is not None:
             out["trees"] = watch.message()
@@ -444,6 +549,8 @@ class MeshView:
         page.resync = True  # the first thing sent is a snapshot
         page.wake.set()
         self.pages.add(page)
+        if self.playback is not None:
+            self.playback.page_opened()
         sender = asyncio.create_task(self._send_to(websocket, page))
         try:
             while True:
@@ -462,6 +569,10 @@ class MeshView:
                     self._select(page, message.get("embodiment") or None)
                 elif kind in ("act", "migrate"):
                     self._action(page, message)
+                elif kind == "playback":
+                    error = self.playback.control(message) if self.playback is not None else "this view is live: nothing to play"
+                    if error:
+                        page.change({"type": "error", "reason": error})
                 else:
                     page.change({"type": "error", "reason": f"unknown message type {kind!r}"})
         except (WebSocketDisconnect, RuntimeError):

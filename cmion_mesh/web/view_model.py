@@ -7,8 +7,12 @@ state, touched only on the web server's event loop, with no I/O (the server side
   model, followed for the pages that selected it.
 * ``event_json``, ``entry_json``: events and store entries as the pages read them.
 
-Memory is bounded: the model keeps the last ``RING`` events, ``MIGRATIONS_KEPT`` migrations and
-``PLANS_KEPT`` finished plans; each page has at most ``PAGE_EVENTS`` stream events waiting for it
+Times: what the view learns is stamped with when it learnt it (``received``, the view's clock; a
+recording played through the view: the recorder's), so that migrations, events and frames lie
+on one time axis, the timeline's.
+
+Memory is bounded: the model keeps the last ``RING`` events, ``MIGRATIONS_KEPT`` migrations,
+``PLANS_KEPT`` finished plans and ``FRAMES_KEPT`` frames; each page has at most ``PAGE_EVENTS`` stream events waiting for it
 (a slow page loses the oldest ones, and is told how many) and at most ``PAGE_CHANGES`` state
 changes (beyond that they are dropped and the page gets one fresh snapshot instead). A slow page
 therefore never holds up the mesh, the other pages, or the view's memory.
@@ -20,7 +24,7 @@ import asyncio
 import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import msgspec
 
@@ -36,6 +40,9 @@ PAGE_EVENTS = 1000
 PAGE_CHANGES = 5000
 MIGRATIONS_KEPT = 50
 PLANS_KEPT = 50
+#: Pictures of the mesh kept for the timeline (one each time who is alive, who lives where or
+#: who holds custody changed): a page scrubbing back draws the mesh from the last one before.
+FRAMES_KEPT = 2000
 #: Embodiments that left, still shown (greyed) until this many more have left.
 GONE_KEPT = 50
 #: Entries of one store kept for the pages; beyond, new entries are left out (and the page says so).
@@ -48,6 +55,18 @@ PLAN_ENDS = {"PlanSucceeded": "succeeded", "PlanFailed": "failed", "PlanCancelle
 STEP_STATES = {"StepStarted": "running", "StepSucceeded": "succeeded", "StepFailed": "failed", "StepCancelled": "cancelled",
                "StepWaiting": "waiting"}
 STORES = (keys.BLACKBOARD, keys.WORLD_MODEL)
+
+
+class Playback(Protocol):
+    """What plays a recording through the view (``tools/view_player.py``): the pages' controls."""
+
+    def status(self) -> dict[str, Any]: ...
+
+    def control(self, message: dict[str, Any]) -> str | None:
+        """Pause, play, speed or seek; an error for the page, or None."""
+        ...
+
+    def page_opened(self) -> None: ...
 
 
 def entry_json(entry: Property | Container | None) -> dict[str, Any] | None:
@@ -137,6 +156,21 @@ class Model:
         self.migrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self.plans: OrderedDict[str, dict[str, Any]] = OrderedDict()  # "<embodiment>/<run id>"
         self.ring: deque[dict[str, Any]] = deque(maxlen=RING)
+        self.frames: deque[dict[str, Any]] = deque(maxlen=FRAMES_KEPT)
+
+    def frame(self, when: float) -> dict[str, Any] | None:
+        """A picture of the mesh at ``when`` if it differs from the last one (then kept), else None:
+        each embodiment ``[alive, inhabitant]``, and custody of each companion."""
+        embodiments = {name: [card["alive"], (card.get("description") or {}).get("inhabitant")]
+                       for name, card in self.embodiments.items()}
+        custody = {c: dict(h) for c, h in self.custody.items()}
+        last = self.frames[-1] if self.frames else None
+        if last is not None and last["embodiments"] == embodiments and last["custody"] == custody:
+            return None
+        # Clocks of two sources may disagree by a little: frames stay in order on the axis.
+        frame = {"time": max(when, last["time"]) if last is not None else when, "embodiments": embodiments, "custody": custody}
+        self.frames.append(frame)
+        return frame
 
     # --- embodiments ------------------------------------------------------------------------
 
@@ -166,9 +200,10 @@ class Model:
     def inhabit(self, name: str, companion: str | None) -> dict[str, Any] | None:
         """What an event says at once (the description that follows confirms it)."""
         card = self.embodiments.get(name)
-        if card is None or card.get("description") is None:
+        if card is None:
             return None
-        card["description"] = {**card["description"], "inhabitant": companion}
+        # Not described yet (or a recording that holds no description): what the event says, alone.
+        card["description"] = {**(card.get("description") or {}), "inhabitant": companion}
         return card
 
     def custody_token(self, holder: str, companion: str, epoch: int, alive: bool) -> dict[str, Any]:
@@ -183,7 +218,7 @@ class Model:
 
     # --- migrations and plans ---------------------------------------------------------------
 
-    def migration_event(self, event: Event) -> dict[str, Any] | None:
+    def migration_event(self, event: Event, received: float | None = None) -> dict[str, Any] | None:
         """The migration an event of the ``migration`` component moved on, or None."""
         data = event.data if isinstance(event.data, dict) else {}
         companion = str(data.get("companion", ""))
@@ -225,7 +260,8 @@ class Model:
         steps = migration["steps"]
         rank = STEP_ORDER.get(step, len(STEP_ORDER))
         at = next((i for i, s in enumerate(steps) if STEP_ORDER.get(s["step"], len(STEP_ORDER)) > rank), len(steps))
-        steps.insert(at, {"step": step, "embodiment": here, "time": event.time})
+        steps.insert(at, {"step": step, "embodiment": here, "time": event.time,
+                          "received": event.time if received is None else received})
         if "epoch" in data:
             migration["epoch"] = data["epoch"]
         if status is not None and migration["status"] != "succeeded":
@@ -288,4 +324,4 @@ class Model:
     def snapshot(self) -> dict[str, Any]:
         return {"type": "snapshot", "mesh": self.mesh, "embodiments": list(self.embodiments.values()),
                 "custody": {c: dict(h) for c, h in self.custody.items()}, "migrations": list(self.migrations.values()),
-                "plans": list(self.plans.values()), "events": list(self.ring)}
+                "plans": list(self.plans.values()), "events": list(self.ring), "frames": list(self.frames)}

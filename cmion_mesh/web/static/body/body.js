@@ -59,21 +59,13 @@ function render(next) {
   body.dataset.face = next.face;
   body.dataset.expression = next.expression;
   body.dataset.senses = next.senses.join(" ");
-  const t = next.transition;
-  body.dataset.transition = t ? t.kind : "";
-  let line = "";
-  if (t && t.kind === "arriving") line = `${next.companion} arrives${t.from ? " from " + t.from : ""}`;
-  else if (t && t.kind === "leaving") line = `${next.companion} is leaving for ${t.to}`;
-  else if (t && t.kind === "left") line = `the companion went to ${t.to}`;
-  $("transition").textContent = line;
-  if (t && t.kind === "arriving" && !(before && before.transition && before.transition.at === t.at)) {
-    // The arrival is news for a moment; the empty body's "went to" stays, it says why it is empty.
-    setTimeout(() => { if (state && state.transition && state.transition.at === t.at) $("transition").textContent = ""; }, 4000);
-  }
+  showTransition(next);
+  showGesture(next);
 
   const asking = next.asking;
   $("question").hidden = !asking;
-  if (asking) $("question-text").textContent = `${asking}, are you the guest?`;
+  if (asking) $("question-text").textContent = `Waiting for ${asking}'s answer: yes or no?`;
+  if (asking && !(before && before.asking)) $("yes").focus({ preventScroll: true });
   $("visitor-form").hidden = !next.senses.includes("visitor");
   $("command-form").hidden = !next.senses.includes("command");
   const here = new Set(next.visitors);
@@ -81,20 +73,70 @@ function render(next) {
   $("visitor").setAttribute("aria-pressed", here.has(name) ? "true" : "false");
   $("visitor").textContent = here.has(name) ? "I am leaving" : "I am here";
 
-  const said = $("said");
-  said.replaceChildren(...next.said.slice(0, -1).reverse().map((text) => {
+  // The bubble holds the line being spoken, else the last one said here: it stays readable until
+  // the next, and a page opened after it was spoken shows it too.
+  const said = next.said;
+  const speech = next.speech;
+  const bubble = $("speech");
+  const shown = speech ? speech.text : (next.companion && said.length ? said[said.length - 1] : "");
+  if (bubble.textContent !== shown) bubble.textContent = shown;
+  bubble.dataset.speaking = speech ? "true" : "false";
+  bubble.dataset.utterance = speech ? speech.id : "";
+  const earlier = said.slice(0, shown && said.length && said[said.length - 1] === shown ? -1 : said.length).reverse();
+  $("said").replaceChildren(...earlier.map((text) => {
     const li = document.createElement("li"); li.textContent = text; return li;
   }));
-  const speech = next.speech;
   if (speech) {
-    $("speech").textContent = speech.text;
-    $("speech").dataset.utterance = speech.id;
     if (speech.id !== spoken) { spoken = speech.id; speak(speech); }
-  } else if (!next.companion) {
-    $("speech").textContent = "";
   } else if (before && before.speech) {
     stopMouth();
   }
+}
+
+// --- arrivals, departures, gestures -------------------------------------------------------------
+
+let captionTimer = 0;
+let arrivalShown = null;  // the ``at`` of the arrival already shown: an arrival is shown once
+
+function showTransition(next) {
+  const t = next.transition;
+  const caption = $("transition");
+  let line = "";
+  let kind = "";
+  if (t && t.kind === "arriving") {
+    // News for a moment, once: only while the state says it is still an arrival (``until``, on the
+    // daemon's clock, as ``time`` is), and not again on the next state of the same arrival.
+    const left = (t.until || 0) - next.time;
+    if (arrivalShown !== t.at && left > 0) {
+      arrivalShown = t.at;
+      line = `${next.companion} arrives${t.from ? " from " + t.from : ""}`;
+      kind = "arriving";
+      clearTimeout(captionTimer);
+      captionTimer = setTimeout(() => {
+        caption.textContent = "";
+        body.dataset.transition = "";
+      }, left * 1000);
+    } else if (arrivalShown === t.at) {
+      return;  // the arrival being shown goes on; its timer ends it
+    }
+  } else if (t && t.kind === "leaving") {
+    line = `${next.companion} is leaving for ${t.to}`;
+    kind = "leaving";
+  } else if (t && t.kind === "left") {
+    line = `the companion went to ${t.to}`;  // stays: it says why the body is empty
+    kind = "left";
+  }
+  if (kind !== "arriving") clearTimeout(captionTimer);
+  body.dataset.transition = kind;
+  if (caption.textContent !== line) caption.textContent = line;
+}
+
+const GESTURES = { wave: "waves", nod: "nods", smile: "smiles", curious: "looks curious", vibrate: "vibrates" };
+
+function showGesture(next) {
+  const gesture = next.companion && next.animation ? GESTURES[next.animation] || next.animation : "";
+  const text = gesture ? `${next.companion} ${gesture}` : "";
+  if ($("gesture").textContent !== text) $("gesture").textContent = text;
 }
 
 // --- the voice, and the mouth in step with it --------------------------------------------------

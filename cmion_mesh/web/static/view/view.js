@@ -9,7 +9,7 @@ const DRAWN_KEPT = 5000;    // draw times kept for tests and benchmarks
 const state = {
   mesh: "", allowActions: false, dropped: 0,
   embodiments: new Map(), custody: {}, migrations: new Map(), plans: new Map(),
-  events: [], selected: null,
+  events: [], selected: null, scrub: null,
   trees: { bb: new Map(), wm: new Map() },
 };
 // When each thing was drawn (ms since the epoch): the page's half of a latency measurement.
@@ -102,12 +102,21 @@ function snapshot(message) {
   state.migrations = new Map(message.migrations.map((m) => [m.attempt, m]));
   state.plans = new Map(message.plans.map((p) => [p.key, p]));
   state.events = [];
+  actionStarts.clear();
   $("events").tBodies[0].replaceChildren();
   for (const event of message.events) addEvent(event);
   setDropped(message.dropped);
+  graph.frames = message.frames || [];
+  // What the snapshot holds is the past (or, after a seek, the recording's past): not travelled again.
+  graph.seen.clear();
+  graph.travels.clear();
+  for (const m of state.migrations.values()) migrationSeen(m, true);
+  setPlayback(message.playback || null);
   drawEmbodiments();
   drawMigrations();
   drawPlans();
+  drawGraph();
+  drawTimeline();
   if (message.trees) setTrees(message.trees);
   stats.lastSnapshot = now();
 }
@@ -124,16 +133,30 @@ function applyChange(change) {
     case "embodiment":
       state.embodiments.set(change.card.name, change.card);
       drawEmbodiments();
+      scheduleGraph();
+      break;
+    case "frame":
+      graph.frames.push(change.frame);
+      if (graph.frames.length > 2000) graph.frames.splice(0, graph.frames.length - 2000);
+      scheduleGraph();
+      drawTimeline();
+      break;
+    case "playback":
+      setPlayback(change.playback);
       break;
     case "custody":
       if (Object.keys(change.holders).length) state.custody[change.companion] = change.holders;
       else delete state.custody[change.companion];
       drawCompanions();
+      scheduleGraph();
       break;
     case "migration":
       state.migrations.set(change.migration.attempt, change.migration);
       while (state.migrations.size > 50) state.migrations.delete(state.migrations.keys().next().value);
       drawMigrations();
+      migrationSeen(change.migration, false);
+      scheduleGraph();
+      drawTimeline();
       break;
     case "plan":
       state.plans.delete(change.plan.key);
@@ -165,6 +188,15 @@ function select(name) {
   $("tree-note").textContent = "reading…";
   send({ type: "select", embodiment: name });
   drawEmbodiments();
+  scheduleGraph();
+}
+
+let graphQueued = false;
+function scheduleGraph() {
+  // Drawn at most once a frame, however many changes one message brings.
+  if (graphQueued) return;
+  graphQueued = true;
+  requestAnimationFrame(() => { graphQueued = false; drawGraph(); });
 }
 
 function companionsKnown() {
@@ -366,14 +398,99 @@ function matches(event) {
     && (!name || event.name.toLowerCase().includes(name));
 }
 
+// One line a person reads, per event; the JSON is one click away (the row's "JSON").
+const actionStarts = new Map();  // action id -> when it started (for "succeeded in 2.3 s")
+
+function seconds(delta) {
+  return delta < 1 ? `${Math.round(delta * 1000)} ms` : `${delta.toFixed(1)} s`;
+}
+
+function value(v) {
+  return typeof v === "string" ? v : JSON.stringify(v);
+}
+
+function eventLine(e) {
+  const d = e.data && typeof e.data === "object" ? e.data : {};
+  const who = e.embodiment;
+  const words = (name, params) => [name, ...(Array.isArray(params) ? params : [])].join(" ");
+  switch (e.component) {
+    case "manager": {
+      const action = words(d.name, d.parameters);
+      if (e.name === "ActionStarted") return `${who}: ${action} started`;
+      if (e.name === "ActionAttempt") return `${who}: ${action}, attempt ${d.attempt}${ruleText(d.rule)}`;
+      const status = d.status || e.name.replace(/^Action/, "").toLowerCase();
+      const began = actionStarts.get(`${who}/${d.action_id}`);
+      const took = began !== undefined ? ` in ${seconds(e.time - began)}` : "";
+      return `${who}: ${action} ${status}${took}${ruleText(d.rule)}${d.reason ? `: ${d.reason}` : ""}`;
+    }
+    case "execution": {
+      if (e.name === "PlanStarted") return `${who}: plan for ${d.action} started (${d.steps} step${d.steps === 1 ? "" : "s"})`;
+      if (e.name.startsWith("Plan")) return `${who}: plan for ${d.action || d.run_id} ${e.name.slice(4).toLowerCase()}${d.reason ? `: ${d.reason}` : ""}`;
+      if (e.name.startsWith("Step")) {
+        return `${who}: step ${d.step} ${d.type || ""}${d.competency ? ` (${d.competency})` : ""} ${e.name.slice(4).toLowerCase()}`
+          + `${d.reason ? `: ${d.reason}` : ""}`;
+      }
+      break;
+    }
+    case "migration": {
+      const c = d.companion || "the companion";
+      const epoch = d.epoch !== undefined ? ` (epoch ${d.epoch})` : "";
+      if (e.name === "MigrationStarting") return `${who}: ${c} leaves for ${d.target}`;
+      if (e.name === "MigrationStep") return `${who}: ${c}'s handshake with ${d.peer}: ${d.step}${epoch}`;
+      if (e.name === "MigrationOccurred") {
+        const why = typeof d.why === "string" && d.why.startsWith("arrived ") ? d.why : `arrived${d.why ? ` (${d.why})` : ""}`;
+        return `${who}: ${c} ${why}${epoch}`;
+      }
+      if (e.name === "MigrationSucceeded") return `${who}: ${c} handed over to ${d.target}${epoch}`;
+      if (e.name === "MigrationFailed") return `${who}: ${c} could not go to ${d.target || "?"}${d.reason ? `: ${d.reason}` : ""}`;
+      if (e.name === "MigrationDropped") return `${who}: ${c}'s arrival from ${d.source || "?"} dropped${d.reason ? `: ${d.reason}` : ""}`;
+      break;
+    }
+    case "wm":
+    case "bb": {
+      const store = e.component === "wm" ? "world model" : "blackboard";
+      const path = [d.container, d.name].filter(Boolean).join(".");
+      if (e.component === "wm" && d.name === "present" && d.value === true) return `${who}: ${d.container} arrives (world model)`;
+      if (d.op === "set_property") return `${who}: ${store} ${path} = ${short(value(d.value), 80)}`;
+      if (d.op === "remove_property") return `${who}: ${store} ${path} removed`;
+      if (d.op === "add_container") return `${who}: ${store} ${d.kind || "container"} ${path} added`;
+      if (d.op === "remove_container") return `${who}: ${store} ${path} removed`;
+      break;
+    }
+    case "mind":
+      if (e.name === "MindDecision") return `${who}: the mind decides ${d.decision}${d.goal ? ` (${d.goal})` : ""}`;
+      if (e.name === "Emotion") return `${who}: mood valence ${d.valence}, arousal ${d.arousal}`;
+      if (e.name === "MindAwake") return `${who}: the mind wakes`;
+      if (e.name === "MindAsleep") return `${who}: the mind sleeps`;
+      break;
+    default:
+      if (e.name === "Spoke") return `${who} says “${d.text}”`;
+      if (e.name === "RemoteAction") return `${who}: ${d.subject ? d.subject + " " : ""}${words(d.name, d.parameters)}`;
+  }
+  const data = e.data === null || e.data === undefined ? "" : `: ${short(e.data, 120)}`;
+  return `${who}: ${e.component} ${e.name}${data}`;
+}
+
+function ruleText(rule) {
+  if (!rule) return "";
+  return rule.startsWith("<built-in>") ? " (built-in rule)" : ` (rule ${rule})`;
+}
+
 function eventRow(event) {
+  const json = el("details", {}, el("summary", { text: "JSON", "aria-label": `the event's JSON: ${event.component} ${event.name}` }),
+    el("pre", { text: JSON.stringify(event, null, 2) }));
   return el("tr", { "data-embodiment": event.embodiment, "data-name": event.name, "data-seq": event.seq },
-    el("td", { text: clock(event.time) }), el("td", { text: event.embodiment }), el("td", { text: event.component }),
-    el("td", { text: event.name }), el("td", { class: "data", text: event.data === null ? "" : short(event.data) }));
+    el("td", { text: clock(event.time) }), el("td", { text: event.embodiment }),
+    el("td", { class: "line", text: eventLine(event) }), el("td", { class: "data" }, json));
 }
 
 function addEvent(event) {
+  if (event.component === "manager" && event.name === "ActionStarted" && event.data) {
+    actionStarts.set(`${event.embodiment}/${event.data.action_id}`, event.time);
+    if (actionStarts.size > 500) actionStarts.delete(actionStarts.keys().next().value);
+  }
   state.events.push(event);
+  drawTimeline();
   if (state.events.length > EVENTS_KEPT) state.events.splice(0, state.events.length - EVENTS_KEPT);
   $("event-count").textContent = `${state.events.length} kept`;
   if ($("filter-pause").checked || !matches(event)) return;
@@ -394,5 +511,6 @@ for (const id of ["filter-embodiment", "filter-component", "filter-name", "filte
   $(id).addEventListener("input", redrawEvents);
 }
 
-window.cmionView = { state, stats, send, select, act, migrate };
-connect();
+window.cmionView = { state, stats, send, select, act, migrate, eventLine };
+// graph.js (loaded next) draws the graph and the timeline; then the socket opens.
+window.addEventListener("DOMContentLoaded", connect);
