@@ -94,8 +94,9 @@ COMMANDS: dict[str, Command] = {
                     "print what is published on a key expression, decoded (as ros2 topic echo)",
                     "cmion-mesh echo 'robot/ev/manager/*'\ncmion-mesh echo '@alive/*'"),
     "view": Command("view", "view_arguments", "cmd_view",
-                    "a live view of the mesh in the browser (embodiments, companions, migrations, events, "
-                    "blackboard, world model, plans)", "cmion-mesh view --web 127.0.0.1:8090"),
+                    "a live view of the mesh in the browser (a graph of the embodiments with the companion travelling, "
+                    "a timeline to scrub back, events, blackboard, world model, plans), or of a recording",
+                    "cmion-mesh view --web 127.0.0.1:8090\ncmion-mesh view --recording visit.mcap"),
     "migrate": Command("actions", "migrate_arguments", "cmd_migrate",
                        "move a companion to another embodiment (waits for the handshake's end)",
                        "cmion-mesh migrate spirit --to screen"),
