@@ -1,0 +1,172 @@
+"""The one door to a chat-completions endpoint: the official ``openai`` client library, which
+speaks to any OpenAI-compatible server (llama.cpp's ``llama-server``, Ollama, vLLM, hosted ones).
+
+``Chat.complete(messages, tools)`` sends one request and returns the assistant's message as plain
+data (``role``, ``content``, ``tool_calls`` with ``id``, ``type`` and ``function`` ``name`` and
+``arguments`` text) and the tokens the endpoint says it cost. Every failure is one
+``EndpointError`` with a reason fit for a log line (never the key: the library sends it in a
+header, and no reason here quotes a request) and, when the endpoint sent one, its ``Retry-After``.
+The library's own retries are off (``max_retries=0``): the mind retries on its own schedule, so
+its budget counts every request.
+
+With ``stream``, the answer comes as server-sent events, assembled here (the content's pieces,
+each tool call's pieces by index); ``timeout`` then bounds the wait for each chunk, so a slow model
+that keeps talking is not cut off while one that stalls is, and four times ``timeout`` bounds
+the whole answer. Streaming answers also stop between two chunks when ``stop`` is set (the mind
+is closing).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, cast
+
+import openai
+
+from cmion_mesh.errors import MeshError
+from cmion_mesh.minds.llm.settings import LlmSettings, api_key
+
+#: Placeholder key for servers that need none (the library refuses to start without one).
+NO_KEY = "none"
+
+
+class EndpointError(MeshError):
+    """The endpoint could not give an answer: ``reason`` says why; ``retry_after`` in seconds when
+    it asked for a pause; ``status`` the HTTP status, if one came."""
+
+    def __init__(self, reason: str, *, retry_after: float | None = None, status: int | None = None) -> None:
+        super().__init__(reason)
+        self.reason, self.retry_after, self.status = reason, retry_after, status
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    message: dict[str, Any]
+    tokens: int | None  # usage.total_tokens, when the endpoint reported it
+
+
+class Chat:
+    """A client of one endpoint; a context manager, ``close`` idempotent (it also ends a request
+    in flight on another thread, which then fails with ``EndpointError``)."""
+
+    def __init__(self, settings: LlmSettings) -> None:
+        self.settings = settings
+        self._client = openai.OpenAI(base_url=settings.base_url, api_key=api_key() or NO_KEY, timeout=settings.timeout,
+                                     max_retries=0)
+        self._closed = False
+
+    def __enter__(self) -> Chat:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._client.close()
+
+    def complete(self, messages: Sequence[dict[str, Any]], tools: Sequence[dict[str, Any]] = (), *,
+                 stream: bool | None = None, stop: threading.Event | None = None, max_tokens: int | None = None) -> Reply:
+        s = self.settings
+        streaming = s.stream if stream is None else stream
+        extra: dict[str, Any] = {}
+        if tools:
+            extra["tools"] = list(tools)
+        if s.temperature is not None:
+            extra["temperature"] = s.temperature
+        try:
+            if streaming:
+                chunks = self._client.chat.completions.create(
+                    model=s.model, messages=cast(Any, list(messages)), max_tokens=max_tokens or s.max_tokens, stream=True,
+                    stream_options={"include_usage": True}, **extra)
+                return _assemble(chunks, time.monotonic() + 4 * s.timeout, stop)
+            completion = self._client.chat.completions.create(
+                model=s.model, messages=cast(Any, list(messages)), max_tokens=max_tokens or s.max_tokens, **extra)
+        except EndpointError:
+            raise
+        except openai.APITimeoutError:
+            raise EndpointError(f"no answer within {s.timeout:g} s") from None
+        except openai.APIConnectionError as exc:
+            raise EndpointError(f"cannot reach it: {_cause(exc)}") from None
+        except openai.APIStatusError as exc:
+            raise EndpointError(f"HTTP {exc.status_code}: {_status_text(exc)}", retry_after=_retry_after(exc),
+                                status=exc.status_code) from None
+        except Exception as exc:  # the library's others, and the HTTP layer's while a stream is read
+            raise EndpointError(f"{type(exc).__name__}: {str(exc)[:200]}") from None
+        if not completion.choices:
+            raise EndpointError("an answer with no choices")
+        message = completion.choices[0].message
+        calls = [{"id": c.id or f"call_{i}", "type": "function",
+                  "function": {"name": c.function.name, "arguments": c.function.arguments or ""}}
+                 for i, c in enumerate(message.tool_calls or ()) if getattr(c, "function", None) is not None]
+        tokens = completion.usage.total_tokens if completion.usage is not None else None
+        return Reply(assistant(message.content, calls), tokens)
+
+
+def assistant(content: str | None, calls: list[dict[str, Any]]) -> dict[str, Any]:
+    """The assistant message as the window keeps it (and sends it back in every later request)."""
+    out: dict[str, Any] = {"role": "assistant", "content": content if content else None}
+    if calls:
+        out["tool_calls"] = calls
+    return out
+
+
+def _assemble(chunks: Any, deadline: float, stop: threading.Event | None) -> Reply:
+    content: list[str] = []
+    calls: dict[int, dict[str, Any]] = {}
+    tokens: int | None = None
+    try:
+        for chunk in chunks:
+            if (stop is not None and stop.is_set()) or time.monotonic() > deadline:
+                raise EndpointError("the answer took too long" if not (stop and stop.is_set()) else "stopped")
+            if getattr(chunk, "usage", None) is not None:
+                tokens = chunk.usage.total_tokens
+            for choice in chunk.choices or ():
+                delta = choice.delta
+                if delta.content:
+                    content.append(delta.content)
+                for call in delta.tool_calls or ():
+                    slot = calls.setdefault(call.index, {"id": "", "name": "", "arguments": []})
+                    if call.id:
+                        slot["id"] = call.id
+                    if call.function is not None:
+                        if call.function.name:
+                            slot["name"] += call.function.name
+                        if call.function.arguments:
+                            slot["arguments"].append(call.function.arguments)
+    finally:
+        close = getattr(chunks, "close", None)
+        if close is not None:
+            close()
+    assembled = [{"id": slot["id"] or f"call_{i}", "type": "function",
+                  "function": {"name": slot["name"], "arguments": "".join(slot["arguments"])}}
+                 for i, slot in sorted(calls.items())]
+    return Reply(assistant("".join(content), assembled), tokens)
+
+
+def _cause(exc: BaseException) -> str:
+    inner = exc.__cause__ or exc.__context__
+    text = str(inner) if inner is not None else str(exc)
+    return text[:200] or type(inner or exc).__name__
+
+
+def _status_text(exc: openai.APIStatusError) -> str:
+    body = exc.body
+    if isinstance(body, dict):
+        inner = body.get("error")
+        message = inner.get("message") if isinstance(inner, dict) else body.get("message")
+        if isinstance(message, str):
+            return message[:200]
+    return str(exc.message)[:200]
+
+
+def _retry_after(exc: openai.APIStatusError) -> float | None:
+    raw = exc.response.headers.get("retry-after") if exc.response is not None else None
+    try:
+        return max(0.0, float(raw)) if raw is not None else None
+    except ValueError:
+        return None

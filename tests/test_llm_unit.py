@@ -1,0 +1,222 @@
+"""The language-model mind's pure parts: the budget, the conversation (window, summary, inbox,
+tool calls, what migrates), the settings, and how a streamed answer is put together."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import msgspec
+import pytest
+
+from cmion_mesh.errors import ConfigError
+from cmion_mesh.minds.llm.budget import Budget, Limits, TurnCount, backoff, estimate_tokens
+from cmion_mesh.minds.llm.chat import _assemble
+from cmion_mesh.minds.llm.conversation import MAX_INBOX, Conversation, render, tools_text, world_text
+from cmion_mesh.minds.llm.settings import ENV_BASE_URL, ENV_KEY, ENV_MODEL, OPENAI_BASE_URL, load_settings, shown_url
+
+
+@pytest.fixture(autouse=True)
+def no_llm_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in (ENV_BASE_URL, ENV_MODEL, ENV_KEY, OPENAI_BASE_URL, "OPENAI_API_KEY"):
+        monkeypatch.delenv(name, raising=False)
+
+
+# --- budget -----------------------------------------------------------------------------------
+
+
+def test_requests_per_minute_make_the_next_request_wait_for_the_oldest_to_leave_the_window() -> None:
+    budget = Budget(Limits(requests_per_minute=3, tokens_per_minute=10**9))
+    for t in (0.0, 1.0, 2.0):
+        assert budget.wait(t, 10) == 0
+        budget.spend(t, 10)
+    assert budget.wait(5.0, 10) == pytest.approx(55.0)  # the one sent at 0 leaves at 60
+    assert budget.wait(60.0, 10) == 0 and budget.requests(60.0) == 2
+
+
+def test_tokens_per_minute_count_what_the_endpoint_reported() -> None:
+    budget = Budget(Limits(requests_per_minute=100, tokens_per_minute=1000))
+    first = budget.spend(0.0, 900)  # estimated
+    assert budget.wait(1.0, 200) == pytest.approx(59.0)
+    budget.settle(first, 300)  # the endpoint said 300
+    assert budget.wait(1.0, 200) == 0 and budget.tokens(1.0) == 300
+    big = Budget(Limits(requests_per_minute=100, tokens_per_minute=100))
+    assert big.wait(0.0, 5000) == 0, "a request larger than the budget goes into an empty window"
+    big.spend(0.0, 5000)
+    assert big.wait(1.0, 10) == pytest.approx(59.0)
+
+
+def test_backoff_doubles_up_to_the_cap_and_honours_retry_after() -> None:
+    limits = Limits(backoff_first=0.5, backoff_cap=4.0)
+    assert [backoff(n, limits) for n in (1, 2, 3, 4, 5, 100)] == [0.5, 1.0, 2.0, 4.0, 4.0, 4.0]
+    assert backoff(1, limits, retry_after=3.0) == 3.0 and backoff(1, limits, retry_after=30.0) == 4.0
+    assert Limits(requests_per_minute=0).problem() and Limits(backoff_first=5, backoff_cap=1).problem()
+    assert estimate_tokens(4000) == 1000
+
+
+def test_the_cap_of_tool_calls_counts_a_turn() -> None:
+    turn = TurnCount(2)
+    assert turn.take() and turn.take() and not turn.take() and turn.exhausted
+    turn.new_turn()
+    assert not turn.exhausted and turn.take()
+
+
+# --- conversation -----------------------------------------------------------------------------
+
+
+def assistant(*calls: tuple[str, str, str], content: str | None = None) -> dict[str, Any]:
+    message: dict[str, Any] = {"role": "assistant", "content": content}
+    if calls:
+        message["tool_calls"] = [{"id": i, "type": "function", "function": {"name": n, "arguments": a}} for i, n, a in calls]
+    return message
+
+
+def test_perceptions_wait_in_the_inbox_until_an_answer_is_committed() -> None:
+    c = Conversation()
+    c.perceive("Visitor appeared")
+    messages, taken = c.request("persona")
+    assert messages == [{"role": "system", "content": "persona"}, {"role": "user", "content": "Visitor appeared"}]
+    c.perceive("Visitor.present = true")  # while the request is out
+    c.commit(taken, assistant(content="hello"))
+    assert c.inbox == ["Visitor.present = true"], "what came meanwhile waits for the next turn"
+    assert c.messages == [{"role": "user", "content": "Visitor appeared"}, {"role": "assistant", "content": "hello"}]
+    c.summary = "I met Ada."
+    assert c.request("persona")[0][0]["content"] == "persona\n\nWhat happened before (your own summary):\nI met Ada."
+
+
+def test_tool_results_join_the_window_in_the_order_of_the_calls_once_all_are_in() -> None:
+    c = Conversation()
+    c.commit(0, assistant(("a", "GoTo", '{"location": "Kitchen"}'), ("b", "Express", "{}")))
+    assert c.waiting and not c.close_calls()
+    c.resolve("b", "succeeded")
+    assert not c.close_calls()
+    assert not c.resolve("zzz", "x")
+    c.resolve("a", "failed: blocked")
+    assert c.close_calls() and not c.waiting
+    assert c.messages[-2:] == [{"role": "tool", "tool_call_id": "a", "content": "failed: blocked"},
+                               {"role": "tool", "tool_call_id": "b", "content": "succeeded"}]
+
+
+def test_the_window_is_cut_where_a_user_message_starts_and_the_summary_takes_its_place() -> None:
+    c = Conversation()
+    c.perceive("p0")
+    c.commit(1, assistant(("c1", "Express", "{}")))
+    c.resolve("c1", "succeeded")
+    c.close_calls()
+    c.commit(0, assistant(content="a0"))
+    for i in range(1, 4):
+        c.perceive(f"p{i}")
+        c.commit(1, assistant(content=f"a{i}"))
+    assert c.overflow(100, 10**6) == 0
+    cut = c.overflow(4, 10**6)
+    assert cut == 6 and c.messages[cut] == {"role": "user", "content": "p2"}
+    request = c.summary_request(cut, 50)
+    assert "at most 50 words" in request[0]["content"] and "I called: Express({})" in request[1]["content"]
+    kept = c.messages[cut:]
+    c.apply_summary(cut, "  I nodded.  ", 1000)
+    assert c.summary == "I nodded." and c.messages == kept and c.generation == 1
+    c.drop_oldest(2)
+    assert c.messages == kept[2:] and "2 older messages were dropped" in c.summary
+
+
+def test_the_inbox_is_bounded_and_says_how_much_it_dropped() -> None:
+    c = Conversation()
+    for i in range(MAX_INBOX + 5):
+        c.perceive(f"line {i}")
+    c.perceive("x" * 10_000)
+    assert len(c.inbox) == MAX_INBOX and len(c.inbox[-1]) < 1000
+    messages, taken = c.request("p")
+    assert messages[-1]["content"].startswith("(6 earlier perceptions were not kept)\nline 6")
+    c.commit(taken, assistant(content="ok"))
+    assert c.inbox == [] and c.dropped == 0
+    c.perceive("b")
+    c.perceive("arrival", at=0)
+    assert c.inbox == ["arrival", "b"]
+
+
+def test_the_state_round_trips_exactly_and_refuses_what_is_not_one() -> None:
+    c = Conversation(summary="s", body="robot")
+    c.perceive("p")
+    c.commit(1, assistant(("x", "Migrate", '{"target": "screen"}')))
+    c.calls[0].action, c.calls[0].action_id = "Migrate", "mind-1"
+    c.perceive("later")
+    state = c.state()
+    again = Conversation.from_state(msgspec.msgpack.decode(msgspec.msgpack.encode(state)))
+    assert msgspec.msgpack.encode(again.state()) == msgspec.msgpack.encode(state)
+    assert again.calls[0].action == "Migrate" and again.calls[0].result is None
+    state["messages"].append({"role": "user", "content": "changed"})
+    assert c.messages[-1]["role"] == "assistant", "the state is a copy"
+    for bad in ({"version": 2}, {"version": 1, "messages": "x", "inbox": []}, {"version": 1, "messages": [], "inbox": [3]},
+                {"version": 1, "messages": [], "inbox": [], "calls": ["x"]}):
+        with pytest.raises(ValueError):
+            Conversation.from_state(bad)
+
+
+def test_world_and_tools_as_text() -> None:
+    tree = {"kind": "root", "properties": {}, "children": {
+        "Self": {"kind": "agent", "properties": {"location": {"value": "Office", "persistent": False}}, "children": {}},
+        "Kitchen": {"kind": "object", "properties": {"isLocation": {"value": True, "persistent": False}}, "children": {}}}}
+    assert world_text(tree, 1000) == "Self (agent): location=Office\nKitchen (object): isLocation=true"
+    assert world_text(tree, 40) == "Self (agent): location=Office\n... and 1 more entities"
+    tools = [{"type": "function", "function": {"name": "GoTo", "parameters": {"properties": {"location": {}}}}}]
+    assert tools_text(tools) == "GoTo(location)" and tools_text([]) == "(none)"
+    assert render({"role": "tool", "content": "succeeded"}) == "Result: succeeded"
+
+
+# --- settings ---------------------------------------------------------------------------------
+
+
+def test_settings_come_from_the_file_with_the_environment_over_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "llm.toml"
+    path.write_text('[endpoint]\nbase_url = "http://127.0.0.1:8080/v1"\nmodel = "m"\ntimeout = 5\n[budget]\ntool_calls_per_turn = 2\n')
+    s = load_settings(path)
+    assert (s.base_url, s.model, s.timeout, s.limits.tool_calls_per_turn) == ("http://127.0.0.1:8080/v1", "m", 5.0, 2)
+    monkeypatch.setenv(OPENAI_BASE_URL, "http://127.0.0.1:1/v1")
+    assert load_settings(path).base_url == "http://127.0.0.1:8080/v1", "the file wins over OPENAI_BASE_URL"
+    monkeypatch.setenv(ENV_BASE_URL, "http://user:pw@127.0.0.1:9/v1?k=1")
+    monkeypatch.setenv(ENV_MODEL, "other")
+    monkeypatch.setenv(ENV_KEY, "sk-secret")
+    s = load_settings(path)
+    assert s.model == "other" and s.endpoint == "http://127.0.0.1:9/v1"
+    assert "sk-secret" not in repr(s), "the key is not a setting"
+    assert shown_url("http://[::1") == "<a malformed URL>"
+
+
+def test_bad_settings_name_the_file_line_and_key(tmp_path: Path) -> None:
+    path = tmp_path / "llm.toml"
+    path.write_text('[endpoint]\nmodel = "m"\ntimout = 5\nstream = "yes"\n[budget]\nrequests_per_minute = 0\n[other]\nx = 1\n')
+    with pytest.raises(ConfigError) as caught:
+        load_settings(path)
+    text = str(caught.value)
+    assert str(path) in text and "line 3: [endpoint] unknown key 'timout'" in text
+    assert "line 4: [endpoint] stream must be true or false" in text
+    assert "line 6: [budget] requests_per_minute must be an integer from 1" in text
+    assert "unknown table [other]" in text
+    with pytest.raises(ConfigError, match="no model"):
+        load_settings(None)
+    path.write_text('[endpoint]\nmodel = "m"\nbase_url = "file:///etc/passwd"\n')
+    with pytest.raises(ConfigError, match="not an http"):
+        load_settings(path)
+
+
+# --- a streamed answer --------------------------------------------------------------------------
+
+
+def chunk(content: str | None = None, calls: list[dict[str, Any]] | None = None, usage: int | None = None) -> Any:
+    deltas = [SimpleNamespace(index=c["index"], id=c.get("id"),
+                              function=SimpleNamespace(name=c.get("name"), arguments=c.get("arguments")))
+              for c in calls or ()]
+    choices = [] if usage is not None else [SimpleNamespace(delta=SimpleNamespace(content=content, tool_calls=deltas))]
+    return SimpleNamespace(choices=choices, usage=SimpleNamespace(total_tokens=usage) if usage is not None else None)
+
+
+def test_a_streamed_answer_is_put_together_piece_by_piece() -> None:
+    chunks = [chunk(""), chunk("Hel"), chunk("lo"), chunk(calls=[{"index": 0, "id": "c1", "name": "GoTo", "arguments": ""}]),
+              chunk(calls=[{"index": 0, "arguments": '{"loca'}]), chunk(calls=[{"index": 1, "id": "c2", "name": "Express"}]),
+              chunk(calls=[{"index": 0, "arguments": 'tion": "Kitchen"}'}]), chunk(usage=42)]
+    reply = _assemble(iter(chunks), float("inf"), None)
+    assert reply.tokens == 42
+    assert reply.message == {"role": "assistant", "content": "Hello", "tool_calls": [
+        {"id": "c1", "type": "function", "function": {"name": "GoTo", "arguments": '{"location": "Kitchen"}'}},
+        {"id": "c2", "type": "function", "function": {"name": "Express", "arguments": ""}}]}
