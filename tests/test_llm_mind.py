@@ -260,7 +260,7 @@ def test_a_slow_answer_and_an_endpoint_gone_mid_turn_lose_nothing(standin: Stand
 
 
 def test_the_budget_holds_under_a_model_that_calls_tools_in_a_loop(standin: StandIn, net: Mesh, tmp_path: Path) -> None:
-    loop = {"tool_calls": [{"name": "Express", "arguments": {"animation": "nod"}}]}
+    loop = {"tool_calls": [{"name": "Express", "arguments": {"animation": "nod"}}], "force": True}
     standin.script({"content": "ok"}, default=loop)
     net.up("robot", architecture(tmp_path, "robot", companion=True, rpm=6, cap=3), tmp_path / "robot-state")
     client = net.connect()

@@ -109,7 +109,8 @@ def test_the_window_is_cut_where_a_user_message_starts_and_the_summary_takes_its
         c.perceive(f"p{i}")
         c.commit(1, assistant(content=f"a{i}"))
     assert c.overflow(100, 10**6) == 0
-    cut = c.overflow(4, 10**6)
+    assert c.overflow(10, 10**6) == 0
+    cut = c.overflow(8, 10**6)  # over: down to half, 4, from a user message
     assert cut == 6 and c.messages[cut] == {"role": "user", "content": "p2"}
     request = c.summary_request(cut, 50)
     assert "at most 50 words" in request[0]["content"] and "I called: Express({})" in request[1]["content"]
@@ -118,6 +119,18 @@ def test_the_window_is_cut_where_a_user_message_starts_and_the_summary_takes_its
     assert c.summary == "I nodded." and c.messages == kept and c.generation == 1
     c.drop_oldest(2)
     assert c.messages == kept[2:] and "2 older messages were dropped" in c.summary
+
+
+def test_a_long_run_of_tool_calls_is_cut_before_an_assistant_message_never_before_a_result() -> None:
+    c = Conversation()
+    c.perceive("go")
+    for i in range(5):
+        c.commit(1 if i == 0 else 0, assistant((f"c{i}", "One", "{}")))
+        c.resolve(f"c{i}", "succeeded")
+        c.close_calls()
+    assert [m["role"] for m in c.messages] == ["user"] + ["assistant", "tool"] * 5
+    assert c.overflow(8, 10**6) == 7 and c.messages[7]["role"] == "assistant"
+    assert c.overflow(1, 10**6) == 9, "nothing fits: the last exchange is kept whole"
 
 
 def test_the_inbox_is_bounded_and_says_how_much_it_dropped() -> None:

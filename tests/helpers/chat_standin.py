@@ -11,7 +11,12 @@ answers from a script that the test sends it over HTTP:
   ``{"content": "...", "tool_calls": [{"name": ..., "arguments": {...} | "text"}], "delay": s}``
   or ``{"status": 503, "message": "...", "retry_after": s, "delay": s}``;
 * ``GET /_standin/requests``: every request received (``body``: its exact text, ``auth``: whether
-  its key was right, ``received``/``answered``: perf_counter times in this process).
+  its key was right, ``received``/``answered``: perf_counter times in this process, ``calls``: the
+  ids of the tool calls answered, ``answers``: the tool call ids its tool messages answer);
+  ``GET /_standin/timings?since=N``: the same without the bodies, and how many steps are left.
+
+A request that offers no tools is answered in words even where the step has tool calls (a model
+cannot call what it was not offered), unless the step says ``"force": true``.
 
 Like the real API it refuses (400) a body that is not a chat-completions request: no model, no
 messages, an unknown role, a tool message answering no call of the assistant message before it,
@@ -25,6 +30,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import socket
 import threading
 import time
 import urllib.request
@@ -101,6 +107,12 @@ class Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     server: Server
 
+    def setup(self) -> None:
+        super().setup()
+        # Headers and body are two writes: without this, Nagle's algorithm holds the body back
+        # until the client acknowledges the headers (a delayed ACK, 40 ms on Linux).
+        self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
     def log_message(self, format: str, *args: Any) -> None:  # quiet
         pass
 
@@ -120,9 +132,16 @@ class Handler(BaseHTTPRequestHandler):
         self._send_json(status, {"error": {"message": message, "type": kind, "param": None, "code": code}}, headers)
 
     def do_GET(self) -> None:
-        if self.path == "/_standin/requests":
+        path, _, query = self.path.partition("?")
+        since = int(query.removeprefix("since=") or 0) if query.startswith("since=") else 0
+        if path == "/_standin/requests":
             with self.server.script.lock:
-                self._send_json(200, list(self.server.script.requests))
+                self._send_json(200, self.server.script.requests[since:])
+        elif path == "/_standin/timings":
+            with self.server.script.lock:
+                records = self.server.script.requests[since:]
+                self._send_json(200, {"steps_left": len(self.server.script.steps), "requests": len(self.server.script.requests),
+                                      "timings": [{k: r[k] for k in ("received", "answered", "calls", "answers")} for r in records]})
         elif self.path == "/v1/models":
             self._send_json(200, {"object": "list", "data": [{"id": "standin", "object": "model", "created": 0, "owned_by": "test"}]})
         else:
@@ -144,7 +163,8 @@ class Handler(BaseHTTPRequestHandler):
             self._error(404, f"no route {self.path}", code="not_found")
             return
         auth = self.server.key is None or self.headers.get("Authorization") == f"Bearer {self.server.key}"
-        record = {"body": raw.decode("utf-8", "replace"), "auth": auth, "received": received, "answered": None}
+        record: dict[str, Any] = {"body": raw.decode("utf-8", "replace"), "auth": auth, "received": received, "answered": None,
+                                  "calls": [], "answers": []}
         with script.lock:
             script.requests.append(record)
         if not auth:
@@ -159,7 +179,12 @@ class Handler(BaseHTTPRequestHandler):
         if problem:
             self._error(400, problem)
             return
+        record["answers"] = [m.get("tool_call_id") for m in body["messages"] if m.get("role") == "tool"]
         step = script.next_step()
+        if not body.get("tools") and not step.get("force"):
+            # A model offered no tools answers in words (``force``: one that calls them anyway).
+            step = {k: v for k, v in step.items() if k != "tool_calls"}
+            step.setdefault("content", "(words)")
         delay = float(step.get("delay") or 0)
         if delay:
             time.sleep(delay)  # a slow model (this process only serves the test)
@@ -167,22 +192,23 @@ class Handler(BaseHTTPRequestHandler):
             headers = {"Retry-After": str(step["retry_after"])} if "retry_after" in step else None
             self._error(int(step["status"]), str(step.get("message") or "stand-in error"), "server_error", headers=headers)
         elif body.get("stream"):
-            self._stream(body, step)
+            self._stream(body, step, record)
         else:
-            self._send_json(200, self._completion(body, step))
+            self._send_json(200, self._completion(body, step, record))
         record["answered"] = time.perf_counter()
 
-    def _calls(self, step: dict[str, Any]) -> list[dict[str, Any]]:
+    def _calls(self, step: dict[str, Any], record: dict[str, Any]) -> list[dict[str, Any]]:
         out = []
         for call in step.get("tool_calls") or ():
             arguments = call.get("arguments", {})
             text = arguments if isinstance(arguments, str) else json.dumps(arguments)
             out.append({"id": f"call_{next(self.server.script.ids)}", "type": "function",
                         "function": {"name": call["name"], "arguments": text}})
+        record["calls"] = [c["id"] for c in out]
         return out
 
-    def _completion(self, body: dict[str, Any], step: dict[str, Any]) -> dict[str, Any]:
-        calls = self._calls(step)
+    def _completion(self, body: dict[str, Any], step: dict[str, Any], record: dict[str, Any]) -> dict[str, Any]:
+        calls = self._calls(step, record)
         message: dict[str, Any] = {"role": "assistant", "content": step.get("content"), "refusal": None}
         if calls:
             message["tool_calls"] = calls
@@ -193,7 +219,7 @@ class Handler(BaseHTTPRequestHandler):
                 "choices": [{"index": 0, "message": message, "logprobs": None, "finish_reason": "tool_calls" if calls else "stop"}],
                 "usage": {"prompt_tokens": prompt, "completion_tokens": completion, "total_tokens": prompt + completion}}
 
-    def _stream(self, body: dict[str, Any], step: dict[str, Any]) -> None:
+    def _stream(self, body: dict[str, Any], step: dict[str, Any], record: dict[str, Any]) -> None:
         self.send_response(200)
         self.send_header("Content-Type", "text/event-stream")
         self.send_header("Cache-Control", "no-cache")
@@ -211,7 +237,7 @@ class Handler(BaseHTTPRequestHandler):
         content = step.get("content") or ""
         for piece in _pieces(content, 5):
             chunk({"content": piece})
-        calls = self._calls(step)
+        calls = self._calls(step, record)
         for index, call in enumerate(calls):
             chunk({"tool_calls": [{"index": index, "id": call["id"], "type": "function",
                                    "function": {"name": call["function"]["name"], "arguments": ""}}]})
@@ -278,6 +304,11 @@ class StandIn:
 
     def requests(self) -> list[dict[str, Any]]:
         return list(self._call("/_standin/requests"))
+
+    def timings(self, since: int = 0) -> dict[str, Any]:
+        """``steps_left``, ``requests`` (how many in all) and each request's times from ``since`` on."""
+        answer: dict[str, Any] = self._call(f"/_standin/timings?since={since}")
+        return answer
 
     def bodies(self) -> list[dict[str, Any]]:
         return [json.loads(r["body"]) for r in self.requests()]

@@ -8,8 +8,8 @@ what the endpoint saw, byte for byte. Nothing is taken from the inbox until the 
 committed (``commit``): a turn that fails (the endpoint is down, the mind migrated meanwhile) is
 asked again with the same perceptions and nothing is lost.
 
-The window is bounded (``overflow``): the oldest messages, cut where a user message starts (an
-assistant's tool calls are never parted from their results), are summarised by the model
+The window is bounded (``overflow``): the oldest messages, cut where a user message starts, else
+an assistant message (its tool calls are never parted from their results), are summarised by the model
 (``apply_summary``); when the model cannot be reached for long, beyond twice the bound, the oldest
 are dropped, and the summary says so (``drop_oldest``).
 
@@ -139,20 +139,24 @@ class Conversation:
         return sum(len(_json.encode(m)) for m in self.messages)
 
     def overflow(self, max_messages: int, max_chars: int) -> int:
-        """How many of the oldest messages to summarise so that the window fits (0: it fits, or no
-        user message starts a shorter window). The cut leaves the last user message's exchange."""
+        """How many of the oldest messages to summarise once the window is over its bound (0: it is
+        not), so that what is left fits in half of it. The window starts at a user message when one
+        makes it fit, else at an assistant message (a long run of tool calls has no user message in
+        it); never at a tool result, which must follow its call. The last exchange is kept whole
+        even when alone it is over the bound."""
         sizes = [len(_json.encode(m)) for m in self.messages]
-        total, count = sum(sizes), len(self.messages)
-        if count <= max_messages and total <= max_chars:
+        count = len(self.messages)
+        if count <= max_messages and sum(sizes) <= max_chars:
             return 0
-        cut = 0
-        for i in range(1, count):
-            if self.messages[i].get("role") != "user":
-                continue
-            cut = i
-            if count - i <= max_messages and sum(sizes[i:]) <= max_chars:
-                break
-        return cut
+        # Down to half the bound: a summary every few turns, not one per message once full.
+        keep_messages, keep_chars = max(1, max_messages // 2), max_chars // 2
+        fits = [i for i in range(1, count) if count - i <= keep_messages and sum(sizes[i:]) <= keep_chars]
+        starts = [i for i in fits if self.messages[i].get("role") == "user"] or \
+                 [i for i in fits if self.messages[i].get("role") == "assistant"]
+        if starts:
+            return starts[0]
+        last = [i for i in range(1, count) if self.messages[i].get("role") in ("user", "assistant")]
+        return last[-1] if last else 0
 
     def summary_request(self, cut: int, words: int) -> list[dict[str, Any]]:
         """The messages asking the model to fold the ``cut`` oldest messages into its summary."""
