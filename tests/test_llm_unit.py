@@ -12,7 +12,7 @@ import pytest
 
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.minds.llm.budget import Budget, Limits, TurnCount, backoff, estimate_tokens
-from cmion_mesh.minds.llm.chat import _assemble
+from cmion_mesh.minds.llm.chat import EndpointError, _assemble, _reply
 from cmion_mesh.minds.llm.conversation import MAX_INBOX, Conversation, render, tools_text, world_text
 from cmion_mesh.minds.llm.settings import ENV_BASE_URL, ENV_KEY, ENV_MODEL, OPENAI_BASE_URL, load_settings, shown_url
 
@@ -233,3 +233,18 @@ def test_a_streamed_answer_is_put_together_piece_by_piece() -> None:
     assert reply.message == {"role": "assistant", "content": "Hello", "tool_calls": [
         {"id": "c1", "type": "function", "function": {"name": "GoTo", "arguments": '{"location": "Kitchen"}'}},
         {"id": "c2", "type": "function", "function": {"name": "Express", "arguments": ""}}]}
+
+
+def test_a_whole_answer_is_decoded_by_its_schema_and_anything_else_is_an_endpoint_error() -> None:
+    body = {"id": "x", "object": "chat.completion", "created": 0, "model": "m", "choices": [{"index": 0, "finish_reason": "tool_calls",
+            "message": {"role": "assistant", "content": None, "refusal": None, "tool_calls": [
+                {"id": "c1", "type": "function", "function": {"name": "GoTo", "arguments": "{}"}},
+                {"id": "c2", "type": "custom", "custom": {"name": "x", "input": "y"}}]}}],
+            "usage": {"prompt_tokens": 1, "completion_tokens": 2, "total_tokens": 3}}
+    reply = _reply(msgspec.json.encode(body))
+    assert reply.tokens == 3
+    assert reply.message == {"role": "assistant", "content": None, "tool_calls": [
+        {"id": "c1", "type": "function", "function": {"name": "GoTo", "arguments": "{}"}}]}
+    for bad in (b"<html>", b'{"choices": "no"}', b'{"choices": []}'):
+        with pytest.raises(EndpointError):
+            _reply(bad)

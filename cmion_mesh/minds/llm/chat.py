@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 import openai
 from openai.types.chat import ChatCompletion, ChatCompletionChunk
 
@@ -82,14 +83,15 @@ class Chat:
         # The client's generic ``post`` (its documented way to send a body as it is), not
         # ``chat.completions.create``: ``create`` walks every message through its TypedDict
         # transforms first, 10 ms for a window of 40 messages, and the messages here are already
-        # the API's plain JSON. Timeouts, errors, the key, streaming and parsing are the client's.
+        # the API's plain JSON. Timeouts, errors, the key and streaming are the client's; a whole
+        # answer's bytes are decoded here by their schema (``_Completion``).
         try:
             if streaming:
                 body["stream"], body["stream_options"] = True, {"include_usage": True}
                 chunks = self._client.post("/chat/completions", cast_to=ChatCompletion, body=body, stream=True,
                                            stream_cls=openai.Stream[ChatCompletionChunk])
                 return _assemble(chunks, time.monotonic() + 4 * s.timeout, stop)
-            completion = self._client.post("/chat/completions", cast_to=ChatCompletion, body=body)
+            raw = self._client.post("/chat/completions", cast_to=bytes, body=body)
         except EndpointError:
             raise
         except openai.APITimeoutError:
@@ -101,17 +103,57 @@ class Chat:
                                 status=exc.status_code) from None
         except Exception as exc:  # the library's others, and the HTTP layer's while a stream is read
             raise EndpointError(f"{type(exc).__name__}: {str(exc)[:200]}") from None
-        if not completion.choices:
-            raise EndpointError("an answer with no choices")
-        message = completion.choices[0].message
-        calls = []
-        for i, call in enumerate(message.tool_calls or ()):
-            function = getattr(call, "function", None)  # a function call; other kinds of tool call are not ours
-            if function is not None:
-                calls.append({"id": call.id or f"call_{i}", "type": "function",
-                              "function": {"name": str(function.name or ""), "arguments": str(function.arguments or "")}})
-        tokens = completion.usage.total_tokens if completion.usage is not None else None
-        return Reply(assistant(message.content, calls), tokens)
+        return _reply(raw)
+
+
+class _Function(msgspec.Struct):
+    name: str = ""
+    arguments: str = ""
+
+
+class _ToolCall(msgspec.Struct):
+    id: str = ""
+    function: _Function | None = None  # a function call; other kinds of tool call are not ours
+
+
+class _Message(msgspec.Struct):
+    content: str | None = None
+    tool_calls: list[_ToolCall] | None = None
+
+
+class _Choice(msgspec.Struct):
+    message: _Message
+
+
+class _Usage(msgspec.Struct):
+    total_tokens: int | None = None
+
+
+class _Completion(msgspec.Struct):
+    """The fields of a ``chat.completion`` object the mind reads (the others are ignored)."""
+
+    choices: list[_Choice]
+    usage: _Usage | None = None
+
+
+_completion = msgspec.json.Decoder(_Completion)
+
+
+def _reply(raw: bytes) -> Reply:
+    """The answer's body, decoded by its schema (faster than the library's models, and as strict:
+    a body that is not a chat completion is an ``EndpointError``)."""
+    try:
+        completion = _completion.decode(raw)
+    except msgspec.DecodeError as exc:
+        raise EndpointError(f"an answer that is not a chat completion: {exc}") from None
+    if not completion.choices:
+        raise EndpointError("an answer with no choices")
+    message = completion.choices[0].message
+    calls = [{"id": call.id or f"call_{i}", "type": "function",
+              "function": {"name": call.function.name, "arguments": call.function.arguments}}
+             for i, call in enumerate(message.tool_calls or ()) if call.function is not None]
+    tokens = completion.usage.total_tokens if completion.usage is not None else None
+    return Reply(assistant(message.content, calls), tokens)
 
 
 def assistant(content: str | None, calls: list[dict[str, Any]]) -> dict[str, Any]:
