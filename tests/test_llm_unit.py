@@ -10,11 +10,20 @@ from typing import Any
 import msgspec
 import pytest
 
+from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.messages import Event, MindMessage
 from cmion_mesh.minds.llm.budget import Budget, Limits, TurnCount, backoff, estimate_tokens
 from cmion_mesh.minds.llm.chat import EndpointError, _assemble, _reply
 from cmion_mesh.minds.llm.conversation import MAX_INBOX, Conversation, render, tools_text, world_text
+from cmion_mesh.minds.llm.mind import LlmMind
 from cmion_mesh.minds.llm.settings import ENV_BASE_URL, ENV_KEY, ENV_MODEL, OPENAI_BASE_URL, load_settings, shown_url
+from cmion_mesh.resources import embodiment_dir
+from cmion_mesh.testing.wait import wait_for
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
+
+ROBOT_RULES = embodiment_dir("robot") / "CompetencyManagerRules.xml"
 
 
 @pytest.fixture(autouse=True)
@@ -248,3 +257,34 @@ def test_a_whole_answer_is_decoded_by_its_schema_and_anything_else_is_an_endpoin
     for bad in (b"<html>", b'{"choices": "no"}', b'{"choices": []}'):
         with pytest.raises(EndpointError):
             _reply(bad)
+
+
+# --- the mind in a body on the in-memory transport (its endpoint unreachable) -----------------------
+
+
+@pytest.mark.mesh  # the client library runs `uname -p` once (its platform headers): a child process
+def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_stops_the_worker(
+        tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
+    settings = tmp_path / "llm.toml"
+    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\ntimeout = 2\n'
+                        "[budget]\nbackoff_first = 0.05\nbackoff_cap = 0.2\n")
+    mind = LlmMind("mind", str(settings))
+    events: list[Event] = []
+    with MemoryTransport(network, "robot") as t, MemoryTransport(network, "watcher") as w:
+        client = MeshClient(w, mesh)
+        client.events(events.append, embodiment="robot", component="mind")
+        body = Embodiment("robot", mesh=mesh, transport=t, rules=ROBOT_RULES, components=[mind]).start()
+        try:
+            wait_for(lambda: sum(e.name == "LlmEndpointDown" for e in events) == 1 and mind._failures >= 3, 10,
+                     "the endpoint failed three times, one event")
+            assert "cannot reach it" in str(events[0].data) and events[0].data["endpoint"] == "http://127.0.0.1:1/v1"  # type: ignore[index]
+            inbox = mind.conversation.inbox
+            assert inbox and inbox[0].startswith("You are now in the body robot. Your tools here: Say(speechAct, addressee)")
+            assert mind.conversation.messages == [], "nothing committed, nothing lost: the arrival waits in the inbox"
+            client.request("robot", "mind", "message", MindMessage({"text": "hello"}))
+            wait_for(lambda: mind.conversation.inbox[-1:] == ["message: hello"], 5, "the message joins the inbox")
+            assert sum(e.name == "LlmEndpointDown" for e in events) == 1
+        finally:
+            body.close()
+    assert mind._worker is not None and not mind._worker._thread.is_alive()
+    mind.close()  # again: nothing happens
