@@ -22,7 +22,7 @@ import pytest
 
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event, MindMessage, MindState
-from cmion_mesh.procs import Daemon
+from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
@@ -280,3 +280,21 @@ def test_the_budget_holds_under_a_model_that_calls_tools_in_a_loop(standin: Stan
     assert float(wait.data["seconds"]) > 30  # type: ignore[index]
     assert len(standin.requests()) == 6
     assert net.results().count("succeeded") == 3, "no action past the cap"
+
+
+def test_a_mind_in_another_process_reads_the_bodys_tools_over_the_mesh(standin: StandIn, net: Mesh, tmp_path: Path) -> None:
+    net.up("robot", embodiment_dir("robot"), tmp_path / "robot-state")  # the shipped robot, its planner mind and all
+    settings = tmp_path / "llm.toml"
+    settings.write_text(SETTINGS.format(timeout=10, stream="false", rpm=600, cap=8))
+    standin.script({"tool_calls": [{"name": "GoTo", "arguments": {"location": "Kitchen"}}]}, default={"content": "ok"})
+    mind = Daemon(cli_argv("serve-mind", "cmion_mesh.minds.llm.mind:LlmMind", "--embodiment", "robot", "--parameters",
+                           f"remote,{settings}", "--mesh", net.mesh, "--no-multicast", "--connect", net.endpoints["robot"]),
+                  name="serve-mind")
+    with mind:
+        mind.wait_line("serving embodiment", 20)
+        wait_for(lambda: len(standin.requests()) >= 2, 30, "the remote mind acted and told the model")
+        first, second = standin.bodies()[:2]
+        assert [t["function"]["name"] for t in first["tools"]][:4] == ["Say", "GoTo", "Greet", "Express"]
+        assert "You are now in the body robot" in first["messages"][-1]["content"]
+        assert "(not known here" in first["messages"][-1]["content"], "a remote mind perceives the world's changes only"
+        assert tool_messages(second) == ["succeeded"]

@@ -288,3 +288,34 @@ def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_
             body.close()
     assert mind._worker is not None and not mind._worker._thread.is_alive()
     mind.close()  # again: nothing happens
+
+
+@pytest.mark.mesh  # as above: the client library's `uname -p`
+def test_migrate_is_offered_to_the_embodiments_alive_that_the_companions_policy_accepts(
+        tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
+    settings = tmp_path / "llm.toml"
+    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\n[budget]\nbackoff_first = 1\n')
+    mind = LlmMind("mind", str(settings))
+    with MemoryTransport(network, "w") as w:
+        client = MeshClient(w, mesh)
+        bodies = [Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=tmp_path / name, rules=ROBOT_RULES,
+                             companion="spirit" if name == "robot" else None, components=[mind] if name == "robot" else [])
+                  for name in ("robot", "screen", "phone")]
+        try:
+            for body in bodies:
+                body.start()
+
+            def targets() -> list[str] | None:
+                bodies[0].sim.call(mind._refresh_tools)
+                tool = next((t for t in mind.tools if t["function"]["name"] == "Migrate"), None)
+                return tool["function"]["parameters"]["properties"]["target"]["enum"] if tool else None
+
+            wait_for(lambda: targets() == ["phone", "screen"], 10, "Migrate offered to both peers")
+            client.set_policy("spirit", ["phone"])
+            wait_for(lambda: targets() == ["phone"], 10, "the policy leaves the phone only")
+            client.set_policy("spirit", ["robot"])
+            wait_for(lambda: targets() is None, 10, "no body it accepts: no Migrate tool")
+        finally:
+            for body in bodies:
+                body.close()
+                body.transport.close()
