@@ -13,7 +13,7 @@ import pytest
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.messages import Event, MindMessage
+from cmion_mesh.messages import ActionReport, Event, MindMessage
 from cmion_mesh.minds.llm.budget import Budget, Limits, TurnCount, backoff, estimate_tokens
 from cmion_mesh.minds.llm.chat import EndpointError, _assemble, _reply
 from cmion_mesh.minds.llm.conversation import MAX_INBOX, Conversation, render, tools_text, world_text
@@ -319,3 +319,28 @@ def test_migrate_is_offered_to_the_embodiments_alive_that_the_companions_policy_
             for body in bodies:
                 body.close()
                 body.transport.close()
+
+
+@pytest.mark.mesh  # as above: the client library's `uname -p`
+def test_an_action_that_ends_while_the_mind_sleeps_leaves_the_conversation_as_it_was_until_it_wakes(
+        tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
+    settings = tmp_path / "llm.toml"
+    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\n[budget]\nbackoff_first = 60\n')
+    mind = LlmMind("mind", str(settings))
+    seen: dict[str, Any] = {}
+    with MemoryTransport(network, "robot") as t, Embodiment("robot", mesh=mesh, transport=t, rules=ROBOT_RULES,
+                                                            components=[mind]) as body:
+        def play() -> None:
+            mind.conversation.commit(0, assistant(("c1", "Express", '{"animation": "nod"}')))
+            mind.conversation.calls[0].action_id = "a1"
+            mind.sleep()
+            mind.on_action_succeeded(ActionReport("a1", "Express", ["nod"], status="succeeded"))
+            seen["asleep"] = mind.conversation.state()
+            mind.wake()
+            seen["awake"] = mind.conversation.state()
+
+        body.sim.call(play)
+        wait_for(lambda: "awake" in seen, 5, "played on the loop")
+    assert seen["asleep"]["calls"][0]["result"] is None, "asleep: the state stays what a migration would have packed"
+    assert seen["awake"]["calls"] == [] and seen["awake"]["messages"][-1] == {"role": "tool", "tool_call_id": "c1",
+                                                                              "content": "succeeded"}

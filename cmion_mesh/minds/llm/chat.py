@@ -158,7 +158,8 @@ def _reply(raw: bytes) -> Reply:
 
 def assistant(content: str | None, calls: list[dict[str, Any]]) -> dict[str, Any]:
     """The assistant message as the window keeps it (and sends it back in every later request)."""
-    out: dict[str, Any] = {"role": "assistant", "content": content if content else None}
+    # ``null`` content only beside tool calls: an assistant message with neither is refused by the API.
+    out: dict[str, Any] = {"role": "assistant", "content": content if content else (None if calls else "")}
     if calls:
         out["tool_calls"] = calls
     return out

@@ -94,6 +94,7 @@ class LlmMind(Mind):
         self._arrival_world = ""
         self._arrival_from = ""
         self._arrival_at = 0
+        self._ended_asleep: dict[str, str] = {}  # action id -> result, for actions that ended while it slept
         self._closed = False
 
     # --- life cycle ---------------------------------------------------------------------------
@@ -139,6 +140,14 @@ class LlmMind(Mind):
 
     def on_wake(self) -> None:
         self._tools_at = None
+        ended, self._ended_asleep = self._ended_asleep, {}
+        for call in self.conversation.calls:
+            if call.result is None and call.action_id in ended:
+                self._result(call, ended[call.action_id])
+        if self.conversation.close_calls():
+            self._continue = self._offered_tools
+        if self._sim is not None:
+            self.sim.post(self._kick)
 
     def on_arrived(self, world_model: dict[str, Any]) -> None:
         """Restored in a body (or started): resolve what the move interrupted, re-read the tools and
@@ -201,6 +210,7 @@ class LlmMind(Mind):
         # An answer to a request of the replaced conversation must not be committed to this one.
         conversation.generation = self.conversation.generation + 1
         self.conversation = conversation
+        self._ended_asleep = {}
         self._restored_from = conversation.body or "?"
         self._announced = False
         self._continue = False
@@ -393,7 +403,10 @@ class LlmMind(Mind):
 
     def _ended(self, report: ActionReport, text: str) -> None:
         if not self.awake:
-            return  # the companion left: the action's end belongs to the body, not to the conversation that moved
+            # Asleep: the conversation stays as it is (if the companion left, it is what was packed).
+            # Kept for a wake on this body (``on_wake``); a conversation arriving drops it.
+            self._ended_asleep[report.action_id] = text
+            return
         call = self.conversation.call_for_action(report.action_id)
         if call is None:
             return
