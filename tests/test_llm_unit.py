@@ -275,7 +275,7 @@ def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_
         client.events(events.append, embodiment="robot", component="mind")
         body = Embodiment("robot", mesh=mesh, transport=t, rules=ROBOT_RULES, components=[mind]).start()
         try:
-            wait_for(lambda: sum(e.name == "LlmEndpointDown" for e in events) == 1 and mind._failures >= 3, 10,
+            wait_for(lambda: sum(e.name == "LlmEndpointDown" for e in events) == 1 and mind.failures >= 3, 10,
                      "the endpoint failed three times, one event")
             assert "cannot reach it" in str(events[0].data) and events[0].data["endpoint"] == "http://127.0.0.1:1/v1"  # type: ignore[index]
             inbox = mind.conversation.inbox
@@ -286,7 +286,7 @@ def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_
             assert sum(e.name == "LlmEndpointDown" for e in events) == 1
         finally:
             body.close()
-    assert mind._worker is not None and not mind._worker._thread.is_alive()
+    assert not mind.running
     mind.close()  # again: nothing happens
 
 
@@ -306,7 +306,7 @@ def test_migrate_is_offered_to_the_embodiments_alive_that_the_companions_policy_
                 body.start()
 
             def targets() -> list[str] | None:
-                bodies[0].sim.call(mind._refresh_tools)
+                bodies[0].sim.call(mind.refresh_tools)
                 tool = next((t for t in mind.tools if t["function"]["name"] == "Migrate"), None)
                 return tool["function"]["parameters"]["properties"]["target"]["enum"] if tool else None
 

@@ -127,6 +127,16 @@ class LlmMind(Mind):
         if self._worker is not None:
             self._worker.close()
 
+    @property
+    def failures(self) -> int:
+        """Requests that failed in a row (0 while the endpoint answers)."""
+        return self._failures
+
+    @property
+    def running(self) -> bool:
+        """Whether its worker thread runs (from ``on_start`` until ``close``)."""
+        return self._worker is not None and self._worker.alive
+
     def __enter__(self) -> LlmMind:
         return self
 
@@ -175,7 +185,8 @@ class LlmMind(Mind):
 
     def _interrupted(self, call: OpenCall, before: str, here: str) -> str:
         if call.action == MIGRATE_ACTION:
-            return f"succeeded: you migrated from {before} and now live in {here}" if before != here else "succeeded"
+            return (f"succeeded: you migrated from {before} and now live in {here}" if before and before != here else
+                    f"interrupted: the companion restarted while migrating; you still live in {here}")
         return (f"interrupted: you left {before} while this ran there; whether it finished is unknown"
                 if before and before != here else "interrupted: the companion restarted while this ran; outcome unknown")
 
@@ -254,7 +265,8 @@ class LlmMind(Mind):
 
     # --- the body's tools ---------------------------------------------------------------------
 
-    def _refresh_tools(self) -> None:
+    def refresh_tools(self) -> None:
+        """Read the body's abilities again (loop); the tools change when the answer comes."""
         if self._describing:
             return
         self._describing = True
@@ -323,7 +335,7 @@ class LlmMind(Mind):
             return
         age = None if self._tools_at is None else time.monotonic() - self._tools_at
         if age is None or age > TOOLS_TTL or (age > TOOLS_FRESH and self.conversation.inbox):
-            self._refresh_tools()
+            self.refresh_tools()
             return
         if self._pending_arrival:  # tools read since the arrival (a failed describe keeps the old ones)
             self._announce()

@@ -51,6 +51,10 @@ class Worker:
     def __exit__(self, *_: object) -> None:
         self.close()
 
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
     def submit(self, job: Job) -> None:
         if self._stop.is_set():
             job.done(EndpointError("the mind is closing"))
