@@ -3,6 +3,8 @@ tool calls, what migrates), the settings, and how a streamed answer is put toget
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import AsyncIterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -237,7 +239,11 @@ def test_a_streamed_answer_is_put_together_piece_by_piece() -> None:
     chunks = [chunk(""), chunk("Hel"), chunk("lo"), chunk(calls=[{"index": 0, "id": "c1", "name": "GoTo", "arguments": ""}]),
               chunk(calls=[{"index": 0, "arguments": '{"loca'}]), chunk(calls=[{"index": 1, "id": "c2", "name": "Express"}]),
               chunk(calls=[{"index": 0, "arguments": 'tion": "Kitchen"}'}]), chunk(usage=42)]
-    reply = _assemble(iter(chunks), float("inf"), None)
+    async def stream() -> AsyncIterator[Any]:
+        for c in chunks:
+            yield c
+
+    reply = asyncio.run(_assemble(stream()))
     assert reply.tokens == 42
     assert reply.message == {"role": "assistant", "content": "Hello", "tool_calls": [
         {"id": "c1", "type": "function", "function": {"name": "GoTo", "arguments": '{"location": "Kitchen"}'}},

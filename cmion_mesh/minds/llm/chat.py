@@ -12,15 +12,17 @@ its budget counts every request.
 With ``stream``, the answer comes as server-sent events, assembled here (the content's pieces,
 each tool call's pieces by index); ``timeout`` then bounds the wait for each chunk, so a slow model
 that keeps talking is not cut off while one that stalls is, and four times ``timeout`` bounds
-the whole answer. Streaming answers also stop between two chunks when ``stop`` is set (the mind
-is closing).
+the whole answer.
+
+The client is the library's asynchronous one, run by the mind's worker thread on an event loop of
+its own (``worker``): cancelling the task ends a request in flight at once, which a blocking
+client cannot do from another thread (closing it leaves a read waiting for the server).
 """
 
 from __future__ import annotations
 
-import threading
-import time
-from collections.abc import Sequence
+import asyncio
+from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,28 +53,21 @@ class Reply:
 
 
 class Chat:
-    """A client of one endpoint; a context manager, ``close`` idempotent (it also ends a request
-    in flight on another thread, which then fails with ``EndpointError``)."""
+    """A client of one endpoint, made and used on one event loop; ``aclose`` is idempotent."""
 
     def __init__(self, settings: LlmSettings) -> None:
         self.settings = settings
-        self._client = openai.OpenAI(base_url=settings.base_url, api_key=api_key() or NO_KEY, timeout=settings.timeout,
-                                     max_retries=0)
+        self._client = openai.AsyncOpenAI(base_url=settings.base_url, api_key=api_key() or NO_KEY, timeout=settings.timeout,
+                                          max_retries=0)
         self._closed = False
 
-    def __enter__(self) -> Chat:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
-    def close(self) -> None:
+    async def aclose(self) -> None:
         if not self._closed:
             self._closed = True
-            self._client.close()
+            await self._client.close()
 
-    def complete(self, messages: Sequence[dict[str, Any]], tools: Sequence[dict[str, Any]] = (), *,
-                 stream: bool | None = None, stop: threading.Event | None = None, max_tokens: int | None = None) -> Reply:
+    async def complete(self, messages: Sequence[dict[str, Any]], tools: Sequence[dict[str, Any]] = (), *,
+                       stream: bool | None = None, max_tokens: int | None = None) -> Reply:
         s = self.settings
         streaming = s.stream if stream is None else stream
         body: dict[str, Any] = {"model": s.model, "messages": list(messages), "max_tokens": max_tokens or s.max_tokens}
@@ -88,10 +83,16 @@ class Chat:
         try:
             if streaming:
                 body["stream"], body["stream_options"] = True, {"include_usage": True}
-                chunks = self._client.post("/chat/completions", cast_to=ChatCompletion, body=body, stream=True,
-                                           stream_cls=openai.Stream[ChatCompletionChunk])
-                return _assemble(chunks, time.monotonic() + 4 * s.timeout, stop)
-            raw = self._client.post("/chat/completions", cast_to=bytes, body=body)
+                chunks = await self._client.post("/chat/completions", cast_to=ChatCompletion, body=body, stream=True,
+                                                 stream_cls=openai.AsyncStream[ChatCompletionChunk])
+                try:
+                    async with asyncio.timeout(4 * s.timeout):
+                        return await _assemble(chunks)
+                except TimeoutError:
+                    raise EndpointError(f"the answer took more than {4 * s.timeout:g} s") from None
+                finally:
+                    await chunks.close()
+            raw = await self._client.post("/chat/completions", cast_to=bytes, body=body)
         except EndpointError:
             raise
         except openai.APITimeoutError:
@@ -165,33 +166,26 @@ def assistant(content: str | None, calls: list[dict[str, Any]]) -> dict[str, Any
     return out
 
 
-def _assemble(chunks: Any, deadline: float, stop: threading.Event | None) -> Reply:
+async def _assemble(chunks: AsyncIterator[Any]) -> Reply:
     content: list[str] = []
     calls: dict[int, dict[str, Any]] = {}
     tokens: int | None = None
-    try:
-        for chunk in chunks:
-            if (stop is not None and stop.is_set()) or time.monotonic() > deadline:
-                raise EndpointError("the answer took too long" if not (stop and stop.is_set()) else "stopped")
-            if getattr(chunk, "usage", None) is not None:
-                tokens = chunk.usage.total_tokens
-            for choice in chunk.choices or ():
-                delta = choice.delta
-                if delta.content:
-                    content.append(delta.content)
-                for call in delta.tool_calls or ():
-                    slot = calls.setdefault(call.index, {"id": "", "name": "", "arguments": []})
-                    if call.id:
-                        slot["id"] = call.id
-                    if call.function is not None:
-                        if call.function.name:
-                            slot["name"] += call.function.name
-                        if call.function.arguments:
-                            slot["arguments"].append(call.function.arguments)
-    finally:
-        close = getattr(chunks, "close", None)
-        if close is not None:
-            close()
+    async for chunk in chunks:
+        if getattr(chunk, "usage", None) is not None:
+            tokens = chunk.usage.total_tokens
+        for choice in chunk.choices or ():
+            delta = choice.delta
+            if delta.content:
+                content.append(delta.content)
+            for call in delta.tool_calls or ():
+                slot = calls.setdefault(call.index, {"id": "", "name": "", "arguments": []})
+                if call.id:
+                    slot["id"] = call.id
+                if call.function is not None:
+                    if call.function.name:
+                        slot["name"] += call.function.name
+                    if call.function.arguments:
+                        slot["arguments"].append(call.function.arguments)
     assembled = [{"id": slot["id"] or f"call_{i}", "type": "function",
                   "function": {"name": slot["name"], "arguments": "".join(slot["arguments"])}}
                  for i, slot in sorted(calls.items())]

@@ -3,13 +3,17 @@
 The mind hands it one ``Job`` at a time (the messages, the tools); the worker waits as long as the
 budget says (``budget.Budget``: it alone counts what was sent), sends the request through the
 ``Chat`` adapter and hands the ``Reply`` or the ``EndpointError`` to ``Job.done``, on its own
-thread (the mind posts it to the loop). A context manager; ``close`` (idempotent) ends a budget
-wait at once and a request in flight by closing the client, then joins the thread.
+thread (the mind posts it to the loop).
+
+The thread runs an asyncio event loop of its own with the library's asynchronous client: ``close``
+(idempotent) cancels what it is doing, a budget wait or a request in flight, at once, closes the
+client and joins the thread; a job it was doing then never reports (the mind is closing).
+A context manager.
 """
 
 from __future__ import annotations
 
-import queue
+import asyncio
 import threading
 import time
 from collections.abc import Callable
@@ -37,13 +41,18 @@ class Job:
 class Worker:
     def __init__(self, settings: LlmSettings, *, name: str, on_wait: Callable[[float], None] | None = None,
                  limits: Limits | None = None) -> None:
-        self.chat = Chat(settings)
+        self.settings = settings
         self.budget = Budget(limits or settings.limits)
         self._on_wait = on_wait
-        self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
-        self._stop = threading.Event()
+        self._loop = asyncio.new_event_loop()
+        self._jobs: asyncio.Queue[Job] | None = None
+        self._main: asyncio.Task[None] | None = None
+        self._closed = False
+        self._lock = threading.Lock()
+        self._started = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"llm-{name}", daemon=True)
         self._thread.start()
+        self._started.wait(JOIN_TIMEOUT)
 
     def __enter__(self) -> Worker:
         return self
@@ -56,28 +65,48 @@ class Worker:
         return self._thread.is_alive()
 
     def submit(self, job: Job) -> None:
-        if self._stop.is_set():
-            job.done(EndpointError("the mind is closing"))
-            return
-        self._jobs.put(job)
+        with self._lock:
+            jobs = None if self._closed else self._jobs
+            if jobs is not None:
+                self._loop.call_soon_threadsafe(jobs.put_nowait, job)
+                return
+        job.done(EndpointError("the mind is closing"))
 
     def close(self) -> None:
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        self._jobs.put(None)
-        self.chat.close()
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            main = self._main
+            if main is not None:
+                self._loop.call_soon_threadsafe(main.cancel)
         if self._thread is not threading.current_thread():
             self._thread.join(JOIN_TIMEOUT)
 
     def _run(self) -> None:
-        while True:
-            job = self._jobs.get()
-            if job is None or self._stop.is_set():
-                return
-            job.done(self._send(job))
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._loop.run_until_complete(self._serve())
+        finally:
+            self._loop.close()
 
-    def _send(self, job: Job) -> Reply | EndpointError:
+    async def _serve(self) -> None:
+        chat = Chat(self.settings)
+        with self._lock:
+            self._jobs = asyncio.Queue()
+            self._main = asyncio.current_task()
+            closed = self._closed
+        self._started.set()
+        try:
+            while not closed:
+                job = await self._jobs.get()
+                job.done(await self._send(chat, job))
+        except asyncio.CancelledError:
+            pass
+        finally:
+            await chat.aclose()
+
+    async def _send(self, chat: Chat, job: Job) -> Reply | EndpointError:
         tokens = estimate_tokens(len(_json.encode(job.messages)) + len(_json.encode(job.tools))) + (job.max_tokens or 0)
         while True:
             wait = self.budget.wait(time.monotonic(), tokens)
@@ -85,11 +114,10 @@ class Worker:
                 break
             if self._on_wait is not None:
                 self._on_wait(wait)
-            if self._stop.wait(wait):
-                return EndpointError("the mind is closing")
+            await asyncio.sleep(wait)
         handle = self.budget.spend(time.monotonic(), tokens)
         try:
-            reply = self.chat.complete(job.messages, job.tools, stop=self._stop, max_tokens=job.max_tokens)
+            reply = await chat.complete(job.messages, job.tools, max_tokens=job.max_tokens)
         except EndpointError as exc:
             return exc
         if reply.tokens is not None:
