@@ -20,12 +20,15 @@ from typing import Any
 import msgspec
 import pytest
 
+from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Event, MindMessage, MindState
+from cmion_mesh.minds.llm.mind import LlmMind
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 from .conftest import start_daemon
@@ -298,3 +301,20 @@ def test_a_mind_in_another_process_reads_the_bodys_tools_over_the_mesh(standin: 
         assert "You are now in the body robot" in first["messages"][-1]["content"]
         assert "(not known here" in first["messages"][-1]["content"], "a remote mind perceives the world's changes only"
         assert tool_messages(second) == ["succeeded"]
+
+
+def test_close_ends_a_request_in_flight(standin: StandIn, tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
+    standin.script({"delay": 60, "content": "never read"})
+    settings = tmp_path / "llm.toml"
+    settings.write_text(SETTINGS.format(timeout=120, stream="false", rpm=600, cap=8))
+    mind = LlmMind("mind", str(settings))
+    with MemoryTransport(network, "robot") as t:
+        body = Embodiment("robot", mesh=mesh, transport=t, rules=embodiment_dir("robot") / "CompetencyManagerRules.xml",
+                          components=[mind]).start()
+        try:
+            wait_for(lambda: len(standin.requests()) == 1, 20, "the arrival turn is at the endpoint, which holds it")
+            assert mind.running
+        finally:
+            body.close()
+        assert not mind.running, "the worker stopped although the endpoint had not answered"
+        assert mind.conversation.messages == [] and mind.conversation.inbox, "nothing committed, nothing lost"
