@@ -350,3 +350,15 @@ def test_an_action_that_ends_while_the_mind_sleeps_leaves_the_conversation_as_it
     assert seen["asleep"]["calls"][0]["result"] is None, "asleep: the state stays what a migration would have packed"
     assert seen["awake"]["calls"] == [] and seen["awake"]["messages"][-1] == {"role": "tool", "tool_call_id": "c1",
                                                                               "content": "succeeded"}
+
+
+def test_without_the_client_library_the_configuration_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+
+    from cmion_mesh.classes import construct
+    from cmion_mesh.ion import Component
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "openai" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"robot.xml:3: .*needs the openai package: pip install 'cmion-mesh\[llm\]'"):
+        construct("cmion_mesh.minds.llm.mind:LlmMind", Component, ["mind", str(embodiment_dir("llm.toml"))], path="robot.xml", line=3)

@@ -30,6 +30,7 @@ settings file, ``minds.llm.settings``). What it does, all on the update loop exc
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import time
 from collections.abc import Callable
@@ -39,7 +40,7 @@ import msgspec
 
 from cmion_mesh import keys, logs
 from cmion_mesh.body.abilities import Ability, Parameter
-from cmion_mesh.errors import InvalidArguments, MeshError
+from cmion_mesh.errors import ConfigError, InvalidArguments, MeshError
 from cmion_mesh.messages import ActionReport, Describe, Outcome
 from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.minds.llm.budget import TurnCount, backoff
@@ -73,6 +74,8 @@ class LlmMind(Mind):
         if name.strip().lower().endswith(".toml") and not settings:
             name, settings = "mind", name.strip()
         super().__init__(name, awake=awake)
+        if importlib.util.find_spec("openai") is None:
+            raise ConfigError("the language-model mind needs the openai package: pip install 'cmion-mesh[llm]'")
         self.settings: LlmSettings = load_settings(settings.strip() or None)
         self.conversation = Conversation()
         self.tools: list[dict[str, Any]] = []
