@@ -259,6 +259,14 @@ BENCHMARKS: list[Benchmark] = [
         default=False,
     ),
     Benchmark(
+        "llm",
+        "bench.llm:run",
+        ("llm",),
+        "a language-model mind's tool call (stand-in endpoint answering at once) -> the result back at the model, "
+        "beside MeshClient.act",
+        default=False,
+    ),
+    Benchmark(
         "soak",
         "bench.soak:run",
         (),

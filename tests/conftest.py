@@ -158,6 +158,8 @@ TIERS: dict[str, str] = {
     "test_statedir": "unit",
     "test_storage": "unit",
     "test_tap": "mesh",
+    "test_llm_mind": "mesh",
+    "test_llm_unit": "unit",
     "test_log_catalogue": "unit",
     "test_log_daemons": "mesh",
     "test_logs": "unit",

@@ -25,7 +25,7 @@ def bench(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
 
 # Two halves and the soak as three tests: each half runs a few seconds, and the suite's two
 # workers share them instead of one worker running all at its end.
-QUICK = ("core,actions,mindproto,eventcpu", "discovery,idle,migration")
+QUICK = ("core,actions,mindproto,eventcpu", "discovery,idle,migration,llm")
 
 
 @pytest.mark.timeout(240)

@@ -1,5 +1,5 @@
 """``mcp``: an MCP server for a companion, so that any MCP client drives the body it lives in
-(docs/mcp.md). The server itself is ``tools/mcp_server.py``."""
+(docs/llm.md). The server itself is ``tools/mcp_server.py``."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def mcp_arguments(p: argparse.ArgumentParser) -> None:
                      "lives in now (they change, with a list-changed notification, when it migrates), plus migrate and "
                      "peers; its resources are that body's world model and blackboard (subscribe to follow changes). "
                      "Over stdio by default (what desktop clients start), or streamable HTTP with --http. Read-only "
-                     "unless --allow-actions: tools are listed, calls that act are refused. See docs/mcp.md.")
+                     "unless --allow-actions: tools are listed, calls that act are refused. See docs/llm.md.")
     p.add_argument("companion", help="the companion to serve, e.g. spirit")
     p.add_argument("--http", nargs="?", const=DEFAULT_HTTP, metavar="HOST:PORT",
                    help=f"serve streamable HTTP at /mcp instead of stdio (default address: {DEFAULT_HTTP}; loopback "
