@@ -284,7 +284,7 @@ def test_version_validate_and_up_judge_alike(tmp_path: Path) -> None:
     folder = real_cli("validate", "robot", "--json")
     assert folder.returncode == 0, folder
     checked = json.loads(folder.stdout)
-    assert len(checked) == 4 and all(c["ok"] for c in checked), checked
+    assert len(checked) == 5 and all(c["ok"] for c in checked), checked
     assert {c["kind"] for c in checked} == {"ArchitectureConfiguration", "CompetencyLibrary", "CompetencyManagerRules", "WorldModel"}
     wings = tmp_path / "wings.xml"
     wings.write_text(WINGS_RULES)
