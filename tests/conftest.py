@@ -127,6 +127,8 @@ TIERS: dict[str, str] = {
     "test_keys": "unit",
     "test_lan": "system",
     "test_launch": "mesh",
+    "test_ledger": "unit",
+    "test_ledger_crash": "mesh",
     "test_manager": "unit",
     "test_migration": "unit",
     "test_migration_crash": "mesh",

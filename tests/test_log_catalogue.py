@@ -22,6 +22,7 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.body.rules import load_rules
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Act, MindMessage
+from cmion_mesh.migration.ledger import read_ledger
 from cmion_mesh.minds.fatima.connector import FAtiMAConnector
 from cmion_mesh.presence import Presence
 from cmion_mesh.requests import send_request
@@ -90,8 +91,7 @@ def number(value: Any) -> float:
 def secrets_of(state: Path) -> list[str]:
     """Every custody private key kept in a state folder, in the forms a line could hold it."""
     found = []
-    for path in state.glob("*.key"):
-        raw = path.read_bytes()
+    for raw in read_ledger(state).keys.values():
         found += [raw.hex(), base64.b64encode(raw).decode(), base64.urlsafe_b64encode(raw).decode().rstrip("=")]
         found += [line.strip() for line in raw.decode("ascii", "replace").splitlines() if len(line.strip()) >= 16]
     return [s for s in found if len(s) >= 16]

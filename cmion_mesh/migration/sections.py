@@ -56,10 +56,42 @@ def cache_bound() -> int:
     return int(env_limit(MAX_CACHE_ENV, MAX_CACHE, low=1, high=2**50, unit="bytes"))
 
 
+class Fsyncs:
+    """How many times this process made its migration state durable, by kind: ``append`` (an entry
+    of the ledger, ``fdatasync``), ``compact`` (the ledger rewritten), ``file`` (a section or another
+    file) and ``folder`` (a folder, so that a name given is durable). Thread-safe; the benchmark
+    reads them (``describe``'s ``ledger``) to count the fsyncs of one migration on each side."""
+
+    KINDS = ("append", "compact", "file", "folder")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts = dict.fromkeys(self.KINDS, 0)
+
+    def count(self, kind: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[kind] += n
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            counts = dict(self._counts)
+        counts["total"] = sum(counts.values())
+        return counts
+
+
+#: This process's counts (one daemon per process: its ledger's).
+FSYNCS = Fsyncs()
+
+
+def fsync_file(fd: int, kind: str = "file") -> None:
+    os.fsync(fd)
+    FSYNCS.count(kind)
+
+
 def fsync_folder(folder: Path) -> None:
     fd = os.open(folder, os.O_RDONLY)
     try:
-        os.fsync(fd)
+        fsync_file(fd, "folder")
     finally:
         os.close(fd)
 
@@ -90,7 +122,7 @@ def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | 
             view = memoryview(entries[i][1])
             while view:
                 view = view[os.write(fd, view):]
-            os.fsync(fd)
+            fsync_file(fd)
         finally:
             os.close(fd)
 
@@ -400,7 +432,7 @@ class IncomingSection:
         assert self._fd is not None
         fd, self._fd = self._fd, None
         try:
-            os.fsync(fd)
+            fsync_file(fd)
         finally:
             os.close(fd)
         try:
