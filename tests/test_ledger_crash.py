@@ -17,6 +17,7 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Migrate, MindMessage
 from cmion_mesh.migration.journal import BOUND_ENV, LOG
+from cmion_mesh.migration.ledger import read_ledger
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
@@ -28,8 +29,10 @@ from .test_migration_crash import Watcher, inhabitants, settle
 pytestmark = pytest.mark.timeout(180)
 
 CASES = [
-    # A torn entry is no step: the state before it is the durable one.
-    ("ledger:torn:prepared", "robot", "robot"),     # never prepared: the source resumes
+    # A torn entry is no step: the state before it is the durable one. Torn at prepared, that is
+    # the companion as it was born: what its mind learnt since lived in memory only (the identity
+    # is stored at a clean stop or a migration), so it resumes as it was last stored.
+    ("ledger:torn:prepared", "robot", "robot"),
     ("ledger:torn:handed", "robot", "robot"),       # never handed: the source aborts and resumes
     ("ledger:torn:released", "robot", "screen"),    # still handed: the restarted source commits again
     ("ledger:torn:incoming", "screen", ("robot", "screen")),  # never incoming: the source's retry decides
@@ -76,12 +79,14 @@ def test_kill_inside_the_ledger_at_each_step(nodes: tuple[Node, Node], mesh: str
             assert started.status == "accepted", started
             assert side.died() == -9, f"{side.name} did not die at {crash_at}"
             side.start()  # restart on the same state, no crash point
-            settle(client, home, notes)  # exactly one host, its memory unchanged
+            durable = [] if crash_at == "ledger:torn:prepared" else notes
+            settle(client, home, durable)  # exactly one host, its identity as it was last made durable
         finally:
             watcher.close()
         assert not watcher.both, f"two inhabited embodiments seen: {watcher.both[:3]}"
         assert watcher.samples > 0
-    leftovers = [p.name for p in side.state.iterdir() if p.name.startswith(f".{LOG}")]
+    dead = side.history[-2].proc.pid
+    leftovers = [p.name for p in side.state.iterdir() if p.name.startswith(f".{LOG}.{dead}.")]
     assert not leftovers, f"the compaction's temporary file is swept at the restart: {leftovers}"
 
 
@@ -99,6 +104,7 @@ def test_a_restart_after_a_torn_entry_goes_on_appending(nodes: tuple[Node, Node]
         screen.start()
         settle(client, "screen", ["met Ada"])
         client.request("screen", "mind", "message", MindMessage({"note": "on the screen"}))
+        wait_for(lambda: read_ledger(robot.state).records["spirit"].state == "released", 30, "the robot released it")
         client.migrate("spirit", "robot", timeout=30)
         settle(client, "robot", ["met Ada", "on the screen"])
         assert screen.daemon is not None
