@@ -122,6 +122,8 @@ TIERS: dict[str, str] = {
     "test_handshake": "unit",
     "test_handshake_simulation": "unit",
     "test_hostile_inputs": "unit",
+    "test_idle": "mesh",
+    "test_inbox": "unit",
     "test_invitations": "unit",
     "test_ion": "unit",
     "test_keys": "unit",
