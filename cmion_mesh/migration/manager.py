@@ -47,7 +47,8 @@ Threads (each part's docstring says which of its methods runs where):
 
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
-SIGKILL right after writing that record (``host.crash_point``): the crash tests use it.
+SIGKILL right after writing that record; the ledger's own points (a torn append, a compaction cut
+short) are named in ``crash``. The crash tests use them.
 
 Log lines: the steps of each side are ``outgoing``'s and ``incoming``'s; here, at info, a companion
 ``born`` here and ``resumed`` here (fields ``companion``, ``epoch``, ``step``, ``reason``), and at
