@@ -87,6 +87,8 @@ def convergence_rows(options: Options) -> list[Row]:
         block[1].failures.extend(p.problems)
         compare(block, {f"convergence_{p.n}": f"convergence_raw_{p.n}", f"rss_{p.n}": f"rss_raw_{p.n}"}, None)
         rows += block
+    # Idle CPU per daemon is flat when it does not grow with the mesh: each size against the smallest.
+    compare(rows, {f"cpu_{n}": f"cpu_{sizes[0]}" for n in sizes[1:]}, None)
     return rows
 
 
