@@ -132,6 +132,11 @@ class Handle:
         self.close()
 
 
+#: The zenoh link lease of a daemon by default (ms): zenoh's own. Each link carries four keep-alives
+#: per lease while idle, so a shorter lease is work per peer that grows with the mesh.
+LEASE_MS = 10000
+
+
 @dataclass(frozen=True, slots=True)
 class TransportConfig:
     """How to join the mesh.
