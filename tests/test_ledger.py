@@ -265,3 +265,25 @@ def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, m
 def client(network: MemoryNetwork, mesh: str) -> Iterator[MeshClient]:
     with MemoryTransport(network, "cli") as t:
         yield MeshClient(t, mesh)
+
+
+def test_an_append_that_fails_leaves_nothing_of_itself_and_the_next_one_follows(tmp_path: Path,
+                                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    from cmion_mesh.migration import journal
+
+    folder = tmp_path / "state"
+    records = Records(folder, bound=1 << 30)
+    active, _document, _key = born(records)
+    size = (folder / LOG).stat().st_size
+
+    def full(_fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(journal.os, "fdatasync", full)
+    with pytest.raises(OSError):
+        records.put(msgspec.structs.replace(active, state="prepared", seq=1, attempt="a1", peer="screen"))
+    monkeypatch.undo()
+    assert (folder / LOG).stat().st_size == size, "the failed entry is cut off at once"
+    handed = records.put(msgspec.structs.replace(active, state="prepared", seq=1, attempt="a2", peer="screen"))
+    records.close()
+    assert Records(folder).get("spirit") == handed

@@ -21,6 +21,7 @@ Threads: a ``Journal`` is its owner's (``ledger.Records``, which holds its lock 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import struct
@@ -138,14 +139,21 @@ class Journal:
             os.write(self._fd, data[:max(1, len(data) // 2)])
             os.fdatasync(self._fd)
             crash.die(f"ledger:torn:{state}")
-        view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view):]
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            if sync:
+                os.fdatasync(self._fd)
+                FSYNCS.count("append")
+        except OSError:
+            # A full disk, say: the step failed (the caller is told), and what was written of it
+            # goes, so that the next entry does not follow a broken one (read as damage at start).
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self.size)
+            raise
         self.size += len(data)
         self.appends += 1
-        if sync:
-            os.fdatasync(self._fd)
-            FSYNCS.count("append")
 
     def due(self) -> bool:
         """Whether the log has grown past its bound."""

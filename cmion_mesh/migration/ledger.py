@@ -221,6 +221,15 @@ class Records:
                 log.info("removing %s, left by an interrupted write", path)
                 path.unlink(missing_ok=True)
 
+    def _compact(self, state: str) -> None:
+        """Rewrite the ledger as it stands (a former host's key leaves the disk with it). The step
+        before is durable already: a compaction that fails is said, and tried again at the next one."""
+        try:
+            self.journal.rewrite(self._current(), state)
+        except OSError as exc:
+            log.warning("the migration ledger %s could not be compacted (tried again at the next step): %s", self.path,
+                        exc.strerror or exc)
+
     def close(self) -> None:
         with self._lock:
             self.journal.close()
@@ -265,7 +274,7 @@ class Records:
             if record.state == "dropped" and not record.chain:
                 self._forget_strangers()
             if secret_gone or self.journal.due():
-                self.journal.rewrite(self._current(), record.state)  # a former host's key leaves the disk
+                self._compact(record.state)
         if self.sections.size > self.sections.max_cache:
             self.sections.evict(self.referenced())
         return record
