@@ -145,7 +145,14 @@ def test_a_replayed_prepare_never_loses_the_companion(trio: tuple[Node, Node, No
             started = client.request("b", "migration", "migrate", Migrate("spirit", "a"))
             assert started.status == "accepted"
             assert a.died() == -9
-            captured = [p for k, p in capture.prepares() if k.endswith("/a/rq/migration/prepare/b")]
+            captured: list[MigratePrepare] = []
+
+            def overheard() -> bool:  # handed to this process's handlers on a thread of the transport: may lag
+                captured.extend(p for k, p in capture.prepares() if k.endswith("/a/rq/migration/prepare/b"))
+                return bool(captured)
+
+            with contextlib.suppress(TimeoutError):
+                wait_for(overheard, 5, "the prepare to a overheard")
         finally:
             capture.handle.close()
         assert captured, "the prepare to a was overheard"

@@ -48,7 +48,7 @@ from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, read_manifest
 from cmion_mesh.migration.journal import LOG, Journal, scan
-from cmion_mesh.migration.sections import FSYNCS, SECTIONS, SectionStore, fsync_folder
+from cmion_mesh.migration.sections import FSYNCS, SECTIONS, SectionStore, fsync_folder, write_files
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)
@@ -60,6 +60,9 @@ HOSTING: frozenset[str] = frozenset({"active", "prepared", "handed", "incoming"}
 MAX_RECORD = 4 * 1024 * 1024
 #: Records of companions only refused or dropped here, kept to refuse replays; the oldest go beyond this.
 MAX_STRANGERS = 64
+#: Sections of one step together at most this many bytes travel inside its ledger entry (one
+#: append makes them durable) rather than each in a synced file of its own.
+INLINE_SECTIONS = 256 * 1024
 _DOCUMENT = re.compile(r"^(?P<companion>.+)\.(?P<digest>[0-9a-f]{64})\.identity\.xml$")
 
 
@@ -99,6 +102,9 @@ class Entry(msgspec.Struct, frozen=True, omit_defaults=True):
     record: Record | None = None
     document: bytes | None = None
     key: bytes | None = None
+    #: small sections the document names (sha256 -> bytes), durable in this entry: their files are
+    #: written without fsync, synced before a compaction drops them, rewritten at start if lost
+    sections: dict[str, bytes] | None = None
 
 
 class Records:
@@ -115,6 +121,8 @@ class Records:
         self._keys: dict[str, bytes] = {}  # companion -> this embodiment's custody private key
         #: companion -> the file its document was migrated from: kept, and named by errors, until replaced
         self._origin: dict[str, Path] = {}
+        #: companion -> sections durable only in the ledger so far (their files are not synced)
+        self._unsynced: dict[str, dict[str, bytes]] = {}
         self._manifests: dict[str, frozenset[str]] = {}  # document sha256 -> the sections it names
         self.sections = SectionStore(self.dir / SECTIONS, max_cache)
         self.journal = Journal(self.dir, bound)
@@ -122,6 +130,7 @@ class Records:
         for offset, payload in self.journal.entries:
             self._replay(self._decode(payload, offset))
         self.journal.entries = []
+        self._restore_sections()
         legacy = sorted(self.dir.glob("*.record.json"))
         if legacy and self.journal.empty:
             self._migrate(legacy)
@@ -150,10 +159,12 @@ class Records:
     def _replay(self, entry: Entry) -> None:
         companion, record = entry.companion, entry.record
         if record is None:
-            for held in (self._cache, self._documents, self._keys):
+            for held in (self._cache, self._documents, self._keys, self._unsynced):
                 held.pop(companion, None)
             return
         self._cache[companion] = record
+        if entry.sections:
+            self._unsynced.setdefault(companion, {}).update(entry.sections)
         if entry.document is not None:
             self._documents[companion] = entry.document
         if entry.key is not None:
@@ -162,10 +173,31 @@ class Records:
             self._documents.pop(companion, None)
         if record.state not in HOSTING:
             self._keys.pop(companion, None)
+            self._unsynced.pop(companion, None)  # a cache from now on: nothing to keep durable
+
+    def _restore_sections(self) -> None:
+        """At start: the sections held only by the ledger, written again where their file is missing or
+        of another size (what a power cut leaves of an unsynced write), durably this time. A file of
+        the right size whose bytes are not its own is left as it is: altered at rest, it is reported
+        (``damaged``), never quietly repaired."""
+        lost: dict[str, bytes] = {}
+        for sections in self._unsynced.values():
+            for digest, data in sections.items():
+                try:
+                    intact = self.sections.path(digest).stat().st_size == len(data)
+                except OSError:
+                    intact = False
+                if not intact:
+                    lost[digest] = data
+        if lost:
+            log.warning("rewriting %d section(s) of %s from its ledger (their files were lost)", len(lost), self.dir)
+            self.sections.write(lost, replace=True)
+        self.sections.sync_files(d for sections in self._unsynced.values() for d in sections)
+        self._unsynced.clear()
 
     def _current(self) -> list[bytes]:
         """The state now, one entry a companion: what compaction writes."""
-        return [msgspec.msgpack.encode(Entry(c, r, self._documents.get(c), self._keys.get(c)))
+        return [msgspec.msgpack.encode(Entry(c, r, self._documents.get(c), self._keys.get(c), self._unsynced.get(c)))
                 for c, r in self._cache.items()]
 
     def _migrate(self, paths: list[Path]) -> None:
@@ -225,6 +257,9 @@ class Records:
         """Rewrite the ledger as it stands (a former host's key leaves the disk with it). The step
         before is durable already: a compaction that fails is said, and tried again at the next one."""
         try:
+            if self._unsynced:
+                self.sections.sync_files(d for sections in self._unsynced.values() for d in sections)
+                self._unsynced.clear()
             self.journal.rewrite(self._current(), state)
         except OSError as exc:
             log.warning("the migration ledger %s could not be compacted (tried again at the next step): %s", self.path,
@@ -246,13 +281,17 @@ class Records:
 
     def put(self, record: Record, document: bytes | None = None, sections: Mapping[str, Bytes] | None = None,
             key: bytes | None = None, *, replace: bool = False) -> Record:
-        """Write ``record``: first the ``sections`` it names (with ``replace``, even those of a name
-        already here), then one entry with the record, this embodiment's custody ``key`` and
-        ``document`` (named by its hash, sealed with the custody key)."""
+        """Write ``record``: one entry with the record, this embodiment's custody ``key`` and
+        ``document`` (named by its hash, sealed with the custody key), and the ``sections`` it names
+        that are not here yet (with ``replace``, even those of a name already here): inside the
+        entry when they are small (``INLINE_SECTIONS``; their files then written unsynced), else
+        each in a synced file before the entry."""
         companion = keys.check_name(record.companion, "companion")
+        files = self.sections.files(sections, replace=replace) if sections else []
+        inline = record.state in HOSTING and sum(len(data) for _, data in files) <= INLINE_SECTIONS
+        if files and not inline:
+            write_files(files)  # large: synced files of their own, written before the lock (the loop reads records)
         with self._lock:
-            if sections:
-                self.sections.write(sections, replace=replace)
             if document is not None:
                 digest = custody.digest(document).hex()
                 private = key if key is not None else self._keys.get(companion)
@@ -263,8 +302,11 @@ class Records:
                 document = key = None
             record = msgspec.structs.replace(record, updated=time.time())
             secret_gone = record.state not in HOSTING and companion in self._keys
-            entry = Entry(companion, record, document, key)
+            carried = {path.name: bytes(data) for path, data in files} if files and inline else None
+            entry = Entry(companion, record, document, key, carried)
             self.journal.append(msgspec.msgpack.encode(entry), record.state)
+            if carried:
+                write_files(files, durable=False)  # durable in the entry; synced before a compaction drops it
             self._replay(entry)
             origin = self._origin.pop(companion, None) if document is not None or record.state not in HOSTING else None
             if origin is not None:

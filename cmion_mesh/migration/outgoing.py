@@ -325,8 +325,7 @@ class Outgoing:
             # prepare itself) travel: a crash from here on is the crash at source:prepared (never
             # handed: the source resumes). It is joined before anything acts on the prepare's answer.
             try:
-                host.records.sections.write(packed.data)
-                written.append(host.records.put(prepared, document=packed.manifest))
+                written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
             except OSError as exc:
                 stored.append(exc)
                 return
