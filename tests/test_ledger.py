@@ -309,13 +309,14 @@ def test_small_sections_are_durable_in_their_entry_and_rewritten_if_their_file_w
 
 def test_a_compaction_syncs_the_sections_first_and_carries_them_no_more(tmp_path: Path) -> None:
     folder = tmp_path / "state"
-    records = Records(folder, bound=1 << 30)
+    records = Records(folder, bound=50_000)  # the entry below is past it: compacted right after
     active, _document, _key = born(records)
-    blob = {"mind": {"entries": ["x" * 100_000]}}
-    grown = Identity("spirit", 1, blob).pack_sections()
+    grown = Identity("spirit", 1, {"mind": {"entries": ["x" * 100_000]}}).pack_sections()
+    before = FSYNCS.snapshot()
     records.put(active, document=grown.manifest, sections=grown.data)
-    assert (folder / LOG).stat().st_size > 100_000
-    records._compact("active")
+    after = FSYNCS.snapshot()
+    assert after["file"] - before["file"] >= len(grown.data) and after["compact"] - before["compact"] == 1
     assert (folder / LOG).stat().st_size < 10_000, "the sections are in their synced files now, not in the ledger"
     records.close()
-    assert Records(folder).identity("spirit") == Identity("spirit", 1, blob, 2)
+    again = Records(folder)
+    assert again.identity("spirit") == Identity("spirit", 1, {"mind": {"entries": ["x" * 100_000]}}, 2)
