@@ -2,7 +2,8 @@
 
 For each mesh size N, the measuring process (a zenoh peer listening on a loopback endpoint, with
 a liveliness subscriber on the mesh's ``@alive`` keys) first spawns N raw zenoh processes at once
-(``python -m bench.rawtoken``: a session connected to the watcher, one liveliness token),
+(``python -m bench.rawtoken``: a session connected to the watcher and listening on a loopback port
+of its own, as a daemon does, so that they form the same full mesh; one liveliness token),
 waits until it has seen every token, samples their memory and stops them; then it spawns N
 ``cmion-mesh up`` daemons of the bench embodiment at once (each listening on its own loopback
 port, connecting to the watcher; zenoh's gossip lets them find each other through it) and takes
@@ -10,7 +11,8 @@ the time until every token has been seen *and* every daemon has answered a ``des
 after a settling second, ``/proc`` gives each process's resident memory and threads, and a
 window of 2 s (quick 1 s) its CPU. All of it on this 2-core machine: with many processes the
 times are dominated by starting Python processes in parallel, which the rows separate out
-(spawn -> last "up in mesh" line). Each size is measured twice (once with ``--quick`` and for
+(spawn -> last "up in mesh" line). The raw processes' idle CPU is sampled over the same window:
+each zenoh peer of a mesh of N keeps N-1 links alive, whatever runs above it. Each size is measured twice (once with ``--quick`` and for
 32 daemons); memory, threads and CPU are per process, pooled over the repeats.
 """
 
@@ -48,6 +50,7 @@ class Point:
     raw_rss: list[float] = field(default_factory=list)
     mesh_rss: list[float] = field(default_factory=list)
     raw_threads: list[float] = field(default_factory=list)
+    raw_cpu: list[float] = field(default_factory=list)
     mesh_threads: list[float] = field(default_factory=list)
     mesh_cpu: list[float] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
@@ -84,13 +87,18 @@ def measure_once(point: Point, window: float) -> None:
         raws: list[Stamped] = []
         try:
             t0 = time.perf_counter()
-            raws = [token_child(f"{alive}/raw{j}", watch_ep, f"raw{j}") for j in range(n)]
+            # Each listening on a port of its own, as the daemons do: the raw peers form the same full
+            # mesh (N-1 links each, found by gossip) rather than a star around the watcher.
+            raws = [token_child(f"{alive}/raw{j}", watch_ep, f"raw{j}", listen=loopback_endpoint()) for j in range(n)]
             point.raw_converged.append(watcher.wait_all([f"raw{j}" for j in range(n)], alive, 60.0 + 5 * n) - t0)
             threading.Event().wait(1.0)
+            raw_first = {child.proc.pid: proc_sample(child.proc.pid) for child in raws}
+            threading.Event().wait(window)
             for child in raws:
                 sample = proc_sample(child.proc.pid)
                 point.raw_rss.append(sample.rss_mb)
                 point.raw_threads.append(float(sample.threads))
+                point.raw_cpu.append(cpu_percent(raw_first[child.proc.pid], sample))
         finally:
             stop_children(raws)
 

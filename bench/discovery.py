@@ -93,9 +93,11 @@ class Watcher:
         self.handle.close()
 
 
-def token_child(key: str, connect: str, name: str) -> Stamped:
-    """``bench.rawtoken`` declaring ``key``, connected to ``connect`` with ``ZenohTransport``'s settings."""
-    argv = [sys.executable, "-m", "bench.rawtoken", key, json.dumps(settings(loopback_config(connect=connect))), str(os.getpid())]
+def token_child(key: str, connect: str, name: str, listen: str = "") -> Stamped:
+    """``bench.rawtoken`` declaring ``key``, connected to ``connect`` with ``ZenohTransport``'s settings
+    (and listening on ``listen``, if given: then peers that gossip find it, as they find a daemon)."""
+    config = loopback_config(connect=connect, listen=listen) if listen else loopback_config(connect=connect)
+    argv = [sys.executable, "-m", "bench.rawtoken", key, json.dumps(settings(config)), str(os.getpid())]
     return Stamped(argv, env=bench_env(), name=name)
 
 

@@ -81,11 +81,14 @@ def convergence_rows(options: Options) -> list[Row]:
             Row(f"rss_raw_{p.n}", f"{p.n} raw zenoh processes: memory per process", summarize(p.raw_rss, 1.0), unit="MiB", extra=raw_mem),
             Row(f"rss_{p.n}", f"{p.n} daemons: memory per daemon", summarize(p.mesh_rss, 1.0), unit="MiB", extra=mem),
             Row(f"threads_{p.n}", f"{p.n} daemons: threads per daemon", summarize(p.mesh_threads, 1.0), unit="threads"),
+            Row(f"cpu_raw_{p.n}", f"{p.n} raw zenoh processes: idle CPU per process", summarize(p.raw_cpu, 1.0), unit="%",
+                extra=curve("idle_cpu", "idle CPU per process vs daemons", "daemons", p.n, "raw zenoh process")),
             Row(f"cpu_{p.n}", f"{p.n} daemons: idle CPU per daemon", summarize(p.mesh_cpu, 1.0), unit="%",
-                extra=curve("idle_cpu", "idle CPU per daemon vs daemons", "daemons", p.n, "cmion daemon")),
+                extra=curve("idle_cpu", "idle CPU per process vs daemons", "daemons", p.n, "cmion daemon")),
         ]
         block[1].failures.extend(p.problems)
-        compare(block, {f"convergence_{p.n}": f"convergence_raw_{p.n}", f"rss_{p.n}": f"rss_raw_{p.n}"}, None)
+        compare(block, {f"convergence_{p.n}": f"convergence_raw_{p.n}", f"rss_{p.n}": f"rss_raw_{p.n}",
+                        f"cpu_{p.n}": f"cpu_raw_{p.n}"}, None)
         rows += block
     return rows
 

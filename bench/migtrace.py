@@ -110,10 +110,10 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
 def install() -> None:
     from cmion_mesh import ion
     from cmion_mesh.migration import custody, handshake, identity, signing
-    from cmion_mesh.migration import ledger as records_module
     from cmion_mesh.migration import manager as migration
     from cmion_mesh.migration import sections as sections_module
     from cmion_mesh.migration.incoming import Incoming
+    from cmion_mesh.migration.journal import Journal
     from cmion_mesh.migration.ledger import Records
     from cmion_mesh.migration.manager import MigrationManager
     from cmion_mesh.migration.outgoing import Outgoing
@@ -121,17 +121,16 @@ def install() -> None:
     from cmion_mesh.migration.uploads import Uploads
     from cmion_mesh.transport import zenoh as zenoh_transport
 
-    def write_label(_self: Any, name: str, _data: bytes) -> str:
-        kind = "document" if name.endswith(".identity.xml") else "record" if name.endswith(".record.json") \
-            else "key" if name.endswith(".key") else "file"
-        return f"write+fsync:{kind}"
+    def append_label(_self: Any, _payload: bytes, state: str = "", **_k: Any) -> str:
+        return f"ledger append+fdatasync:{state or 'entry'}"
 
     def request_label(_transport: Any, key: str, *_a: Any, **_k: Any) -> str:
         return f"send_request:{request_of(key)}"
 
-    wrap(Records, "_write", write_label)
-    for module in (records_module, sections_module):  # the records' batches, and the sections' own
-        wrap(module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
+    wrap(Journal, "append", append_label)
+    wrap(Journal, "rewrite", "ledger compaction")
+    wrap(Records, "put", lambda _self, record, *_a, **_k: f"Records.put:{record.state}")
+    wrap(sections_module, "write_files", lambda files, last=None: f"write+fsync:batch of {len(files)}{' + record' if last else ''}")
     wrap(zenoh_transport.ZenohTransport, "declare_token", "zenoh:declare_token")
     wrap(SectionStore, "write", "write+fsync:sections")
     wrap(IncomingSection, "add", "section chunk: copy+hash (write beside)")

@@ -47,20 +47,28 @@ TARGETS: tuple[Target, ...] = (
     Target("fanout_mesh_4", "events/s, 4 subscriber processes", "ratio >=", 0.5, "issue 15"),
     Target("fanout_mesh_8", "events/s, 8 subscriber processes", "ratio >=", 0.5, "issue 15"),
     Target("wildcard_mesh_100000", "wildcard get, 100k properties", "ratio <=", 1.5, "issue 15"),
-    Target("migration_1mib", "migration 1 MiB (vs raw transfer + fsync)", "ratio <=", 2.0, "issue 15"),
-    Target("migration_10mib", "migration 10 MiB (vs raw transfer + fsync)", "ratio <=", 2.0, "issue 15"),
     Target("act_one_client", "`MeshClient.act` from another process", "median <=", 0.6, "issue 15"),
     Target("mesh_token_seen", "daemon start -> discovered", "ratio <=", 1.3, "issue 15"),
     Target("migration_return_10mib_delta", "return migration, 10 MiB identity, one 10 KiB section changed: time",
            "median <", 20.0, "issue 15"),
     Target("migration_return_10mib_delta_sent", "the same: bytes sent (% of the document)", "median <", 1.0, "issue 15", "%"),
+    # issue 32: cost at the floor (issue 15's 2x for migrations is below the handshake's floor: issue
+    # 32 measured it at 2.5-3x, three durable points in sequence and two round trips)
+    Target("migration_1mib", "migration 1 MiB (vs raw transfer + fsync)", "ratio <=", 3.0, "issue 32"),
+    Target("migration_10mib", "migration 10 MiB (vs raw transfer + fsync)", "ratio <=", 3.0, "issue 32"),
+    Target("migration_10kib", "migration 10 KiB: command -> awake at target", "median <", 5.0, "issue 32"),
+    Target("daemon_cpu", "idle daemon: CPU (vs an idle raw zenoh peer)", "ratio <=", 2.0, "issue 32"),
+    Target("daemon_threads", "idle daemon: threads", "median <=", 12.0, "issue 32", "threads"),
+    Target("daemon_rss", "idle daemon: memory (vs an idle raw zenoh peer)", "ratio <=", 1.5, "issue 32"),
+    Target("cpu_2", "idle CPU per daemon, 2 daemons (vs a raw zenoh peer in a mesh of 2)", "ratio <=", 2.0, "issue 32"),
+    Target("cpu_16", "idle CPU per daemon, 16 daemons (vs a raw zenoh peer in a mesh of 16)", "ratio <=", 2.0, "issue 32"),
+    Target("convergence_16", "16 daemons: spawn all -> every token seen + described", "ratio <=", 2.0, "issue 32"),
     # earlier issues, still held
     Target("mesh_property_get", "property get round trip", "ratio <=", 1.5, "issue 6"),
     Target("act_one_daemon", "action One -> succeeded, mind in the daemon", "median <=", 2.0, "issue 3"),
     Target("fatima_one", "FAtiMA line -> ACTION-FINISHED", "median <=", 20.0, "issue 14: beside CMION's ~200 ms; a tenth of it"),
     Target("cli_peers", "`cmion-mesh peers --json`, process start to exit", "median <=", 400.0, "issue 10, an aim"),
     Target("cli_bb_get", "`cmion-mesh bb get`, process start to exit", "median <=", 400.0, "issue 10, an aim"),
-    Target("migration_10kib", "migration 10 KiB: command -> awake at target", "median <=", 50.0, "issue 6"),
     Target("convergence_32", "32 daemons: spawn all -> every token seen + described (`--full`)", "median <=", 5.0, "issue 6", "s"),
 )
 

@@ -1,12 +1,13 @@
 """Competencies: the units of work a body can do, and what a running one sees (``RunContext``).
 
 A competency has a unique name, a type (plans ask for types, several competencies may share
-one), an availability flag and the constructor parameters it was built with. Each competency owns
-one worker thread (it is bound to a sensor or actuator, so it runs one execution at a time): its
-``run`` gets the step's run parameters and a ``RunContext`` and returns True (succeeded) or False
-(failed); an exception counts as failure with its message as the reason. Cancellation is
-cooperative: ``ctx.cancelled`` is set and ``ctx.wait`` returns early; a run that ends after a
-cancel is reported as cancelled whatever it returns.
+one), an availability flag and the constructor parameters it was built with. Each competency runs
+one execution at a time (it is bound to a sensor or actuator), on a worker thread of its own that
+is there only while it has work: started by an ``execute``, it ends once no execution waits (an
+idle body holds no thread per competency). Its ``run`` gets the step's run parameters and a
+``RunContext`` and returns True (succeeded) or False (failed); an exception counts as failure with
+its message as the reason. Cancellation is cooperative: ``ctx.cancelled`` is set and ``ctx.wait``
+returns early; a run that ends after a cancel is reported as cancelled whatever it returns.
 
 **Background competencies** (sensors) have ``background = True``: they start when the embodiment
 loads and run until it stops. One that crashes or returns is reported with a
@@ -17,8 +18,8 @@ The library that names a body's competencies is read and built by ``body.library
 
 from __future__ import annotations
 
+import collections
 import logging
-import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -173,7 +174,6 @@ class RunResult:
 
 
 Done = Callable[[RunResult], None]
-_STOP = object()
 
 
 class Competency:
@@ -188,8 +188,8 @@ class Competency:
         self.constructor_parameters = constructor_parameters
         self.available = True
         self._sim: Simulation | None = None
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._thread: threading.Thread | None = None
+        self._pending: collections.deque[tuple[RunContext, Done]] = collections.deque()  # under _lock
+        self._thread: threading.Thread | None = None  # the worker, while there is work (or the background run)
         self._current: RunContext | None = None
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -211,8 +211,8 @@ class Competency:
 
     def start(self, sim: Simulation) -> None:
         self._sim = sim
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._work, name=f"competency-{self.name}", daemon=True)
+        if self.background and self._thread is None:
+            self._thread = threading.Thread(target=self._run_background, name=f"competency-{self.name}", daemon=True)
             self._thread.start()
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -221,10 +221,11 @@ class Competency:
             if self._current is not None:
                 self._current.cancelled.set()
         self._interrupt()
-        self._queue.put(_STOP)
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout)
-            if self._thread.is_alive():
+        with self._lock:
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
+            if thread.is_alive():
                 log.warning("competency %s did not stop within %.0f s", self.name, timeout)
 
     @property
@@ -236,7 +237,10 @@ class Competency:
         ctx = RunContext(self, run_id, parameters)
         with self._lock:
             self._current = ctx
-        self._queue.put((ctx, done))
+            self._pending.append((ctx, done))
+            if self._thread is None and not self._stopping.is_set():
+                self._thread = threading.Thread(target=self._work, name=f"competency-{self.name}", daemon=True)
+                self._thread.start()
         return ctx
 
     def cancel(self, run_id: str) -> None:
@@ -249,17 +253,17 @@ class Competency:
         """Wake a run blocked on something other than ``ctx.wait`` (after cancel or stop)."""
 
     def _work(self) -> None:
-        if self.background:
-            self._run_background()
-            return
+        """The worker: runs what is pending, and ends when nothing is (``execute`` starts another)."""
         while True:
-            item = self._queue.get()
-            if item is _STOP:
-                return
-            ctx, done = item
+            with self._lock:
+                if not self._pending:
+                    self._thread = None
+                    return
+                ctx, done = self._pending.popleft()
             result = self._execute_once(ctx)
             with self._lock:
-                self._current = None
+                if self._current is ctx:
+                    self._current = None
             try:
                 done(result)
             except Exception:

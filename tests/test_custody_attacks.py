@@ -9,7 +9,6 @@ an identity edited at rest. After each: exactly one host, its memory intact.
 from __future__ import annotations
 
 import contextlib
-import json
 import queue
 import shutil
 import threading
@@ -40,7 +39,8 @@ from cmion_mesh.messages import (
 from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.identity import Identity
-from cmion_mesh.migration.ledger import Record, Records
+from cmion_mesh.migration.journal import LOG, Journal
+from cmion_mesh.migration.ledger import Entry, Record, read_ledger
 from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.requests import send_request
 from cmion_mesh.testing.wait import wait_for
@@ -92,7 +92,7 @@ def homes(client: MeshClient, names: tuple[str, ...]) -> dict[str, Any]:
 
 
 def record_of(state: Path) -> Record | None:
-    return Records(state).get("spirit") if (state / "spirit.record.json").exists() else None
+    return read_ledger(state).records.get("spirit")
 
 
 @contextlib.contextmanager
@@ -145,7 +145,14 @@ def test_a_replayed_prepare_never_loses_the_companion(trio: tuple[Node, Node, No
             started = client.request("b", "migration", "migrate", Migrate("spirit", "a"))
             assert started.status == "accepted"
             assert a.died() == -9
-            captured = [p for k, p in capture.prepares() if k.endswith("/a/rq/migration/prepare/b")]
+            captured: list[MigratePrepare] = []
+
+            def overheard() -> bool:  # handed to this process's handlers on a thread of the transport: may lag
+                captured.extend(p for k, p in capture.prepares() if k.endswith("/a/rq/migration/prepare/b"))
+                return bool(captured)
+
+            with contextlib.suppress(TimeoutError):
+                wait_for(overheard, 5, "the prepare to a overheard")
         finally:
             capture.handle.close()
         assert captured, "the prepare to a was overheard"
@@ -185,7 +192,7 @@ def test_a_captured_prepare_holds_nothing_that_signs(trio: tuple[Node, Node, Nod
     """Plain mode: an eavesdropper sees the prepare, but no private key travels in it."""
     a, b, _ = trio
     with pair(trio, mesh) as (t, client):
-        source_key = (a.state / "spirit.key").read_bytes()
+        source_key = read_ledger(a.state).keys["spirit"]
         capture = Capture(t, mesh)
         try:
             client.migrate("spirit", "b", timeout=30)
@@ -193,11 +200,12 @@ def test_a_captured_prepare_holds_nothing_that_signs(trio: tuple[Node, Node, Nod
         finally:
             capture.handle.close()
         assert overheard
-        target_key = (b.state / "spirit.key").read_bytes()
+        target_key = read_ledger(b.state).keys["spirit"]
         for _, prepare in overheard:
             raw = encode(prepare)
             assert source_key not in raw and target_key not in raw, "a private key crossed the wire"
-        assert not (a.state / "spirit.key").exists(), "the former host's custody key is deleted"
+        assert "spirit" not in read_ledger(a.state).keys and source_key not in (a.state / LOG).read_bytes(), \
+            "the former host's custody key is deleted"
         # and the overheard prepare, replayed, is refused: the target already holds the companion
         refused = send_request(t, keys.request_key(mesh, "b", "migration", "prepare", "a"), overheard[0][1], timeout=5)
         assert refused.status == "rejected" and "holds 'spirit' itself" in refused.reason
@@ -230,8 +238,8 @@ def test_a_former_host_cannot_take_over_clone_or_wipe_in_secure_mode(pki: Pki, t
             admin.request("robot", "mind", "message", MindMessage({"note": "met Ada"}))
             admin.migrate("spirit", "screen", timeout=30)
             screen_state = tmp_path / "state-screen"
-            kept_key = (screen_state / "spirit.key").read_bytes()  # what a hostile screen would keep
-            kept_chain = Records(screen_state).get("spirit").chain  # type: ignore[union-attr]
+            kept_key = read_ledger(screen_state).keys["spirit"]  # what a hostile screen would keep
+            kept_chain = read_ledger(screen_state).records["spirit"].chain
             admin.migrate("spirit", "robot", timeout=30)
             wait_for(lambda: homes(admin, names) == {"robot": "spirit", "screen": None, "phone": None}, 30, "back on robot")
             hostile = Holder("spirit", "screen", kept_chain[-1].epoch, private=kept_key, chain=list(kept_chain))
@@ -334,9 +342,7 @@ def test_an_identity_edited_at_rest_is_refused_and_reported(trio: tuple[Node, No
         client.request("a", "mind", "message", MindMessage({"note": "met Ada"}))
         assert a.daemon is not None
         a.daemon.stop()
-        record = json.loads((a.state / "spirit.record.json").read_bytes())
-        document = a.state / f"spirit.{record['document']}.identity.xml"
-        assert oct(document.stat().st_mode & 0o777) == "0o600" and oct(a.state.stat().st_mode & 0o777) == "0o700"
+        assert oct((a.state / LOG).stat().st_mode & 0o777) == "0o600" and oct(a.state.stat().st_mode & 0o777) == "0o700"
         # The memory is in a section the manifest names by its hash (SchemaVersion 2): edit those bytes.
         edited = [p for p in (a.state / "sections").iterdir() if b"met Ada" in p.read_bytes()]
         assert len(edited) == 1 and oct(edited[0].stat().st_mode & 0o777) == "0o600"
@@ -368,7 +374,7 @@ def _logged(node: Node, text: str) -> bool:
 
 def _stored(state: Path) -> Record:
     """A daemon's record as its file says (read without opening the folder, which a live daemon owns)."""
-    return msgspec.json.decode((state / "spirit.record.json").read_bytes(), type=Record)
+    return read_ledger(state).records["spirit"]
 
 
 def _custody(client: MeshClient, name: str) -> dict[str, Any]:
@@ -428,7 +434,7 @@ def test_bare_tokens_and_an_inflated_fork_never_win(tmp_path: Path, mesh: str, c
             assert client.request("a", "mind", "message", MindMessage({"note": "met Ada"})).status == "accepted", "a's mind is awake"
             client.migrate("spirit", "b", timeout=30)  # the token refuses no migration
             kept = _stored(b.state)  # b's state folder as b keeps it: its chain and custody key of epoch 2
-            kept_key = (b.state / "spirit.key").read_bytes()
+            kept_key = read_ledger(b.state).keys["spirit"]
             client.migrate("spirit", "a", timeout=30)
             bare.close()
             assert kept.state == "active" and kept.epoch == 2
@@ -455,7 +461,7 @@ def test_bare_tokens_and_an_inflated_fork_never_win(tmp_path: Path, mesh: str, c
         assert refused.status == "rejected", refused
         assert "forks from the chain offered by 'b'" in refused.reason and "'b' signed two links for epoch 3" in refused.reason
         wait_for(lambda: _logged(c, "CUSTODY FORK of spirit: 'b' signed two links for epoch 3"), 5, "the log line")
-        assert not (c.state / "spirit.record.json").exists()
+        assert "spirit" not in read_ledger(c.state).records
         # 2. c cut off (a port nobody knows, no peers): the fork is accepted, and committed.
         assert c.daemon is not None
         c.daemon.stop()
@@ -568,7 +574,7 @@ def test_a_record_its_chain_does_not_back_never_runs(trio: tuple[Node, Node, Nod
         restore(4)
         wait_for(lambda: "spirit" in client.describe("a", timeout=1.0).get("damaged", {}), 30, "a reports spirit damaged")
         damaged = client.describe("a", timeout=2.0)["damaged"]["spirit"]
-        assert "record says epoch 5, its chain of custody ends at epoch 1" in damaged and "spirit.record.json" in damaged
+        assert "record says epoch 5, its chain of custody ends at epoch 1" in damaged and str(a.state / LOG) in damaged
         assert homes(client, ("a", "b")) == {"a": None, "b": "spirit"}
         assert client.request("b", "mind", "message", MindMessage({"note": "on b"})).status == "accepted", "b keeps running"
         restore(0)
@@ -586,7 +592,8 @@ def test_a_record_its_chain_does_not_back_never_runs(trio: tuple[Node, Node, Nod
 
 
 def _raise_epoch(state: Path, by: int) -> None:
-    path = state / "spirit.record.json"
-    record = json.loads(path.read_bytes())
-    record["epoch"] += by
-    path.write_text(json.dumps(record))
+    """Edit the record at rest: an entry appended with its epoch raised (checksummed, as a forger would)."""
+    record = read_ledger(state).records["spirit"]
+    journal = Journal(state)
+    journal.append(msgspec.msgpack.encode(Entry("spirit", msgspec.structs.replace(record, epoch=record.epoch + by))))
+    journal.close()

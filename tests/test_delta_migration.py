@@ -24,7 +24,7 @@ from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage
 from cmion_mesh.migration import identity, sections
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
-from cmion_mesh.migration.ledger import Record, Records
+from cmion_mesh.migration.ledger import Record, Records, read_ledger
 from cmion_mesh.migration.outgoing import INLINE
 from cmion_mesh.migration.sections import SectionStore
 from cmion_mesh.procs import free_port
@@ -53,10 +53,10 @@ class Node(remote_helpers.Node):
     # The state folder, read as files.
 
     def record(self) -> Record:
-        return msgspec.json.decode((self.state / f"{COMPANION}.record.json").read_bytes(), type=Record)
+        return read_ledger(self.state).records[COMPANION]
 
     def manifest_bytes(self) -> bytes:
-        return (self.state / f"{COMPANION}.{self.record().document}.identity.xml").read_bytes()
+        return read_ledger(self.state).documents[COMPANION]
 
     def refs(self) -> tuple[SectionRef, ...]:
         return read_manifest(self.manifest_bytes()).refs

@@ -68,9 +68,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import msgspec
 import pytest
 
 from cmion_mesh.messages import Outcome, encode
+from cmion_mesh.migration.ledger import read_ledger
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing import netns
 from cmion_mesh.testing.netns import Host, Lan
@@ -184,12 +186,8 @@ class Body:
 
     def record(self) -> dict[str, Any] | None:
         """The companion's durable record here (read straight from the state folder), if any."""
-        path = self.state / f"{COMPANION}.record.json"
-        try:
-            record: dict[str, Any] = json.loads(path.read_bytes())
-        except FileNotFoundError:
-            return None
-        return record
+        record = read_ledger(self.state).records.get(COMPANION)
+        return None if record is None else msgspec.to_builtins(record)
 
     def state_is(self, state: str, attempt: str | None = None) -> dict[str, Any] | None:
         record = self.record()
@@ -205,7 +203,7 @@ class Body:
     def document_size(self) -> int:
         record = self.record()
         assert record is not None and record["document"], f"{self.name} holds no document"
-        return (self.state / f"{COMPANION}.{record['document']}.identity.xml").stat().st_size
+        return len(read_ledger(self.state).documents[COMPANION])
 
     def signal(self, sig: signal.Signals) -> None:
         assert self.daemon is not None and self.daemon.proc.poll() is None, f"{self.name} is not running"

@@ -14,6 +14,7 @@ import pytest
 from cmion_mesh import keys, logs
 from cmion_mesh.errors import ConfigError, ExitCode, exit_code
 from cmion_mesh.ops import settings
+from cmion_mesh.transport.base import LEASE_MS
 
 ROOT = Path(__file__).resolve().parent.parent
 #: Options of up whose flag comes with a part built elsewhere: the key is here first.
@@ -147,7 +148,7 @@ def test_the_command_line_wins_over_the_file_which_wins_over_the_defaults(tmp_pa
     assert (args.log_level, args.verify_names, args.state_dir, args.path) == ("info", False, None, None)
     # the parser is left as it was: parsed again, it has its defaults
     again = parser.parse_args(["up", "--name", "robot"])
-    assert (again.mesh, again.lease_ms, again.connect, again.log_level, again.func) == (keys.DEFAULT_MESH, 2000, None, "info",
+    assert (again.mesh, again.lease_ms, again.connect, again.log_level, again.func) == (keys.DEFAULT_MESH, LEASE_MS, None, "info",
                                                                                          args.func)
 
 

@@ -23,6 +23,7 @@ from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, Outcome, SectionChunk
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.ledger import read_ledger
 from cmion_mesh.migration.manager import MigrationManager
 from cmion_mesh.migration.outgoing import INLINE
 from cmion_mesh.procs import free_port
@@ -155,8 +156,7 @@ def test_uploads_that_never_become_a_prepare_are_bounded_and_expire(
     migrate_once_seen(client, "spirit", "b")
     wait_for(lambda: client.describe("b", timeout=1.0).get("inhabitant") == "spirit", 30, "spirit on b")
     assert client.migrate("spirit", "a", timeout=30)["target"] == "a"
-    record = msgspec.json.decode((b.state / "spirit.record.json").read_bytes())
-    assert record["state"] == "released"
+    assert read_ledger(b.state).records["spirit"].state == "released"
 
 
 # --- the target's uploads, driven in one process -----------------------------------------------------
@@ -230,8 +230,8 @@ BOUND = 6.0
 
 def b_record(b: Node, companion: str) -> dict[str, Any] | None:
     """b's record of ``companion``, read as a file (a live daemon's folder is never tidied by a test)."""
-    path = b.state / f"{companion}.record.json"
-    return msgspec.json.decode(path.read_bytes()) if path.exists() else None
+    record = read_ledger(b.state).records.get(companion)
+    return None if record is None else msgspec.to_builtins(record)
 
 
 def dropped(b: Node, companion: str) -> bool:

@@ -278,6 +278,7 @@ class Embodiment:
             "damaged": dict(self.migration.damaged) if self.migration is not None else {},
             "custody": self.migration.custody_report() if self.migration is not None else {},
             "migration_transfer": self.migration.last_transfer if self.migration is not None else None,
+            "ledger": self.migration.records.stats() if self.migration is not None else None,
             "devices": self.devices.names if self.devices is not None else None,
             "version": self.version,
             "started_at": self.started_at,

@@ -42,7 +42,7 @@ from cmion_mesh.ops import settings
 from cmion_mesh.resources import data_dir
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import security
-from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.base import LEASE_MS, TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
 if TYPE_CHECKING:
@@ -62,7 +62,11 @@ def up_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--library", metavar="FILE", help="CMION CompetencyLibrary file (replaces the configuration's)")
     p.add_argument("--remote-type", action="append", metavar="TYPE",
                    help="a competency type served by another process (serve-competency): rules may use it; repeatable")
-    p.add_argument("--lease-ms", type=int, default=2000, help="zenoh link lease: how fast a frozen peer is noticed (ms)")
+    # zenoh keeps each link alive with four keep-alives per lease: per-peer work on an idle daemon.
+    # zenoh's own 10 s keeps it flat with the mesh's size; a shorter lease notices a frozen peer sooner.
+    p.add_argument("--lease-ms", type=int, default=LEASE_MS,
+                   help=f"zenoh link lease: how fast a frozen peer is noticed (ms; default {LEASE_MS}, zenoh's; each "
+                        "link of an idle daemon carries four keep-alives per lease)")
     p.add_argument("--state-dir", help="durable state: migration records, persistent properties "
                                        "(default: ~/.local/state/cmion-mesh/<mesh>/<name>); one daemon per folder")
     p.add_argument("--companion", help="a companion born here on the first start, if this embodiment holds none "

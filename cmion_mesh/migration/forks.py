@@ -202,7 +202,7 @@ class Forks:
         problem = handshake.at_rest(record, me=me, key=key)
         if problem:
             return f"its migration record is not backed by its chain of custody: {problem} " \
-                   f"({records.dir / (record.companion + '.record.json')})"
+                   f"({records.path}, the record of {record.companion})"
         if record.state in ("active", "prepared"):
             try:
                 freeze = records.freeze(record.companion)

@@ -17,8 +17,6 @@ and every write to ``identity``, is the loop's.
 from __future__ import annotations
 
 import logging
-import os
-import signal
 import threading
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -26,22 +24,14 @@ from typing import Any, Protocol
 from cmion_mesh.ion import Simulation
 from cmion_mesh.messages import Outcome
 from cmion_mesh.migration.bounds import Quiet
+from cmion_mesh.migration.crash import crash_point
 from cmion_mesh.migration.identity import Identity, SectionMemo
 from cmion_mesh.migration.ledger import Record, Records
 from cmion_mesh.mind import Mind
 
+__all__ = ["Host", "crash_point"]
+
 log = logging.getLogger(__name__)
-
-
-def crash_point(point: str) -> None:
-    """Die here, hard, if the crash tests asked for it: ``CMION_MESH_CRASH_AT`` names
-    ``source:prepared``, ``source:handed``, ``source:released``, ``target:incoming`` or
-    ``target:active`` (comma-separated), and the process kills itself with SIGKILL right after
-    writing that record."""
-    wanted = os.environ.get("CMION_MESH_CRASH_AT", "")
-    if wanted and point in {p.strip() for p in wanted.split(",")}:
-        log.warning("crash point %s: killing this process", point)
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 class Host(Protocol):

@@ -1,25 +1,31 @@
-"""Durable migration records: one per companion on each embodiment, written atomically.
+"""Durable migration records: one per companion on each embodiment, each step one append to the ledger.
 
-A record (``<companion>.record.json``) says where this embodiment stands with a companion: its
-state in the handshake, the attempt it is in, and the chain of custody it knows. The identity
-document it holds is stored under its own hash (``<companion>.<sha256>.identity.xml``), so writing
-a new document never overwrites the one the current record names: a crash between the two writes
-leaves the old pair intact, and start-up removes whatever no record names. The custody private key
-of the epoch held here is ``<companion>.key``. A holder frozen by a proven fork of the chain of
-custody keeps the evidence in ``<companion>.fork.json`` (``custody.Freeze``) until an operator
-resolves it: a restart does not unfreeze it.
+A record says where this embodiment stands with a companion: its state in the handshake, the
+attempt it is in, and the chain of custody it knows. Records live in the ledger of the state
+folder (``journal.Journal``, ``ledger.log``): every ``put`` is one entry appended and one
+``fdatasync``, carrying the record and, when they change, the identity document it names (by
+its hash) and the custody private key of the epoch held here. Reading the log at start replays
+its entries in order (one pass); a torn last entry is ignored. The log is compacted (the current
+entry of every companion rewritten once, atomically) when it grows past its bound, and at once
+when a custody key leaves the state (a companion released or dropped here): a former host's key
+is then gone from the disk, not only from the latest entry.
 
-A SchemaVersion 2 document is a manifest; the bytes of its sections are in ``sections/``, each
-named by its SHA-256 (``sections.SectionStore``: the cache of sections and its bound are there),
-written before any document names them.
+Records written before the ledger (``<companion>.record.json``, with the document in
+``<companion>.<sha256>.identity.xml`` and the key in ``<companion>.key``) are read at the first
+start and written into a new ledger at once (atomically), then removed: migrated once.
 
-Every write is: temp file, fsync, rename, fsync the folder. The folder is 0700 and every file 0600
-(the documents are the companion's memory). A document is checked against the hash its record
-names and the record's seal (signed by the custody key) when it is read: a file edited at rest is
-refused with an error naming it, never run.
+A holder frozen by a proven fork of the chain of custody keeps the evidence in
+``<companion>.fork.json`` (``custody.Freeze``) until an operator resolves it: a restart does not
+unfreeze it. A SchemaVersion 2 document is a manifest; the bytes of its sections are in
+``sections/``, each named by its SHA-256 (``sections.SectionStore``: the cache of sections and its
+bound are there), written and synced before the entry that names them is appended.
 
-Threads: ``Records`` is shared by the loop and the handshake threads; its records are under a lock,
-and each write is whole before the record that names it is renamed into place.
+The folder is 0700 and every file 0600 (the documents are the companion's memory). A document is
+checked against the hash its record names and the record's seal (signed by the custody key) when
+it is read: one altered at rest is refused with an error naming the file, never run.
+
+Threads: ``Records`` is shared by the loop and the handshake threads; its records and the ledger
+are under a lock, and the sections an entry names are on disk before it is appended.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import re
 import threading
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -40,7 +47,8 @@ from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.identity import MAX_DOCUMENT, Bytes, Identity, Manifest, SectionMemo, read_manifest
-from cmion_mesh.migration.sections import SECTIONS, SectionStore, fsync_folder, write_files
+from cmion_mesh.migration.journal import LOG, Journal, scan
+from cmion_mesh.migration.sections import FSYNCS, SECTIONS, SectionStore, fsync_folder, write_files
 from cmion_mesh.statedir import left_by_a_crash, write_atomic
 
 log = logging.getLogger(__name__)
@@ -52,6 +60,9 @@ HOSTING: frozenset[str] = frozenset({"active", "prepared", "handed", "incoming"}
 MAX_RECORD = 4 * 1024 * 1024
 #: Records of companions only refused or dropped here, kept to refuse replays; the oldest go beyond this.
 MAX_STRANGERS = 64
+#: Sections of one step together at most this many bytes travel inside its ledger entry (one
+#: append makes them durable) rather than each in a synced file of its own.
+INLINE_SECTIONS = 256 * 1024
 _DOCUMENT = re.compile(r"^(?P<companion>.+)\.(?P<digest>[0-9a-f]{64})\.identity\.xml$")
 
 
@@ -83,21 +94,130 @@ class Record(msgspec.Struct, frozen=True):
         return (self.epoch, self.seq)
 
 
-class Records:
-    """Durable records, identity documents and custody keys in one directory."""
+class Entry(msgspec.Struct, frozen=True, omit_defaults=True):
+    """One entry of the ledger: ``record`` (None: the companion forgotten here), and the identity
+    document and custody key when this step brings new ones."""
 
-    def __init__(self, directory: str | os.PathLike[str], *, max_cache: int | None = None) -> None:
+    companion: str
+    record: Record | None = None
+    document: bytes | None = None
+    key: bytes | None = None
+    #: small sections the document names (sha256 -> bytes), durable in this entry: their files are
+    #: written without fsync, synced before a compaction drops them, rewritten at start if lost
+    sections: dict[str, bytes] | None = None
+
+
+class Records:
+    """Durable records, identity documents and custody keys in one directory (its ledger)."""
+
+    def __init__(self, directory: str | os.PathLike[str], *, max_cache: int | None = None,
+                 bound: int | None = None) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         os.chmod(self.dir, 0o700)
         self._lock = threading.RLock()
         self._cache: dict[str, Record] = {}
+        self._documents: dict[str, bytes] = {}  # companion -> the document its record names
+        self._keys: dict[str, bytes] = {}  # companion -> this embodiment's custody private key
+        #: companion -> the file its document was migrated from: kept, and named by errors, until replaced
+        self._origin: dict[str, Path] = {}
+        #: companion -> sections durable only in the ledger so far (their files are not synced)
+        self._unsynced: dict[str, dict[str, bytes]] = {}
         self._manifests: dict[str, frozenset[str]] = {}  # document sha256 -> the sections it names
         self.sections = SectionStore(self.dir / SECTIONS, max_cache)
-        for path in sorted(self.dir.glob("*.record.json")):
+        self.journal = Journal(self.dir, bound)
+        self.path = self.journal.path
+        for offset, payload in self.journal.entries:
+            self._replay(self._decode(payload, offset))
+        self.journal.entries = []
+        self._restore_sections()
+        legacy = sorted(self.dir.glob("*.record.json"))
+        if legacy and self.journal.empty:
+            self._migrate(legacy)
+        elif legacy:
+            log.info("removing %d record files of %s: the ledger holds them", len(legacy), self.dir)
+            for path in legacy:
+                path.unlink(missing_ok=True)
+        self._sweep()
+
+    def _decode(self, payload: bytes, offset: int) -> Entry:
+        where = f"{self.path} (entry at byte {offset})"
+        try:
+            entry = msgspec.msgpack.decode(payload, type=Entry)
+        except (msgspec.DecodeError, RecursionError) as exc:
+            raise ConfigError(f"unreadable migration ledger entry: {exc}", path=where) from None
+        try:
+            keys.check_name(entry.companion, "companion")
+        except InvalidName as exc:
+            raise ConfigError(f"unusable migration ledger entry: {exc}", path=where) from None
+        if entry.record is not None and entry.record.companion != entry.companion:
+            raise ConfigError(f"the entry of {entry.companion!r} holds a record of {entry.record.companion!r}", path=where)
+        if entry.record is not None and entry.record.epoch < 0:
+            raise ConfigError(f"unusable migration record: negative epoch {entry.record.epoch}", path=where)
+        return entry
+
+    def _replay(self, entry: Entry) -> None:
+        companion, record = entry.companion, entry.record
+        if record is None:
+            for held in (self._cache, self._documents, self._keys, self._unsynced):
+                held.pop(companion, None)
+            return
+        self._cache[companion] = record
+        if entry.sections:
+            self._unsynced.setdefault(companion, {}).update(entry.sections)
+        if entry.document is not None:
+            self._documents[companion] = entry.document
+        if entry.key is not None:
+            self._keys[companion] = entry.key
+        if record.state not in HOSTING or not record.document:
+            self._documents.pop(companion, None)
+        if record.state not in HOSTING:
+            self._keys.pop(companion, None)
+            self._unsynced.pop(companion, None)  # a cache from now on: nothing to keep durable
+
+    def _restore_sections(self) -> None:
+        """At start: the sections held only by the ledger, written again where their file is missing or
+        of another size (what a power cut leaves of an unsynced write), durably this time. A file of
+        the right size whose bytes are not its own is left as it is: altered at rest, it is reported
+        (``damaged``), never quietly repaired."""
+        lost: dict[str, bytes] = {}
+        for sections in self._unsynced.values():
+            for digest, data in sections.items():
+                try:
+                    intact = self.sections.path(digest).stat().st_size == len(data)
+                except OSError:
+                    intact = False
+                if not intact:
+                    lost[digest] = data
+        if lost:
+            log.warning("rewriting %d section(s) of %s from its ledger (their files were lost)", len(lost), self.dir)
+            self.sections.write(lost, replace=True)
+        self.sections.sync_files(d for sections in self._unsynced.values() for d in sections)
+        self._unsynced.clear()
+
+    def _current(self) -> list[bytes]:
+        """The state now, one entry a companion: what compaction writes."""
+        return [msgspec.msgpack.encode(Entry(c, r, self._documents.get(c), self._keys.get(c), self._unsynced.get(c)))
+                for c, r in self._cache.items()]
+
+    def _migrate(self, paths: list[Path]) -> None:
+        """Records of the files written before the ledger: read, written into the ledger at once, removed."""
+        for path in paths:
             companion, record = self._load(path)
             self._cache[companion] = record
-        self._sweep()
+            key = self.dir / f"{companion}.key"
+            if record.state in HOSTING and key.is_file():
+                self._keys[companion] = key.read_bytes()
+            document = self.dir / f"{companion}.{record.document}.identity.xml"
+            if record.state in HOSTING and record.document:
+                self._origin[companion] = document
+                if document.is_file():
+                    with open(document, "rb") as f:
+                        self._documents[companion] = f.read(MAX_DOCUMENT + 1)
+        self.journal.rewrite(self._current())
+        log.info("migrated %d record files of %s into its ledger", len(paths), self.dir)
+        for path in paths:
+            path.unlink(missing_ok=True)  # the sweep takes the documents and keys, held in the ledger now
 
     @staticmethod
     def _load(path: Path) -> tuple[str, Record]:
@@ -124,30 +244,36 @@ class Records:
         return record.companion, record
 
     def _sweep(self) -> None:
-        """Remove what a crash left: temporary files, and documents and keys no record names."""
+        """Remove what a crash or an older version left: temporary files, documents and keys in
+        files of their own (the ledger holds the current ones)."""
         for path in self.dir.iterdir():
             name = path.name
-            match = _DOCUMENT.match(name)
-            orphan = left_by_a_crash(name)
-            if match:
-                record = self._cache.get(match["companion"])
-                orphan = record is None or record.document != match["digest"]
-            elif name.endswith(".key"):
-                record = self._cache.get(name[:-4])
-                orphan = record is None or record.state not in HOSTING
-            if orphan and path.is_file():
+            orphan = left_by_a_crash(name) or bool(_DOCUMENT.match(name)) or name.endswith(".key")
+            if orphan and path not in self._origin.values() and path.is_file():
                 log.info("removing %s, left by an interrupted write", path)
                 path.unlink(missing_ok=True)
 
-    def _write(self, name: str, data: bytes) -> None:
-        write_atomic(self.dir / name, data)
+    def _compact(self, state: str) -> None:
+        """Rewrite the ledger as it stands (a former host's key leaves the disk with it). The step
+        before is durable already: a compaction that fails is said, and tried again at the next one."""
+        try:
+            if self._unsynced:
+                self.sections.sync_files(d for sections in self._unsynced.values() for d in sections)
+                self._unsynced.clear()
+            self.journal.rewrite(self._current(), state)
+        except OSError as exc:
+            log.warning("the migration ledger %s could not be compacted (tried again at the next step): %s", self.path,
+                        exc.strerror or exc)
 
-    def _write_all(self, files: list[tuple[Path, Bytes]], name: str, data: bytes) -> None:
-        """``files``, then the record ``name`` (``write_files``)."""
-        if files:
-            write_files(files, (self.dir / name, data))
-        else:
-            self._write(name, data)
+    def close(self) -> None:
+        with self._lock:
+            self.journal.close()
+
+    def stats(self) -> dict[str, object]:
+        """The ledger's counters: entries appended, compactions, its size, and this process's fsyncs by kind."""
+        with self._lock:
+            return {"appends": self.journal.appends, "compactions": self.journal.compactions, "bytes": self.journal.size,
+                    "fsyncs": FSYNCS.snapshot()}
 
     def get(self, companion: str) -> Record | None:
         with self._lock:
@@ -155,34 +281,42 @@ class Records:
 
     def put(self, record: Record, document: bytes | None = None, sections: Mapping[str, Bytes] | None = None,
             key: bytes | None = None, *, replace: bool = False) -> Record:
-        """Write ``record``, and first, together, the ``sections`` it names (with ``replace``, even
-        those of a name already here), this embodiment's custody ``key`` and ``document`` (named by
-        its hash, sealed with the custody key); then remove the document and key the previous
-        record held and this one does not."""
+        """Write ``record``: one entry with the record, this embodiment's custody ``key`` and
+        ``document`` (named by its hash, sealed with the custody key), and the ``sections`` it names
+        that are not here yet (with ``replace``, even those of a name already here): inside the
+        entry when they are small (``INLINE_SECTIONS``; their files then written unsynced), else
+        each in a synced file before the entry."""
         companion = keys.check_name(record.companion, "companion")
+        files = self.sections.files(sections, replace=replace) if sections else []
+        inline = record.state in HOSTING and sum(len(data) for _, data in files) <= INLINE_SECTIONS
+        if files and not inline:
+            write_files(files)  # large: synced files of their own, written before the lock (the loop reads records)
         with self._lock:
-            files = self.sections.files(sections, replace=replace) if sections else []
-            if key is not None:
-                files.append((self.dir / f"{companion}.key", key))
             if document is not None:
                 digest = custody.digest(document).hex()
-                files.append((self.dir / f"{companion}.{digest}.identity.xml", document))
-                private = key if key is not None else self.key(companion)
+                private = key if key is not None else self._keys.get(companion)
                 seal = custody.sign_seal(private, companion, document) if private else b""
                 record = msgspec.structs.replace(record, document=digest, seal=seal)
             if record.state not in HOSTING:
                 record = msgspec.structs.replace(record, document="", seal=b"")  # nothing to keep once it is gone
+                document = key = None
             record = msgspec.structs.replace(record, updated=time.time())
-            previous = self._cache.get(companion)
-            self._write_all(files, f"{companion}.record.json", msgspec.json.encode(record))
-            self._cache[companion] = record
-            if previous is not None and previous.document and previous.document != record.document:
-                (self.dir / f"{companion}.{previous.document}.identity.xml").unlink(missing_ok=True)
+            secret_gone = record.state not in HOSTING and companion in self._keys
+            carried = {path.name: bytes(data) for path, data in files} if files and inline else None
+            entry = Entry(companion, record, document, key, carried)
+            self.journal.append(msgspec.msgpack.encode(entry), record.state)
+            if carried:
+                write_files(files, durable=False)  # durable in the entry; synced before a compaction drops it
+            self._replay(entry)
+            origin = self._origin.pop(companion, None) if document is not None or record.state not in HOSTING else None
+            if origin is not None:
+                origin.unlink(missing_ok=True)  # its bytes are in the ledger, or gone with the companion
             if record.state not in HOSTING:
-                (self.dir / f"{companion}.key").unlink(missing_ok=True)
                 (self.dir / f"{companion}.fork.json").unlink(missing_ok=True)  # no copy here to freeze any more
             if record.state == "dropped" and not record.chain:
                 self._forget_strangers()
+            if secret_gone or self.journal.due():
+                self._compact(record.state)
         if self.sections.size > self.sections.max_cache:
             self.sections.evict(self.referenced())
         return record
@@ -210,8 +344,10 @@ class Records:
         strangers = sorted((r for r in self._cache.values() if r.state == "dropped" and not r.chain and not r.public_key),
                            key=lambda r: r.updated)
         for record in strangers[:max(0, len(strangers) - MAX_STRANGERS)]:
-            del self._cache[record.companion]
-            (self.dir / f"{record.companion}.record.json").unlink(missing_ok=True)
+            # Not synced: a forgotten stranger coming back after a crash is harmless (it was dropped).
+            entry = Entry(record.companion)
+            self.journal.append(msgspec.msgpack.encode(entry), sync=False)
+            self._replay(entry)
 
     def all(self) -> list[Record]:
         with self._lock:
@@ -228,14 +364,11 @@ class Records:
         record = self.get(companion)
         if record is None or not record.document:
             return None
-        path = self.dir / f"{companion}.{record.document}.identity.xml"
-        try:
-            with open(path, "rb") as f:
-                data = f.read(MAX_DOCUMENT + 1)  # one more than unpack takes, so excess is noticed
-        except FileNotFoundError:
-            raise ConfigError(f"the identity document of {companion!r} is missing", path=str(path)) from None
-        except OSError as exc:
-            raise ConfigError(f"unreadable identity document: {exc.strerror or exc}", path=str(path)) from None
+        with self._lock:
+            data = self._documents.get(companion)
+            path = self._origin.get(companion, self.path)
+        if data is None:
+            raise ConfigError(f"the identity document of {companion!r} is missing", path=str(path))
         if custody.digest(data).hex() != record.document:
             raise ConfigError(f"the identity document of {companion!r} was altered at rest (its hash is not the one "
                               "its record names)", path=str(path))
@@ -251,7 +384,8 @@ class Records:
         data = self.document(record.companion)
         if data is None:
             return None
-        return read_manifest(data, name=str(self.dir / f"{record.companion}.{record.document}.identity.xml"))
+        origin = self._origin.get(record.companion)
+        return read_manifest(data, name=str(origin) if origin else f"{self.path} ({record.companion}'s identity document)")
 
     def identity(self, companion: str, memo: SectionMemo | None = None) -> Identity | None:
         """The identity the companion's record names, every byte checked (document: hash and seal;
@@ -305,7 +439,9 @@ class Records:
     def put_freeze(self, freeze: custody.Freeze) -> None:
         """Keep the evidence of a fork, durably, before the companion is frozen on it."""
         with self._lock:
-            self._write(f"{keys.check_name(freeze.companion, 'companion')}.fork.json", msgspec.json.encode(freeze))
+            write_atomic(self.dir / f"{keys.check_name(freeze.companion, 'companion')}.fork.json", msgspec.json.encode(freeze))
+            FSYNCS.count("file")
+            FSYNCS.count("folder")
 
     def thaw(self, companion: str) -> None:
         """Forget the evidence of a fork (an operator resolved it), durably."""
@@ -315,13 +451,41 @@ class Records:
                 path.unlink()
                 fsync_folder(self.dir)
 
-    def put_key(self, companion: str, private: bytes) -> None:
-        with self._lock:
-            self._write(f"{keys.check_name(companion, 'companion')}.key", private)
-
     def key(self, companion: str) -> bytes | None:
-        path = self.dir / f"{companion}.key"
-        try:
-            return path.read_bytes()
-        except FileNotFoundError:
-            return None
+        """This embodiment's custody private key for ``companion`` (held while it hosts it)."""
+        with self._lock:
+            return self._keys.get(companion)
+
+
+@dataclass(frozen=True)
+class Contents:
+    """What a ledger holds now, by companion: records, identity documents and custody keys."""
+
+    records: dict[str, Record]
+    documents: dict[str, bytes]
+    keys: dict[str, bytes]
+
+
+def read_ledger(directory: str | os.PathLike[str]) -> Contents:
+    """The ledger in ``directory`` as its log says, read without writing anything (a live daemon's
+    folder is its own): for tools and tests. A torn tail is ignored, as at start."""
+    path = Path(directory) / LOG
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        data = b""
+    contents = Contents({}, {}, {})
+    for _offset, payload in scan(data, path)[0]:
+        entry = msgspec.msgpack.decode(payload, type=Entry)
+        held = (contents.records, contents.documents, contents.keys)
+        if entry.record is None or entry.record.state not in HOSTING:
+            for kept in held[1:]:
+                kept.pop(entry.companion, None)
+        if entry.record is None:
+            contents.records.pop(entry.companion, None)
+            continue
+        contents.records[entry.companion] = entry.record
+        for kept, value in zip(held[1:], (entry.document, entry.key), strict=True):
+            if value is not None and entry.record.state in HOSTING:
+                kept[entry.companion] = value
+    return contents

@@ -47,7 +47,8 @@ Threads (each part's docstring says which of its methods runs where):
 
 Set ``CMION_MESH_CRASH_AT`` to ``source:prepared``, ``source:handed``, ``source:released``,
 ``target:incoming`` or ``target:active`` (comma-separated) and the process kills itself with
-SIGKILL right after writing that record (``host.crash_point``): the crash tests use it.
+SIGKILL right after writing that record; the ledger's own points (a torn append, a compaction cut
+short) are named in ``crash``. The crash tests use them.
 
 Log lines: the steps of each side are ``outgoing``'s and ``incoming``'s; here, at info, a companion
 ``born`` here and ``resumed`` here (fields ``companion``, ``epoch``, ``step``, ``reason``), and at
@@ -265,9 +266,8 @@ class MigrationManager(Component):
         packed = Identity(companion, 1, {}).pack_sections()
         private = signing.new_key()
         chain = [custody.birth(companion, self.sim.embodiment, private, packed.manifest)]
-        self.records.put_key(companion, private)
         self.records.put(Record(companion, "active", 1, chain=chain, public_key=signing.encode_public(chain[0].public_key)),
-                         document=packed.manifest, sections=packed.data)
+                         document=packed.manifest, sections=packed.data, key=private)
         logs.event(log, f"companion {companion} born here", step="born", companion=companion, epoch=1)
 
     def _adopt_legacy(self, record: Record) -> Record:
@@ -283,9 +283,8 @@ class MigrationManager(Component):
             document = Identity(record.companion, record.epoch, {}).pack()
         private = self.records.key(record.companion) or signing.new_key()
         chain = [custody.birth(record.companion, self.sim.embodiment, private, document, record.epoch)]
-        self.records.put_key(record.companion, private)
         record = self.records.put(Record(record.companion, "active", record.epoch, chain=chain,
-                                         public_key=signing.encode_public(chain[0].public_key)), document=document)
+                                         public_key=signing.encode_public(chain[0].public_key)), document=document, key=private)
         legacy.unlink(missing_ok=True)
         return record
 
@@ -305,6 +304,7 @@ class MigrationManager(Component):
             # A clean stop keeps what the companion learnt since it arrived.
             self.refresh_sections(identity)
             self._keep(record, identity)
+        self.records.close()
 
     def _keep(self, record: Record, identity: Identity) -> None:
         """Store ``identity`` as the active companion's document (and its sections) here."""

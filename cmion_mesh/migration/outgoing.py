@@ -28,8 +28,10 @@ Threads:
 * one handshake thread per attempt runs ``_send`` and then ``commit_until_acked`` (also after a
   restart in ``handed``), and one per abort sent (``send_abort_later``): they touch only the
   records (locked) and hand everything else to the loop (``Host.post``);
-* while sending sections, ``_send`` has one short-lived thread write this side's copy of them,
-  then the ``prepared`` record that names them, and two send chunks, all joined before it goes on.
+* ``_send`` has one short-lived thread write this side's copy of the sections, then the
+  ``prepared`` record that names them, beside the ``have``, the chunks (two send them) and the
+  prepare itself; it is joined before the prepare's answer is acted on (``handed`` comes after
+  ``prepared``, always).
 
 ``start``, ``contribute``, ``resolve`` and ``refuse`` may be called from any thread.
 
@@ -319,11 +321,11 @@ class Outgoing:
 
         def store() -> None:
             # This side's copy, written while the target receives its own; then, once the sections
-            # are on disk, the prepared record that names them, still while the chunks travel: a crash
-            # from here on is the crash at source:prepared (never handed: the source resumes).
+            # are on disk, the prepared record that names them, still while the chunks (or the
+            # prepare itself) travel: a crash from here on is the crash at source:prepared (never
+            # handed: the source resumes). It is joined before anything acts on the prepare's answer.
             try:
-                host.records.sections.write(packed.data)
-                written.append(host.records.put(prepared, document=packed.manifest))
+                written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
             except OSError as exc:
                 stored.append(exc)
                 return
@@ -332,37 +334,28 @@ class Outgoing:
             log_prepared(written[0])
 
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
+        writer.start()  # from now on, beside have, the chunks and the prepare
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
-                writer.start()  # from now on, beside have and the chunks
                 inline, bulk = self._ask_have(out, message, refs)
                 self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
-            if writer.is_alive():
-                writer.join()
+            writer.join()
             why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
             if written:  # active again; the prepare was never sent, so the target holds nothing of this attempt
                 host.records.put(handshake.resume(written[0]))
             host.post(self._abandon, out, f"{why}; the companion stays here")
             return
-        if writer.is_alive():
-            writer.join()
-        if stored:
-            host.post(self._abandon, out, f"cannot store the identity here: {stored[0]}")
-            return
-        if written:
-            prepared = written[0]
-        else:  # a small identity: this side's copy goes with its record
-            try:
-                prepared = host.records.put(prepared, document=packed.manifest, sections=packed.data)
-            except OSError as exc:
-                host.post(self._abandon, out, f"cannot store the identity here: {exc}")
-                return
-            crash_point("source:prepared")
-            host.post(host.step, prepared)
-            log_prepared(prepared)
         reply, unknown = self._prepare(out, message, packed, inline)
+        writer.join()  # prepared is durable before anything acts on the answer (handed comes after it)
+        if stored or not written:
+            # Nothing here names the attempt (this side stays active): the target may hold it
+            # incoming, so it is told; asked, this side would answer "aborted" anyway.
+            self.send_abort_later(prepared)
+            host.post(self._abandon, out, f"cannot store the identity here: {stored[0] if stored else 'not written'}")
+            return
+        prepared = written[0]
         after = handshake.after_prepare(prepared, reply, private=private, document=packed.manifest) if reply is not None \
             else handshake.resume(prepared)
         if after.state != "handed":

@@ -3,14 +3,16 @@
 the records use too.
 
 A SchemaVersion 2 identity document is a manifest; the bytes of its sections are here, each named by
-its SHA-256, written before any document names them (``ledger``). Sections no record names any more
+its SHA-256, durable before any document names them (``ledger``: small ones are durable inside the
+ledger entry that names them, and their files here written without fsync until a compaction). Sections no record names any more
 stay, a cache for the companion's next visit (only what is missing crosses the network then), up to
 ``MAX_CACHE`` bytes (``CMION_MESH_MAX_CACHE``): beyond it, the least recently used of those nobody
 names go first. The bound holds when the folder grows, not only when a record is written: a section
 received from a peer is written only if it fits (``SectionStore.make_room``), and its bytes count
 from the first chunk on.
 
-Every write is: temp file, fsync, rename, fsync the folder. The folder is 0700 and every file 0600.
+Every durable write is: temp file, fsync, rename, fsync the folder (``FSYNCS`` counts them, by
+kind, for the benchmark). The folder is 0700 and every file 0600.
 Every read checks the bytes against the name: a file altered at rest is refused with an error naming
 it, never used.
 
@@ -56,10 +58,42 @@ def cache_bound() -> int:
     return int(env_limit(MAX_CACHE_ENV, MAX_CACHE, low=1, high=2**50, unit="bytes"))
 
 
+class Fsyncs:
+    """How many times this process made its migration state durable, by kind: ``append`` (an entry
+    of the ledger, ``fdatasync``), ``compact`` (the ledger rewritten), ``file`` (a section or another
+    file) and ``folder`` (a folder, so that a name given is durable). Thread-safe; the benchmark
+    reads them (``describe``'s ``ledger``) to count the fsyncs of one migration on each side."""
+
+    KINDS = ("append", "compact", "file", "folder")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts = dict.fromkeys(self.KINDS, 0)
+
+    def count(self, kind: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[kind] += n
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            counts = dict(self._counts)
+        counts["total"] = sum(counts.values())
+        return counts
+
+
+#: This process's counts (one daemon per process: its ledger's).
+FSYNCS = Fsyncs()
+
+
+def fsync_file(fd: int, kind: str = "file") -> None:
+    os.fsync(fd)
+    FSYNCS.count(kind)
+
+
 def fsync_folder(folder: Path) -> None:
     fd = os.open(folder, os.O_RDONLY)
     try:
-        os.fsync(fd)
+        fsync_file(fd, "folder")
     finally:
         os.close(fd)
 
@@ -76,11 +110,13 @@ def _at_once(fn: Callable[[T], object], items: Sequence[T]) -> None:
             pass
 
 
-def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | None = None) -> None:
+def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | None = None, *,
+                durable: bool = True) -> None:
     """Write ``files`` durably, together, and then ``last`` (a record naming them): each through a
     temporary file, fsync, rename; every folder holding one of ``files`` is fsynced before ``last``
     is renamed, so a crash leaves ``last`` old, or new with all it names on disk. The temporary
-    names carry the process and thread, as ``statedir.write_atomic``'s do."""
+    names carry the process and thread, as ``statedir.write_atomic``'s do. Not ``durable``: no
+    fsync at all (the bytes are durable elsewhere: in the ledger entry that names them)."""
     entries = [*files, *([last] if last is not None else [])]
     tmps = [path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp") for path, _ in entries]
 
@@ -90,15 +126,21 @@ def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | 
             view = memoryview(entries[i][1])
             while view:
                 view = view[os.write(fd, view):]
-            os.fsync(fd)
+            if durable:
+                fsync_file(fd)
         finally:
             os.close(fd)
 
     try:
-        _at_once(write, range(len(entries)))
+        if durable:
+            _at_once(write, range(len(entries)))
+        else:
+            for i in range(len(entries)):
+                write(i)
         for tmp, (path, _) in zip(tmps, files, strict=False):
             os.replace(tmp, path)
-        _at_once(fsync_folder, sorted({path.parent for path, _ in files}))
+        if durable:
+            _at_once(fsync_folder, sorted({path.parent for path, _ in files}))
         if last is not None:
             os.replace(tmps[-1], last[0])
             fsync_folder(last[0].parent)
@@ -206,6 +248,23 @@ class SectionStore:
         files = self.files(sections, replace=replace)
         write_files(files)
         return [path.name for path, _ in files]
+
+    def sync_files(self, digests: Iterable[str]) -> None:
+        """Make sections written without fsync (``write_files(durable=False)``) durable: each file,
+        then the folder. One no longer here is skipped (evicted or replaced meanwhile)."""
+        synced = 0
+        for digest in digests:
+            try:
+                fd = os.open(self.path(digest), os.O_RDONLY)
+            except FileNotFoundError:
+                continue
+            try:
+                fsync_file(fd)
+            finally:
+                os.close(fd)
+            synced += 1
+        if synced:
+            fsync_folder(self.dir)
 
     def files(self, sections: Mapping[str, Bytes], *, replace: bool = False) -> list[tuple[Path, Bytes]]:
         """The (path, bytes) of the sections to write for ``write`` (those not here yet), counted as
@@ -400,7 +459,7 @@ class IncomingSection:
         assert self._fd is not None
         fd, self._fd = self._fd, None
         try:
-            os.fsync(fd)
+            fsync_file(fd)
         finally:
             os.close(fd)
         try:

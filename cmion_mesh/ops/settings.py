@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from cmion_mesh import keys, tomlsafe
+from cmion_mesh.transport.base import LEASE_MS
 
 if TYPE_CHECKING:
     import argparse
@@ -75,7 +76,7 @@ OPTIONS: Final[tuple[Option, ...]] = (
            example="CompetencyLibrary.xml"),
     Option("remote-type", "remote_type", "list", "competency types served by other processes (serve-competency)",
            example=["Speech"]),
-    Option("lease-ms", "lease_ms", "int", "zenoh link lease: how fast a frozen peer is noticed (ms)", default=2000),
+    Option("lease-ms", "lease_ms", "int", "zenoh link lease: how fast a frozen peer is noticed (ms)", default=LEASE_MS),
     Option("state-dir", "state_dir", "path", "durable state: migration records, persistent properties; one daemon per folder "
            "(default: ~/.local/state/cmion-mesh/<mesh>/<name>)", example="state"),
     Option("companion", "companion", "name", "a companion born here on the first start, if no live embodiment hosts it",

@@ -4,10 +4,12 @@
 zenoh); ``transport.memory`` implements it in one process for fast unit tests of logic.
 
 Threading contract: handlers given to ``subscribe``, ``subscribe_batches``, ``declare_queryable``
-and ``watch_liveliness`` run on a worker thread owned by the transport (never on a zenoh thread);
-they may call the transport, but they should hand long work on to a queue. ``subscribe_batches``
-hands over everything that has arrived by the time its worker looks, in order, as one list: the
-thread hop after it is paid once per batch, not once per sample.
+and ``watch_liveliness`` run on a worker thread owned by the transport (never on a zenoh thread),
+in order for each of them; the zenoh transport runs every handler of a session on one thread
+(``inbox``), so they may call the transport, but they should hand long work on to a queue: a
+handler that blocks delays the others. ``subscribe_batches`` hands over everything that has
+arrived by the time its worker looks, in order, as one list: the thread hop after it is paid once
+per batch, not once per sample.
 
 Blocking publications (``publish`` with ``block``, ``delete``) never make their caller wait for
 the network: they are sent in order by a thread of the transport, so that a subscriber that stops
@@ -132,6 +134,11 @@ class Handle:
         self.close()
 
 
+#: The zenoh link lease of a daemon by default (ms): zenoh's own. Each link carries four keep-alives
+#: per lease while idle, so a shorter lease is work per peer that grows with the mesh.
+LEASE_MS = 10000
+
+
 @dataclass(frozen=True, slots=True)
 class TransportConfig:
     """How to join the mesh.
@@ -181,11 +188,11 @@ class Transport(Protocol):
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
                   attachments: bool = False) -> Closeable:
-        """``handler`` receives samples in order on one worker thread per subscription."""
+        """``handler`` receives samples in order, on the transport's worker thread."""
 
     def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False,
                           attachments: bool = False) -> Closeable:
-        """``handler`` receives, in order on one worker thread per subscription, lists of the samples
+        """``handler`` receives, in order on the transport's worker thread, lists of the samples
         that arrived since its last call (at least one each; at most ``MAX_BATCH``). ``attachments``:
         fill ``Sample.attachment`` (off by default: the mesh's own keys never carry one)."""
 

@@ -1,10 +1,12 @@
 """The zenoh adapter: the only module that imports zenoh.
 
-Every subscriber and queryable gets a FIFO channel and one worker thread that drains it, so
-zenoh's own threads never run Python and a slow handler cannot stall the session's receive path.
-Workers end when their channel closes (undeclare or session close). A subscriber's worker takes
-everything its channel holds when it looks (``subscribe_batches``): under load, the handler and
-the hop that follows it run once per batch rather than once per sample.
+Every subscriber, queryable and liveliness watch gets a callback that zenoh runs on its network
+thread (``indirect=False``) and that only puts what came in one bounded queue; one thread per
+session runs the handlers (``inbox.Dispatch``), so zenoh's own threads never run a handler and a
+slow handler cannot stall the session's receive path (a full queue makes zenoh wait: back-pressure,
+not loss). An idle session's thread sleeps in one ``queue.get``: nothing polls. A subscriber's
+handler gets everything queued for it when the thread looks (``subscribe_batches``): under load,
+the handler and the hop that follows it run once per batch rather than once per sample.
 
 Blocking publications and deletes go the other way through one thread of their own (an
 ``outbox.Outbox``): zenoh makes a blocking put wait while any subscriber's link is full, and the
@@ -34,7 +36,6 @@ import zenoh
 
 from cmion_mesh.errors import ClosedError, ConfigError, TransportError
 from cmion_mesh.transport.base import (
-    MAX_BATCH,
     BatchHandler,
     Closeable,
     Handle,
@@ -46,12 +47,13 @@ from cmion_mesh.transport.base import (
     SampleHandler,
     TransportConfig,
 )
+from cmion_mesh.transport.inbox import Dispatch, Sink
 from cmion_mesh.transport.outbox import Outbox
 
 log = logging.getLogger(__name__)
 
-#: Channel depth for events and queries: deep enough to absorb bursts; a full channel makes
-#: zenoh apply back-pressure (blocking congestion control) rather than drop.
+#: Channel depth of the raw zenoh baselines (``bench``): what this adapter's per-entity channels held
+#: before they became one queue per session (``inbox.CAPACITY``).
 CHANNEL_CAPACITY = 4096
 #: Keys with a declared publisher (and keys checked) kept at most; cleared when full.
 MAX_PUBLISHERS = 4096
@@ -189,11 +191,11 @@ class _Query:
 
 
 class _Entity(Handle):
-    """A declared subscriber/queryable/token plus the worker draining it."""
+    """A declared subscriber/queryable/token, and the sink its callback feeds (none for a token)."""
 
-    def __init__(self, undeclare: Callable[[], None], worker: threading.Thread | None) -> None:
+    def __init__(self, undeclare: Callable[[], None], sink: Sink | None) -> None:
         self._undeclare = undeclare
-        self._worker = worker
+        self._sink = sink
         self._lock = threading.Lock()
         self._closed = False
 
@@ -202,29 +204,17 @@ class _Entity(Handle):
             if self._closed:
                 return
             self._closed = True
+        if self._sink is not None:
+            self._sink.close()  # its handler runs no more once this returns
         try:
             self._undeclare()
         except zenoh.ZError:  # session already closed: the entity is gone with it
             pass
-        if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join(5.0)
 
 
-def _drain(name: str, recv: Callable[[], Any], handle: Callable[[Any], None]) -> threading.Thread:
-    def run() -> None:
-        while True:
-            try:
-                item = recv()
-            except zenoh.ZError:
-                return  # channel closed: undeclared or session closed
-            try:
-                handle(item)
-            except Exception:
-                log.exception("handler of %s failed", name)
-
-    thread = threading.Thread(target=run, name=f"zenoh-{name}", daemon=True)
-    thread.start()
-    return thread
+def _callback(sink: Sink) -> Any:
+    """zenoh's handler for ``sink``: run on zenoh's network thread, it only queues the item."""
+    return zenoh.handlers.Callback(sink.put, indirect=False)
 
 
 _DELETE = zenoh.SampleKind.DELETE
@@ -254,41 +244,6 @@ def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
         return made
 
     return convert
-
-
-def _drain_batches(name: str, channel: Any, handle: Callable[[list[Sample]], None],
-                   convert: Callable[[zenoh.Sample], Sample] | None = None) -> threading.Thread:
-    """A worker handing ``handle`` what the channel holds each time it looks (``MAX_BATCH`` at most):
-    one blocking ``recv``, then ``try_recv`` until the channel is empty."""
-    recv, try_recv = channel.recv, channel.try_recv
-
-    def run() -> None:
-        make = convert or _sample  # looked up here, not at declaration: bench.breakdown wraps _sample
-        while True:
-            try:
-                batch = [make(recv())]
-            except zenoh.ZError:
-                return  # channel closed: undeclared or session closed
-            closed = False
-            for _ in range(MAX_BATCH - 1):
-                try:
-                    item = try_recv()
-                except zenoh.ZError:
-                    closed = True
-                    break
-                if item is None:
-                    break
-                batch.append(make(item))
-            try:
-                handle(batch)
-            except Exception:
-                log.exception("handler of %s failed", name)
-            if closed:
-                return
-
-    thread = threading.Thread(target=run, name=f"zenoh-{name}", daemon=True)
-    thread.start()
-    return thread
 
 
 class _Matching:
@@ -323,6 +278,7 @@ class ZenohTransport:
         self._publishers: dict[str, zenoh.Publisher] = {}  # the outbox's thread's own
         self._checked: set[str] = set()  # keys zenoh took: checked once, not per publication
         self._outbox = Outbox(self._send, name="publisher")
+        self._dispatch = Dispatch()
 
     @property
     def id(self) -> str:
@@ -409,30 +365,32 @@ class ZenohTransport:
     def subscribe_batches(self, selector: str, handler: BatchHandler, *, remote_only: bool = False,
                           attachments: bool = False) -> Closeable:
         origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
-        with self._errors(f"subscribe {selector}"):
-            sub = self._session.declare_subscriber(
-                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), allowed_origin=origin
-            )
         concrete = "*" not in selector and "$" not in selector
         convert = _sample_attached if attachments else _sample_of(selector) if concrete else None
-        return self._track(_Entity(sub.undeclare, _drain_batches(f"sub:{selector}", sub.handler, handler, convert)))
+
+        def deliver(items: list[zenoh.Sample]) -> None:
+            make = convert or _sample  # looked up here, not at declaration: bench.breakdown wraps _sample
+            handler([make(item) for item in items])
+
+        sink = self._dispatch.sink(f"sub:{selector}", deliver)
+        with self._errors(f"subscribe {selector}"):
+            sub = self._session.declare_subscriber(selector, _callback(sink), allowed_origin=origin)
+        return self._track(_Entity(sub.undeclare, sink))
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
+        def deliver(queries: list[zenoh.Query]) -> None:
+            for query in queries:
+                wrapped = _Query(query)
+                try:
+                    handler(wrapped)
+                except Exception:
+                    wrapped.finish()
+                    log.exception("handler of queryable %s failed", selector)
+
+        sink = self._dispatch.sink(f"qbl:{selector}", deliver, discard=lambda query: query.drop())
         with self._errors(f"declare queryable {selector}"):
-            queryable = self._session.declare_queryable(
-                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), complete=complete
-            )
-        channel = queryable.handler
-
-        def handle(query: zenoh.Query) -> None:
-            wrapped = _Query(query)
-            try:
-                handler(wrapped)
-            except Exception:
-                wrapped.finish()
-                raise
-
-        return self._track(_Entity(queryable.undeclare, _drain(f"qbl:{selector}", channel.recv, handle)))
+            queryable = self._session.declare_queryable(selector, _callback(sink), complete=complete)
+        return self._track(_Entity(queryable.undeclare, sink))
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
             attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
@@ -500,16 +458,17 @@ class ZenohTransport:
                     if reply.ok is not None]
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
+        def deliver(samples: list[zenoh.Sample]) -> None:
+            for sample in samples:
+                try:
+                    handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+                except Exception:
+                    log.exception("handler of liveliness %s failed", selector)
+
+        sink = self._dispatch.sink(f"live:{selector}", deliver)
         with self._errors(f"watch liveliness {selector}"):
-            sub = self._session.liveliness().declare_subscriber(
-                selector, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY), history=True
-            )
-        channel = sub.handler
-
-        def handle(sample: zenoh.Sample) -> None:
-            handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-
-        return self._track(_Entity(sub.undeclare, _drain(f"live:{selector}", channel.recv, handle)))
+            sub = self._session.liveliness().declare_subscriber(selector, _callback(sink), history=True)
+        return self._track(_Entity(sub.undeclare, sink))
 
     def matching(self, selector: str) -> _Matching:
         with self._errors(f"matching subscribers of {selector}"):
@@ -576,5 +535,6 @@ class ZenohTransport:
             self._session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError as exc:
             log.debug("closing the zenoh session: %s", exc)
+        self._dispatch.close()
         self._outbox.join(5.0)  # a publication still waiting returned when the session closed
         self._publishers.clear()
