@@ -48,8 +48,7 @@ ACTIONS: dict[str, tuple[str, dict[str, str]]] = {
 }
 WM_PATHS = ("World-model paths are entity/.../property or entity.property (as $WM(...) writes it), alike in every "
             "action: a path without / is split at its first dot. A name holding a dot is written with slashes "
-            "(my.robot/location); an entity's name with a dot cannot be written in the dotted form. The world "
-            "model's root holds entities only.")
+            "(Self/pose.x); an entity's name holds no dot. The world model's root holds entities only.")
 
 
 def store_arguments(parser: argparse.ArgumentParser, store: str) -> None:
@@ -125,7 +124,7 @@ def cmd_store(args: argparse.Namespace) -> int:
         raise InvalidName(f"{args.action} needs a path")
     properties = _properties(args) if args.action == "add" else {}
     if args.action == "add":
-        keys.check_name(args.entity, "entity")
+        keys.check_entity(args.entity)
     with session(args) as client:
         client.join(args.embodiment, timeout=args.join_timeout)
         prefix = keys.storage_key(args.mesh, args.embodiment, store, ()) + "/"
