@@ -92,6 +92,24 @@ def test_a_terminated_demo_stops_its_daemons() -> None:
         assert mesh is not None, line
         demo.wait_line("found each other", 60)
         assert len(processes_naming(mesh.group(1))) >= 3
-        assert demo.stop(signal.SIGTERM, grace=60) in (0, 130, 143), demo.lines  # not killed
+        assert demo.stop(signal.SIGTERM, grace=60) == 143, demo.lines  # not killed: stopped by SIGTERM, as a shell says it
         assert any("stopping the daemons" in seen for seen in demo.lines), demo.lines
     wait_for(lambda: not processes_naming(mesh.group(1)), 30, f"no process left of mesh {mesh.group(1)}")
+
+
+#: Runs the rest of its command line with SIGINT ignored, as a shell script's background job is.
+IGNORING_SIGINT = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); os.execv(sys.argv[1], sys.argv[1:])"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_background_web_demo_stops_on_a_signal_while_it_waits_for_the_visitor(sig: signal.Signals) -> None:
+    """A background job inherits SIGINT ignored: the demo stops all the same, with the shell's code."""
+    argv = cli_argv("demo", "--web")
+    demo = Daemon([argv[0], "-c", IGNORING_SIGINT, *argv], name="demo")
+    with demo:
+        demo.wait_line("say \"I am here\"", 90)  # the story waits for a person at the screen's page
+        demo.proc.send_signal(sig)
+        demo.wait_line("stopping the daemons", 5)
+        assert demo.proc.wait(60) == 128 + sig, demo.lines
+        demo.stop()
+        assert demo.lines[-1].endswith("] done"), demo.lines

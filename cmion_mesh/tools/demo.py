@@ -15,6 +15,8 @@ mesh runs (``view``), on free loopback ports whose addresses it prints; nobody p
 person at the screen's page says "I am here" and answers "yes" (or "no"), and watches the companion
 go on to the phone's page. The daemons keep running after the story, for a look at the pages, until
 Ctrl-C or SIGTERM; either way the demo stops its daemons (they live in sessions of their own).
+A signal before the story's end stops it too (exit 130 for SIGINT, 143 for SIGTERM), even in a
+background job that inherited SIGINT ignored.
 """
 
 from __future__ import annotations
@@ -286,5 +288,6 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
         finally:
             tl.say("stopping the daemons")
             stop_bodies(scenario)
-    tl.say("done")
+            if sys.exc_info()[0] in (None, KeyboardInterrupt):  # ended, or stopped by a signal: its last line
+                tl.say("done")
     return 0
