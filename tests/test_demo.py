@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,7 +15,8 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.tools.demo import GUEST, Timeline, mind_state, run_scenario, start_bodies, stop_bodies
+from cmion_mesh.tools.demo import (GUEST, STATE_PREFIX, Timeline, mind_state, remove_stale_state, run_scenario, start_bodies,
+                                   stop_bodies)
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
@@ -113,3 +116,24 @@ def test_a_background_web_demo_stops_on_a_signal_while_it_waits_for_the_visitor(
         assert demo.proc.wait(60) == 128 + sig, demo.lines
         demo.stop()
         assert demo.lines[-1].endswith("] done"), demo.lines
+
+
+def test_a_killed_web_demo_leaves_no_view_and_its_state_goes_with_the_next_demo(tmp_path: Path) -> None:
+    """SIGKILL gives the demo no chance to stop anything: its children must go by themselves (the
+    kernel tells them), and its state folder is removed by the next demo."""
+    demo = Daemon(cli_argv("demo", "--web"), name="demo")
+    with demo:
+        line = demo.wait_line("starting three embodiment daemons", 60)
+        mesh = re.search(r"in mesh '([^']+)'", line)
+        assert mesh is not None, line
+        demo.wait_line("view: http", 60)
+        assert len(processes_naming(mesh.group(1))) >= 4  # three daemons and the view
+        state = list(Path(tempfile.gettempdir()).glob(f"{STATE_PREFIX}{demo.proc.pid}-*"))
+        assert len(state) == 1, state
+        demo.kill()
+    wait_for(lambda: not processes_naming(mesh.group(1)), 30, f"no process left of mesh {mesh.group(1)}")
+    assert state[0].is_dir()  # nobody removed it: the demo was killed
+    alive = tmp_path / f"{STATE_PREFIX}{os.getpid()}-x"  # a running demo's: kept
+    alive.mkdir()
+    assert state[0] in remove_stale_state() and not state[0].exists()
+    assert remove_stale_state(str(tmp_path)) == [] and alive.is_dir()

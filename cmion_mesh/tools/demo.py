@@ -22,7 +22,9 @@ background job that inherited SIGINT ignored.
 from __future__ import annotations
 
 import contextlib
+import os
 import queue
+import shutil
 import signal
 import sys
 import tempfile
@@ -132,7 +134,8 @@ def web_pages(scenario: Scenario, stack: contextlib.ExitStack) -> dict[str, str]
     from cmion_mesh.web.view import spawn_view
 
     pages = {name: web_address(scenario.daemons[name]) for name in WEB_BODIES}
-    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values())
+    # die_with_parent, as the daemons: a SIGKILLed demo leaves no view serving behind (called from the main thread).
+    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values(), die_with_parent=True)
     stack.enter_context(view)
     return pages
 
@@ -237,6 +240,31 @@ def attach_commands(mesh: str, endpoint: str) -> list[str]:
             f"  cmion-mesh peers {join}"]
 
 
+#: The demo's daemons keep their state in a temporary folder named with the demo's process id: a
+#: demo that could not remove its own (SIGKILLed) leaves it to the next one (``remove_stale_state``).
+STATE_PREFIX = "cmion-demo-"
+
+
+def remove_stale_state(where: str | None = None) -> list[Path]:
+    """Remove the state folders of demos that are gone (their process id in the name no longer
+    runs); return them. Folders of running demos, of other users, or not named so are left."""
+    removed: list[Path] = []
+    for folder in Path(where or tempfile.gettempdir()).glob(f"{STATE_PREFIX}*-*"):
+        pid = folder.name[len(STATE_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or not folder.is_dir() or folder.stat().st_uid != os.getuid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # that demo still runs
+        except ProcessLookupError:
+            pass
+        except PermissionError:  # another user's process
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        removed.append(folder)
+    return removed
+
+
 def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None,
              record: str | None = None) -> int:
     """Run the demo in ``mesh`` (default: a mesh of its own, so that it never meets other daemons).
@@ -247,7 +275,8 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
     if record is not None and Path(record).exists():  # refused before any daemon starts
         raise ConfigError("exists already: not overwritten (another name)", path=record)
     serve = ("--web", "127.0.0.1:0")
-    with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state, contextlib.ExitStack() as stack:
+    remove_stale_state()
+    with tempfile.TemporaryDirectory(prefix=f"{STATE_PREFIX}{os.getpid()}-") as state, contextlib.ExitStack() as stack:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
         # From the main thread, which lives as long as the demo: a SIGKILLed demo leaves no daemon behind.
         scenario = start_bodies(mesh, Path(state), per_body=dict.fromkeys(WEB_BODIES, serve) if web else None, die_with_parent=True)
