@@ -15,8 +15,7 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.tools.demo import (GUEST, STATE_PREFIX, Timeline, mind_state, remove_stale_state, run_scenario, start_bodies,
-                                   stop_bodies)
+from cmion_mesh.tools.demo import GUEST, STATE_PREFIX, Timeline, mind_state, remove_stale_state, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
