@@ -194,7 +194,11 @@ def test_completion_offers_live_names(bodies: Scenario, tmp_path: Path) -> None:
 
 
 def test_demo_web_prints_commands_that_attach_to_its_mesh(bodies: Scenario, tmp_path: Path) -> None:
-    lines = attach_commands(bodies.mesh, bodies.endpoints["robot"])
+    lines = attach_commands(bodies.mesh, bodies.endpoints["robot"], foxglove=True)
+    without = attach_commands(bodies.mesh, bodies.endpoints["robot"], foxglove=False)
+    assert not [line for line in without if line.strip().startswith("cmion-mesh foxglove")]
+    assert any("pip install 'cmion-mesh[foxglove]'" in line for line in without), without
+    assert any(line.endswith("-o attach-2.mcap") for line in attach_commands("m", "tcp/127.0.0.1:1", recording="x/attach.mcap"))
     commands = {shlex.split(line)[1]: shlex.split(line)[2:] for line in lines if line.strip().startswith("cmion-mesh")}
     assert set(commands) == {"record", "view", "foxglove", "peers"}
     for argv in commands.values():
@@ -202,7 +206,8 @@ def test_demo_web_prints_commands_that_attach_to_its_mesh(bodies: Scenario, tmp_
     peers = real_cli("peers", *commands["peers"], "--json")
     assert sorted(p["name"] for p in json.loads(peers.stdout)) == ["phone", "robot", "screen"]
     record = commands["record"]
-    record[record.index("-o") + 1] = str(tmp_path / "demo.mcap")
+    assert record[record.index("-o") + 1] == "attach.mcap"  # not demo.mcap, which `demo --web --record demo.mcap` writes
+    record[record.index("-o") + 1] = str(tmp_path / "attach.mcap")
     with Daemon(cli_argv("record", *record, "--duration", "1"), name="record") as recorder:
         assert "alive: phone, robot, screen" in recorder.wait_line("recording mesh", 30)
         recorder.wait_line("recorded", 30)

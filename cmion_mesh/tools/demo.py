@@ -229,14 +229,27 @@ def _record(client: MeshClient, path: str, stack: contextlib.ExitStack) -> Recor
     return recorder
 
 
-def attach_commands(mesh: str, endpoint: str) -> list[str]:
+def attach_commands(mesh: str, endpoint: str, *, foxglove: bool | None = None, recording: str | None = None) -> list[str]:
     """What ``demo --web`` prints so that tools in another terminal join its mesh: the demo's daemons
-    scout nobody (a mesh of their own), so a tool connects to one of them, which brings the rest."""
+    scout nobody (a mesh of their own), so a tool connects to one of them, which brings the rest.
+    The recording's name is not the demo's own ``recording`` (``record`` refuses a file that exists); the ``foxglove``
+    line only where Foxglove's SDK is installed (``foxglove``: None looks), else how to install it."""
+    import importlib.util
+
     join = f"--mesh {mesh} --no-multicast --connect {endpoint}"
+    output = "attach.mcap" if recording is None or Path(recording).name != "attach.mcap" else "attach-2.mcap"
+    if foxglove is None:
+        foxglove = importlib.util.find_spec("foxglove") is not None
+    if foxglove:
+        live = f"  cmion-mesh foxglove {join}"
+    else:
+        from cmion_mesh.tools.foxglove import INSTALL_HINT
+
+        live = f"  (cmion-mesh foxglove, the mesh live in Foxglove, needs Foxglove's SDK: {INSTALL_HINT})"
     return ["attach from another terminal:",
-            f"  cmion-mesh record {join} -o demo.mcap",
+            f"  cmion-mesh record {join} -o {output}",
             f"  cmion-mesh view {join} --web 127.0.0.1:8091",
-            f"  cmion-mesh foxglove {join}",
+            live,
             f"  cmion-mesh peers {join}"]
 
 
@@ -290,7 +303,7 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
                 if web:
                     for name, address in web_pages(scenario, stack).items():
                         tl.say(f"{name}: {address}")
-                    for line in attach_commands(mesh, scenario.endpoints["robot"]):
+                    for line in attach_commands(mesh, scenario.endpoints["robot"], recording=record):
                         tl.say(line)
                     if sys.stdin.isatty():
                         input("open the screen's page, then press Enter: the operator types the command ")
