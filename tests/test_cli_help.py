@@ -5,6 +5,7 @@ they started, and the one meaning of --timeout and --join."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import time
@@ -75,6 +76,35 @@ def test_every_verb_has_a_description_and_an_example_in_its_help(verb: list[str]
     description = rest.split("\n\n", 1)[0]
     assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
     assert "\nexample" in out and f"  cmion-mesh {verb[0]} " in out.rsplit("\nexample", 1)[1], out
+
+
+def nested_verbs(parser: argparse.ArgumentParser, words: tuple[str, ...] = ()) -> list[list[str]]:
+    """Every verb under a verb (certs init, custody show, wm add...), at any depth."""
+    found: list[list[str]] = []
+    for action in parser._actions:  # argparse has no public walk of its subparsers
+        if isinstance(action, argparse._SubParsersAction):
+            for word, sub in action.choices.items():
+                if words:
+                    found.append([*words, word])
+                found += nested_verbs(sub, (*words, word))
+    return found
+
+
+NESTED = nested_verbs(cli.whole_parser())
+
+
+def test_the_nested_verbs_are_all_found() -> None:
+    assert {("certs", "init"), ("custody", "resolve"), ("service", "unit"), ("wm", "add")} <= {tuple(v) for v in NESTED}
+
+
+@pytest.mark.parametrize("verb", NESTED, ids=" ".join)
+def test_every_nested_verb_has_a_description_and_an_example_in_its_help(verb: list[str]) -> None:
+    code, out, _ = run(*verb, "--help")
+    assert code == 0
+    usage, _, rest = out.partition("\n\n")
+    description = rest.split("\n\n", 1)[0]
+    assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
+    assert "\nexample" in out and f"cmion-mesh {' '.join(verb)} " in out.rsplit("\nexample", 1)[1], out
 
 
 def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> None:

@@ -12,7 +12,7 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, table, timeout_option
+from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, subverb, table, timeout_option
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import mesh_problems
 from cmion_mesh.errors import ExitCode
@@ -246,18 +246,23 @@ def cmd_invite(args: argparse.Namespace) -> int:
 
 
 def custody_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("`custody show COMPANION`: what every live embodiment reports of the companion's "
-                     "custody, the evidence of a fork (who equivocated) and the command that resolves it. "
-                     "`custody resolve COMPANION --keep EMBODIMENT`: keep one branch of a fork; every other "
-                     "branch holder stands down first (its copy retired on its disk), then the kept one "
-                     "runs again. Refused when a holder of another branch cannot be reached (it would make "
-                     "two), or when the evidence shows an equivocator holding the branch kept (--force).")
+    p.description = ("A companion's custody across the mesh. `custody show COMPANION`: what every live embodiment "
+                     "reports of it and of forks of its chain. `custody resolve COMPANION --keep EMBODIMENT`: keep "
+                     "one branch of a fork (see each one's --help).")
     actions = p.add_subparsers(dest="custody_command", required=True, metavar="ACTION")
-    cp = actions.add_parser("show", help="what every embodiment reports of a companion's custody, forks and their evidence")
+    cp = subverb(actions, "show", "what every embodiment reports of a companion's custody, forks and their evidence",
+                 "cmion-mesh custody show spirit --json",
+                 description="What every live embodiment reports of COMPANION's custody: who holds which epoch, the "
+                             "evidence of a fork (who equivocated) and the command that resolves it.")
     cp.add_argument("companion", help="the companion")
     timeout_option(cp, 3.0, "longest wait for the whole mesh to answer")
     mesh_options(cp)
-    cp = actions.add_parser("resolve", help="keep one branch of a fork of a companion's chain of custody; the others stand down")
+    cp = subverb(actions, "resolve", "keep one branch of a fork of a companion's chain of custody; the others stand down",
+                 "cmion-mesh custody resolve spirit --keep robot --gone phone",
+                 description="Keep EMBODIMENT's branch of a fork of COMPANION's chain of custody: every other branch "
+                             "holder stands down first (its copy retired on its disk), then the kept one runs again. "
+                             "Refused when a holder of another branch cannot be reached (it would make two), or when "
+                             "the evidence shows an equivocator holding the branch kept (--force).")
     cp.add_argument("companion", help="the companion")
     cp.add_argument("--keep", required=True, metavar="EMBODIMENT", help="the embodiment whose branch runs the companion")
     cp.add_argument("--force", action="store_true", help="keep it even though the evidence shows an equivocator holding it")

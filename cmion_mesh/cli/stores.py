@@ -34,7 +34,7 @@ ACTIONS: dict[str, tuple[str, dict[str, str]]] = {
              keys.WORLD_MODEL: "cmion-mesh wm get robot Self.location      # the same as Self/location"}),
     "tree": ("list a container and all below it",
              {keys.BLACKBOARD: "cmion-mesh bb tree robot", keys.WORLD_MODEL: "cmion-mesh wm tree robot Visitor"}),
-    "set": ("set a property",
+    "set": ("set a property to a value",
             {keys.BLACKBOARD: "cmion-mesh bb set robot battery 0.8 --persistent",
              keys.WORLD_MODEL: "cmion-mesh wm set robot Visitor.present true   # Visitor must be there: wm add"}),
     "add": ("add an entity (an agent, or an object) with its properties, in one write: minds hear it added "
