@@ -236,3 +236,13 @@ def test_doctor_says_when_the_peers_speak_tls_only(tmp_path: Path) -> None:
     report: dict[str, Any] = json.loads(doctor.stdout)
     assert f"{endpoint} speaks TLS only" in " ".join(report["problems"]), report["problems"]
     assert any("--certs DIR" in hint for hint in report["hints"]), report["hints"]
+
+
+def test_commands_that_need_embodiments_look_for_join_seconds_and_say_so() -> None:
+    """--join is how long to look for the embodiments; --timeout waits for the outcome after."""
+    nobody = ("--mesh", unique_mesh(), "--no-multicast", "--connect", f"tcp/127.0.0.1:{free_port()}", "--join", "1")
+    for argv in (["invite", "screen", "--timeout", "2"], ["custody", "resolve", "spirit", "--keep", "robot", "--timeout", "3"]):
+        done = real_cli(*argv, *nobody)
+        assert done.returncode == 1 and "no embodiment at all found within 1 s" in done.stderr, (argv, done.stderr)
+    migrate = real_cli("migrate", "spirit", "--to", "screen", "--timeout", "3", *nobody)
+    assert migrate.returncode == 1 and "hosts companion 'spirit'" in migrate.stderr, migrate.stderr

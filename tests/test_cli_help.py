@@ -134,6 +134,15 @@ def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> No
         assert args.join_timeout == 7.0 and args.timeout == 120.0
     args = cli.build_parser("bb").parse_args(["bb", "get", "robot", "--timeout", "2", "--join", "9"])
     assert (args.timeout, args.join_timeout) == (2.0, 9.0)
+    # Commands that need embodiments take --join too, and keep --timeout for the outcome.
+    for argv in (["migrate", "spirit", "--to", "screen"], ["invite", "screen"], ["custody", "show", "spirit"],
+                 ["custody", "resolve", "spirit", "--keep", "robot"]):
+        args = cli.build_parser(argv[0]).parse_args([*argv, "--join", "2", "--timeout", "7"])
+        assert (args.join_timeout, args.timeout) == (2.0, 7.0), argv
+    # Where --timeout is the whole wait, --join is no typo of --json: the hint says what to use.
+    for verb in ("peers", "doctor"):
+        code, _, err = run(verb, "--join", "2")
+        assert code == 2 and "use --timeout SECONDS" in err and "--json" not in err and err.count("\n") == 1, err
 
 
 def test_a_table_wraps_at_spaces_and_never_cuts_a_word() -> None:

@@ -208,12 +208,13 @@ def migrate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("companion", help="the companion to move (see `peers`: INHABITANT)")
     p.add_argument("--to", required=True, metavar="EMBODIMENT", help="where to")
     timeout_option(p, 60.0, "seconds to wait for the handshake's end")
+    join_timeout_option(p)
     mesh_options(p)
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
-        result = client.migrate(args.companion, args.to, timeout=args.timeout)
+        result = client.migrate(args.companion, args.to, timeout=args.timeout, join_timeout=args.join_timeout)
     if args.json:
         print(json.dumps(result))
     else:
@@ -230,12 +231,13 @@ def invite_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--to", action="append", metavar="EMBODIMENT",
                    help="invite only this embodiment; repeatable (default: the device table's, or every live one)")
     timeout_option(p, 30.0, "seconds to wait for every answer")
+    join_timeout_option(p)
     mesh_options(p)
 
 
 def cmd_invite(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"{args.embodiment} invites the companion", enabled=not args.json):
-        result = client.invite(args.embodiment, args.to or (), timeout=args.timeout)
+        result = client.invite(args.embodiment, args.to or (), timeout=args.timeout, join_timeout=args.join_timeout)
     if args.json:
         print(json.dumps(result))
     else:
@@ -256,6 +258,7 @@ def custody_arguments(p: argparse.ArgumentParser) -> None:
                              "evidence of a fork (who equivocated) and the command that resolves it.")
     cp.add_argument("companion", help="the companion")
     timeout_option(cp, 3.0, "longest wait for the whole mesh to answer")
+    join_timeout_option(cp)
     mesh_options(cp)
     cp = subverb(actions, "resolve", "keep one branch of a fork of a companion's chain of custody; the others stand down",
                  "cmion-mesh custody resolve spirit --keep robot --gone phone",
@@ -269,6 +272,7 @@ def custody_arguments(p: argparse.ArgumentParser) -> None:
     cp.add_argument("--gone", action="append", metavar="EMBODIMENT",
                     help="a branch holder that is gone for good (wiped, revoked): not waited for; repeatable")
     timeout_option(cp, 10.0, "seconds to wait for each answer")
+    join_timeout_option(cp)
     mesh_options(cp)
 
 
@@ -281,7 +285,8 @@ def cmd_custody(args: argparse.Namespace) -> int:
         if args.certs:
             sender = security.choose_identity(args.certs, args.identity)
         with session(args) as client, Spinner(f"resolving the fork of {companion}", enabled=not args.json):
-            result = client.resolve_fork(companion, keep, force=args.force, gone=gone, sender=sender, timeout=args.timeout)
+            result = client.resolve_fork(companion, keep, force=args.force, gone=gone, sender=sender, timeout=args.timeout,
+                                         join_timeout=args.join_timeout)
         if args.json:
             print(json.dumps(result))
         else:
@@ -290,7 +295,7 @@ def cmd_custody(args: argparse.Namespace) -> int:
                   f"it runs on {keep} again")
         return ExitCode.OK
     with session(args) as client, Spinner(f"asking the mesh about {companion}", enabled=not args.json):
-        reports = client.custody(companion, timeout=args.timeout)
+        reports = client.custody(companion, timeout=args.timeout, join_timeout=args.join_timeout)
     forks = {f["description"]: f for report in reports.values() for f in report.get("forks") or ()}
     equivocators = sorted({str(e) for report in reports.values() for e in report.get("equivocators") or ()})
     branches: dict[str, dict[str, Any]] = {}

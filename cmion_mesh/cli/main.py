@@ -169,6 +169,10 @@ class Parser(argparse.ArgumentParser):
         self.exit(ExitCode.USAGE, f"{self.prog}: error: {hint(self, message)}\n")
 
 
+#: ``--join``'s spellings (``common.join_timeout_option``).
+JOIN_SPELLINGS = ("--join", "--join-timeout", "--discover-timeout")
+
+
 def hint(parser: argparse.ArgumentParser, message: str) -> str:
     """argparse's ``message``, with a did-you-mean for an unknown choice or option."""
     import difflib  # only on a usage error
@@ -182,9 +186,14 @@ def hint(parser: argparse.ArgumentParser, message: str) -> str:
         return message
     unknown = re.match(r"unrecognized arguments: (.*)$", message)
     if unknown:
+        known = option_strings(parser)
         for word in unknown.group(1).split():
+            if word.split("=", 1)[0] in JOIN_SPELLINGS and "--timeout" in known:
+                # peers, doctor: finding the embodiments is their whole work, one wait for both
+                return f"{message} (this command has no --join: its --timeout is its whole wait, looking for the " \
+                       "embodiments included: use --timeout SECONDS)"
             if word.startswith("-"):
-                close = difflib.get_close_matches(word.split("=", 1)[0], option_strings(parser), n=1, cutoff=0.6)
+                close = difflib.get_close_matches(word.split("=", 1)[0], known, n=1, cutoff=0.6)
                 if close:
                     return f"{message} (did you mean '{close[0]}'?)"
     return message
