@@ -173,3 +173,17 @@ def test_each_part_of_a_split_recording_says_when_it_started(tmp_path: Path) -> 
     first, second = info(files[0]), info(files[1])
     assert first["started"] < second["started"], (first["started"], second["started"])
     assert second["started"] >= time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(between)), "the part's own start"
+
+
+def test_wm_add_takes_its_properties_on_either_side_of_its_options() -> None:
+    parser = cli.build_parser("wm")
+    for argv in (["wm", "add", "robot", "Box", "--object", "weight=3.5", "fragile=false"],
+                 ["wm", "add", "robot", "Box", "weight=3.5", "--object", "fragile=false", "--persistent"],
+                 ["wm", "add", "robot", "Box", "weight=3.5", "fragile=false", "--object"]):
+        args = cli.parse(parser, argv)
+        assert (args.entity, args.kind, args.properties) == ("Box", "object", ["weight=3.5", "fragile=false"]), argv
+    # Anything else left over is still refused, in one line.
+    code, _, err = run("wm", "add", "robot", "Box", "--object", "heavy")
+    assert code == 2 and "unrecognized arguments: heavy" in err and err.count("\n") == 1, err
+    code, _, err = run("bb", "get", "robot", "a", "x=1")
+    assert code == 2 and "unrecognized arguments: x=1" in err, err

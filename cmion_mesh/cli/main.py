@@ -256,6 +256,20 @@ def _verb(arguments: Sequence[str]) -> tuple[str | None, str | None]:
     return command, word
 
 
+def parse(parser: argparse.ArgumentParser, arguments: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args``, but a verb that sets ``intermixed`` (the name of its ``nargs="*"``
+    positional, ``wm add``'s PROPERTY=VALUE) also takes those words after its options: argparse
+    ends such a list at the first option and leaves the rest unrecognized (its
+    ``parse_intermixed_args`` refuses subparsers)."""
+    args, extra = parser.parse_known_args(arguments)
+    field = getattr(args, "intermixed", None)
+    if extra and field and all("=" in word and not word.startswith("-") for word in extra):
+        setattr(args, field, [*getattr(args, field), *extra])
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
     if "_ARGCOMPLETE" in os.environ:  # the shell asks for completions (argcomplete's protocol)
@@ -264,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         complete.autocomplete(build_parser, _verb)
     command, word = _verb(arguments)
     parser = build_parser(command, word)
-    args = parser.parse_args(arguments)
+    args = parse(parser, arguments)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         if getattr(args, "settings", None):

@@ -71,6 +71,7 @@ def store_arguments(parser: argparse.ArgumentParser, store: str) -> None:
                             help="its properties; each VALUE is JSON (3, true, [1,2]) or plain text, split at the first =")
             ap.add_argument("--object", dest="kind", action="store_const", const="object", default="agent",
                             help="the entity is an object (default: an agent)")
+            ap.set_defaults(intermixed="properties")  # PROPERTY=VALUE after the options too (cli.main.parse)
         else:
             ap.add_argument("path", nargs="?" if action in ("get", "tree", "watch") else None, default="",
                             help="container/.../property" + (" or entity.property" if world else ""))
