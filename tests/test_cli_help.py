@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from cmion_mesh import keys
 from cmion_mesh.cli import main as cli
 from cmion_mesh.cli.common import item, table_lines
 from cmion_mesh.messages import Event, encode
@@ -173,6 +174,36 @@ def test_each_part_of_a_split_recording_says_when_it_started(tmp_path: Path) -> 
     first, second = info(files[0]), info(files[1])
     assert first["started"] < second["started"], (first["started"], second["started"])
     assert second["started"] >= time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(between)), "the part's own start"
+
+
+def test_each_part_of_a_split_recording_says_who_inhabited_what_when_it_started(tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    with MemoryTransport(network, "mesh") as t, MemoryTransport(network, "bodies") as bodies:
+        robot = bodies.declare_token(keys.custody_key("m", "robot", "spirit", 1))
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.01) as recorder:
+            recorder.describe([{"name": "robot", "inhabitant": "spirit"}, {"name": "screen", "inhabitant": None}])
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: recorder.stats.samples == 2, 10, "the token and the first tick")
+            # spirit migrates to the screen: the robot's claim goes, the screen's comes
+            robot.close()
+            screen = bodies.declare_token(keys.custody_key("m", "screen", "spirit", 2))
+            wait_for(lambda: recorder.stats.samples == 4, 10, "the custody moving")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
+            wait_for(lambda: len(recorder.stats.files) == 2, 10, "the second part")
+            screen.close()
+        files = recorder.stats.files
+    # The tokens' changes start a part of their own (a part starts with whatever comes next), the
+    # tick after them another: its state is the one after the migration.
+    inhabitants = [{n: d["inhabitant"] for n, d in info(f)["described"].items()} for f in files]
+    assert inhabitants[0] == {"robot": "spirit", "screen": ""} and inhabitants[-1] == {"robot": "", "screen": "spirit"}
+    assert dict(metadata_of(files[-1]))["cmion-mesh"]["custody_at_start"] == "screen:spirit@2"
+
+
+def metadata_of(path: str) -> list[tuple[str, dict[str, str]]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
 
 
 def test_wm_add_takes_its_properties_on_either_side_of_its_options() -> None:
