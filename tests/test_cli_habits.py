@@ -246,3 +246,28 @@ def test_commands_that_need_embodiments_look_for_join_seconds_and_say_so() -> No
         assert done.returncode == 1 and "no embodiment at all found within 1 s" in done.stderr, (argv, done.stderr)
     migrate = real_cli("migrate", "spirit", "--to", "screen", "--timeout", "3", *nobody)
     assert migrate.returncode == 1 and "hosts companion 'spirit'" in migrate.stderr, migrate.stderr
+
+
+def test_keys_hints_doctor_only_when_no_embodiment_was_reached(bodies: Scenario) -> None:
+    idle = real_cli("keys", "robot/nothing/**", *net(bodies), "--watch", "0")
+    assert idle.returncode == 0 and "no key matching" in idle.stdout and "doctor" not in idle.stdout, idle.stdout
+    nobody = real_cli("keys", "--mesh", unique_mesh(), "--no-multicast", "--connect", f"tcp/127.0.0.1:{free_port()}",
+                      "--watch", "0", "--timeout", "1")
+    assert "try `cmion-mesh doctor`" in nobody.stdout, nobody.stdout
+
+
+def test_act_json_prints_the_refusal_on_stdout_too(bodies: Scenario) -> None:
+    refused = real_cli("act", "robot", "NoSuchAction", *net(bodies), "--json", "--id", "a1")
+    assert refused.returncode == 1 and refused.stderr.count("\n") == 1, refused.stderr
+    outcome = json.loads(refused.stdout)
+    assert outcome["action_id"] == "a1" and outcome["status"] == "rejected" and outcome["reason"], outcome
+
+
+def test_a_reader_that_leaves_gets_no_error_line() -> None:
+    """`cmion-mesh ... | head`: the reader closes the pipe; the command stops quietly."""
+    proc = subprocess.Popen(cli_argv("service", "unit", "robot"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            stdin=subprocess.DEVNULL)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # gone before the command writes (it is still importing)
+    err = proc.stderr.read().decode()
+    assert proc.wait(30) == 141 and err == "", err

@@ -15,7 +15,7 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.cli import main as cli
-from cmion_mesh.cli.common import item, table_lines
+from cmion_mesh.cli.common import item, plural, table_lines
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.tools.recording import Recorder
@@ -218,3 +218,16 @@ def test_wm_add_takes_its_properties_on_either_side_of_its_options() -> None:
     assert code == 2 and "unrecognized arguments: heavy" in err and err.count("\n") == 1, err
     code, _, err = run("bb", "get", "robot", "a", "x=1")
     assert code == 2 and "unrecognized arguments: x=1" in err, err
+
+
+def test_small_manners() -> None:
+    # a missing file is a usage error (exit 2), as the exit-code table says
+    code, _, err = run("validate", "/nonexistent/a.xml")
+    assert code == 2 and "/nonexistent/a.xml" in err, err
+    # act's parameters are optional: the usage error names what is missing only
+    code, _, err = run("act", "robot")
+    assert code == 2 and err.endswith("required: action\n"), err
+    # options before the command: where they go, not "invalid choice"
+    code, _, err = run("--mesh", "x", "peers")
+    assert code == 2 and "options go after the command: cmion-mesh peers --mesh x" in err and "invalid choice" not in err, err
+    assert (plural(1, "competency", "competencies"), plural(2, "rule")) == ("1 competency", "2 rules")

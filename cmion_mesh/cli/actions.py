@@ -15,7 +15,7 @@ from cmion_mesh import keys
 from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, subverb, table, timeout_option
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import mesh_problems
-from cmion_mesh.errors import ExitCode
+from cmion_mesh.errors import ExitCode, RequestRejected
 from cmion_mesh.requests import require_accepted
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import security
@@ -125,8 +125,14 @@ def act_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_act(args: argparse.Namespace) -> int:
     stop = Stopper()  # Ctrl-C is collected by the main thread, whichever thread the signal reaches
     with session(args) as client:
-        run = client.start_action(args.embodiment, args.action, args.parameters, subject=args.subject, action_id=args.id or "",
-                                  deadline=args.deadline, join_timeout=args.join_timeout, on_end=stop.stop)
+        try:
+            run = client.start_action(args.embodiment, args.action, args.parameters, subject=args.subject,
+                                      action_id=args.id or "", deadline=args.deadline, join_timeout=args.join_timeout,
+                                      on_end=stop.stop)
+        except RequestRejected as exc:
+            if args.json:  # a script reads the outcome on stdout, a refusal too (the line on stderr as ever)
+                print(json.dumps({"action_id": args.id or "", "status": exc.status, "reason": exc.reason, "code": exc.code}))
+            raise
         with run:
             if args.detach:
                 print(json.dumps({"action_id": run.action_id, "status": "running"}) if args.json else

@@ -102,6 +102,11 @@ def join_timeout_option(parser: argparse.ArgumentParser, default: float = 5.0) -
                                                 "(default: %(default)s s)")
 
 
+def plural(count: int, one: str, many: str | None = None) -> str:
+    """``1 rule``, ``2 rules``; ``many`` where adding an s is wrong (competency, competencies)."""
+    return f"{count} {one if count == 1 else many or one + 's'}"
+
+
 def table(rows: Sequence[tuple[str, ...]], width: int | None = None) -> None:
     """Print ``rows`` (the first one the header) as aligned columns that fit ``width`` (default: the
     terminal's): the widest columns are narrowed first and their cells wrap at spaces onto more

@@ -11,7 +11,8 @@ JSON5 file), ``--no-multicast``, ``--multicast-interface`` and ``--certs``; comm
 is data take ``--json``. One-shot commands join the mesh before they ask (``client``). Errors are
 one clear line on stderr, never a traceback, and the exit code says what happened
 (``errors.ExitCode``): 0 succeeded, 1 failed or refused, 2 usage or configuration error,
-3 cancelled, 4 outcome unknown, 130 left on a second Ctrl-C.
+3 cancelled, 4 outcome unknown, 130 left on a second Ctrl-C; 141, quietly, when the reader of its
+output left (``| head``), as a command SIGPIPE ends.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import argparse
 import importlib
 import os
 import re
+import shlex
+import signal
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import NamedTuple, NoReturn
@@ -177,6 +180,13 @@ def hint(parser: argparse.ArgumentParser, message: str) -> str:
     """argparse's ``message``, with a did-you-mean for an unknown choice or option."""
     import difflib  # only on a usage error
 
+    required = re.match(r"the following arguments are required: (.*)$", message)
+    if required:
+        # argparse lists a missing nargs="*" positional as required (act's parameters): name only the needed.
+        optional = {action.metavar or action.dest for action in parser._actions
+                    if not action.option_strings and action.nargs in ("*", "?")}
+        needed = [name for name in required.group(1).split(", ") if name not in optional]
+        return f"the following arguments are required: {', '.join(needed)}" if needed else message
     choice = re.match(r"(argument .*?: invalid choice: '(.*?)') \(choose from (.*)\)$", message)
     if choice:
         options = re.findall(r"'([^']*)'", choice.group(3))
@@ -276,6 +286,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         from cmion_mesh.cli import complete
 
         complete.autocomplete(build_parser, _verb)
+    try:
+        code = _main(arguments)
+        sys.stdout.flush()  # here, not at exit: a reader gone (| head) is then ours to say nothing of
+        return code
+    except BrokenPipeError:
+        # The reader of our output left (| head): stop quietly, as other commands do. Standard output
+        # goes to /dev/null so that Python's flush at exit does not complain again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+
+
+def _main(arguments: list[str]) -> int:
+    if arguments and arguments[0].startswith("-") and arguments[0] not in ("-h", "--help", "--version"):
+        # `cmion-mesh --mesh x peers`: the top level takes no option but --help and --version.
+        at = next((i for i, a in enumerate(arguments) if a in COMMANDS), None)
+        moved = ("COMMAND " + " ".join(map(shlex.quote, arguments)) if at is None else
+                 " ".join(shlex.quote(a) for a in [arguments[at], *arguments[at + 1:], *arguments[:at]]))
+        build_parser().error(f"options go after the command: cmion-mesh {moved}")
     command, word = _verb(arguments)
     parser = build_parser(command, word)
     args = parse(parser, arguments)
@@ -293,6 +321,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exit_code(exc)
     except KeyboardInterrupt:
         return ExitCode.INTERRUPTED
+    except BrokenPipeError:
+        raise  # main's: no error line for a reader that left
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.FAILED
