@@ -167,10 +167,12 @@ def test_call_sends_a_typed_request_and_decodes_its_answer(bodies: Scenario) -> 
     assert malformed.returncode == 2 and "missing required field `name`" in malformed.stderr
 
 
-def complete(line: str, tmp_path: Path) -> list[str]:
-    """What the shell would offer for ``line``, through argcomplete's protocol, as bash asks it."""
+def complete(line: str, tmp_path: Path, point: int | None = None) -> list[str]:
+    """What the shell would offer for ``line`` with the cursor at ``point`` (default: its end),
+    through argcomplete's protocol, as bash asks it."""
     out = tmp_path / "completions"
-    env = {**os.environ, "_ARGCOMPLETE": "1", "COMP_LINE": line, "COMP_POINT": str(len(line)), "_ARGCOMPLETE_IFS": "\n",
+    env = {**os.environ, "_ARGCOMPLETE": "1", "COMP_LINE": line, "COMP_POINT": str(len(line) if point is None else point),
+           "_ARGCOMPLETE_IFS": "\n",
            "_ARGCOMPLETE_STDOUT_FILENAME": str(out)}
     done = subprocess.run([sys.executable, "-m", "cmion_mesh.cli"], env=env, capture_output=True, text=True, timeout=30,
                           stdin=subprocess.DEVNULL)
@@ -191,6 +193,24 @@ def test_completion_offers_live_names(bodies: Scenario, tmp_path: Path) -> None:
     # A mesh nobody answers for: no names, and the shell gets its answer (bounded join).
     nobody = f"cmion-mesh act --mesh {bodies.mesh} --no-multicast --connect tcp/127.0.0.1:{free_port()} r"
     assert complete(nobody, tmp_path) == []
+
+
+
+def test_completion_reads_the_mesh_options_after_the_cursor_and_offers_store_paths(bodies: Scenario, tmp_path: Path) -> None:
+    mesh = " ".join(shlex.quote(a) for a in net(bodies))
+    before = "cmion-mesh act robot G"
+    assert complete(f"{before} {mesh}", tmp_path, point=len(before)) == ["GoTo", "Greet"]
+    with client_of(bodies) as client:
+        client.join("robot")
+        stored = client.lookup("robot", "wm", "", below=True)
+    prefix = f"cmion/{bodies.mesh}/robot/wm/"
+    paths = sorted(k.removeprefix(prefix) for k in stored if k.startswith(prefix))
+    assert paths, "the robot's world model holds something to complete"
+    offered = [w for w in complete(f"cmion-mesh wm get {mesh} robot ", tmp_path) if not w.startswith("-")]
+    assert offered == paths and "README.md" not in offered, offered  # the store's paths, never the folder's files
+    assert complete(f"cmion-mesh wm get {mesh} robot {paths[0][:2]}", tmp_path) == [p for p in paths if p.startswith(paths[0][:2])]
+    # a new entity's name: nothing but options
+    assert not [w for w in complete(f"cmion-mesh wm add {mesh} robot ", tmp_path) if not w.startswith("-")]
 
 
 def test_demo_web_prints_commands_that_attach_to_its_mesh(bodies: Scenario, tmp_path: Path) -> None:
