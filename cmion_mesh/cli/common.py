@@ -76,11 +76,10 @@ def zenoh_options(group: Any, **helps: str) -> None:
 def subverb(sub: Any, name: str, text: str, example: str, description: str | None = None) -> argparse.ArgumentParser:
     """A verb under a verb (``certs init``, ``custody show``), added to ``sub`` (an
     ``add_subparsers`` result) with its line in the verb's help (``text``), its description (``text``
-    as a sentence unless given) and ``example`` ending its ``--help``, as every verb has."""
-    from cmion_mesh.cli.main import HelpFormatter  # the verbs' own: the example kept as written
-
+    as a sentence unless given) and ``example`` ending its ``--help``, as every verb has (kept as
+    written: the parser is of its parent's class, ``main.Parser``)."""
     parser: argparse.ArgumentParser = sub.add_parser(name, help=text, description=description or text[0].upper() + text[1:] + ".",
-                                                     epilog=f"example: {example}", formatter_class=HelpFormatter)
+                                                     epilog=f"example: {example}")
     return parser
 
 

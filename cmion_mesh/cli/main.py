@@ -25,7 +25,7 @@ import shlex
 import signal
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 from cmion_mesh import __version__
 from cmion_mesh.errors import ExitCode, MeshError, exit_code
@@ -166,7 +166,13 @@ class HelpFormatter(argparse.HelpFormatter):
 
 class Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose usage errors are one line (exit 2) that says what was meant when
-    a verb or an option is a typo of one (``peer``: ``peers``; ``--mehs``: ``--mesh``)."""
+    a verb or an option is a typo of one (``peer``: ``peers``; ``--mehs``: ``--mesh``). Its help
+    keeps examples as written (``HelpFormatter``), in the parsers of verbs under a verb too (they
+    are of their parent's class: ``common.subverb``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(ExitCode.USAGE, f"{self.prog}: error: {hint(self, message)}\n")
