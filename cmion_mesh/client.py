@@ -386,13 +386,13 @@ class MeshClient:
         """The embodiment inhabited by ``companion`` (``companions.find_companion``)."""
         return companions.find_companion(self, companion, timeout=timeout)
 
-    def migrate(self, companion: str, target: str, *, timeout: float = 60.0) -> dict[str, Any]:
+    def migrate(self, companion: str, target: str, *, timeout: float = 60.0, join_timeout: float = 5.0) -> dict[str, Any]:
         """Move ``companion`` to ``target`` once the target committed (``companions.migrate``)."""
-        return companions.migrate(self, companion, target, timeout=timeout)
+        return companions.migrate(self, companion, target, timeout=timeout, join_timeout=join_timeout)
 
-    def invite(self, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0) -> dict[str, Any]:
+    def invite(self, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0, join_timeout: float = 5.0) -> dict[str, Any]:
         """Have the empty embodiment ``inviter`` invite the companion (``companions.invite``)."""
-        return companions.invite(self, inviter, to, timeout=timeout)
+        return companions.invite(self, inviter, to, timeout=timeout, join_timeout=join_timeout)
 
     def set_policy(self, companion: str, accepts: Sequence[str] | None) -> None:
         """Say which embodiments ``companion`` accepts (None: any); it travels with the companion."""
@@ -514,14 +514,15 @@ class MeshClient:
                 out.append({"name": name, "error": "alive (so say the other daemons) but not reachable from this session"})
         return out
 
-    def custody(self, companion: str, *, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+    def custody(self, companion: str, *, timeout: float = 2.0, join_timeout: float | None = None) -> dict[str, dict[str, Any]]:
         """What every live embodiment says of ``companion``'s custody (``companions.custody``)."""
-        return companions.custody(self, companion, timeout=timeout)
+        return companions.custody(self, companion, timeout=timeout, join_timeout=join_timeout)
 
     def resolve_fork(self, companion: str, keep: str, *, force: bool = False, gone: Sequence[str] = (),
-                     sender: str = "cmion-mesh", timeout: float = 10.0) -> dict[str, Any]:
+                     sender: str = "cmion-mesh", timeout: float = 10.0, join_timeout: float = 5.0) -> dict[str, Any]:
         """Resolve a fork of ``companion``'s custody by keeping ``keep``'s branch (``companions.resolve_fork``)."""
-        return companions.resolve_fork(self, companion, keep, force=force, gone=gone, sender=sender, timeout=timeout)
+        return companions.resolve_fork(self, companion, keep, force=force, gone=gone, sender=sender, timeout=timeout,
+                                       join_timeout=join_timeout)
 
     def embodiments(self, *, timeout: float = 2.0) -> list[str]:
         """Names of the embodiments whose liveliness token is present (one liveliness query)."""

@@ -66,17 +66,19 @@ def find_companion(client: CompanionClient, companion: str, *, timeout: float = 
                    + did_you_mean(companion, inhabitants))
 
 
-def migrate(client: CompanionClient, companion: str, target: str, *, timeout: float = 60.0) -> dict[str, Any]:
+def migrate(client: CompanionClient, companion: str, target: str, *, timeout: float = 60.0,
+            join_timeout: float = 5.0) -> dict[str, Any]:
     """Move ``companion`` to ``target``; returns ``{source, target, epoch, attempt}`` once the target committed.
 
     Raises ``RequestRejected`` with the reason if the migration is refused or fails (the
     companion then keeps running at its source), ``NotAlive`` if the companion or the target
     is nowhere to be found, and ``OutcomeUnknown`` (``Vanished`` when the source or the target
-    left the mesh) if its end is not heard.
+    left the mesh) if its end is not heard. ``join_timeout``: how long to look for the companion's
+    host and the target; ``timeout``: how long then to wait for the handshake's end.
     """
+    source = find_companion(client, companion, timeout=join_timeout)
+    client.join(target, timeout=join_timeout)
     started_at = time.monotonic()
-    source = find_companion(client, companion)
-    client.join(target)
     ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
 
     def on_event(event: Event) -> None:
@@ -111,7 +113,8 @@ def migrate(client: CompanionClient, companion: str, target: str, *, timeout: fl
     return data
 
 
-def invite(client: CompanionClient, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0) -> dict[str, Any]:
+def invite(client: CompanionClient, inviter: str, to: Sequence[str] = (), *, timeout: float = 30.0,
+           join_timeout: float = 5.0) -> dict[str, Any]:
     """Have the empty embodiment ``inviter`` invite the companion (``invitation``): to ``to``, or
     to its device table's embodiments, or without a table to every live one. Returns the
     round's ``InvitationsDone`` data (``round``, ``accepted_by``, ``answers``) when some
@@ -120,9 +123,10 @@ def invite(client: CompanionClient, inviter: str, to: Sequence[str] = (), *, tim
     Raises ``NotAlive`` if ``inviter`` is not alive, ``RequestRejected`` if it cannot invite
     (inhabited, nobody to invite) or nobody accepted (the reason lists every answer),
     ``OutcomeUnknown`` if no answer was definite (``Vanished`` if the inviter left the mesh).
+    ``join_timeout``: how long to look for the inviter; ``timeout``: how long then to wait for the answers.
     """
+    client.join(inviter, timeout=join_timeout)
     started_at = time.monotonic()
-    client.join(inviter, timeout=min(timeout, 5.0))
     ended: queue.SimpleQueue[Event | str] = queue.SimpleQueue()
 
     def on_event(event: Event) -> None:
@@ -166,10 +170,15 @@ def set_policy(client: CompanionClient, companion: str, accepts: Sequence[str] |
     require_accepted(client.request(host, "migration", "policy", payload), keys.request_key(client.mesh, host, "migration", "policy"))
 
 
-def custody(client: CompanionClient, companion: str, *, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
+def custody(client: CompanionClient, companion: str, *, timeout: float = 2.0,
+            join_timeout: float | None = None) -> dict[str, dict[str, Any]]:
     """What every live embodiment says of ``companion``'s custody (``describe``'s ``custody``):
-    name -> its report ({} when it holds no copy; ``{"error": ...}`` when it did not answer)."""
+    name -> its report ({} when it holds no copy; ``{"error": ...}`` when it did not answer).
+    ``join_timeout``: how long to look for embodiments first (none found: ``{}``); ``timeout``:
+    how long then to wait for their answers."""
     reports: dict[str, dict[str, Any]] = {}
+    if join_timeout is not None and not client.presence.wait(lambda alive: bool(alive), join_timeout):
+        return reports
     for d in client.describe_all(timeout=timeout):
         name = str(d.get("name"))
         if d.get("error"):
@@ -181,18 +190,20 @@ def custody(client: CompanionClient, companion: str, *, timeout: float = 2.0) ->
 
 
 def resolve_fork(client: CompanionClient, companion: str, keep: str, *, force: bool = False, gone: Sequence[str] = (),
-                 sender: str = "cmion-mesh", timeout: float = 10.0) -> dict[str, Any]:
+                 sender: str = "cmion-mesh", timeout: float = 10.0, join_timeout: float = 5.0) -> dict[str, Any]:
     """Resolve a fork of ``companion``'s chain of custody by keeping ``keep``'s branch: every
     other branch holder stands down first (its copy retired on its disk before it answers), and
     only once all of them did is ``keep`` told to run it again. Refused (``RequestRejected``,
     nothing retired) when a holder of another branch cannot be reached (unless named ``gone``:
     wiped or revoked for good), or when the evidence shows an equivocator holding ``keep``'s
-    branch (unless ``force``). Returns ``{"kept", "retired", "gone"}``."""
+    branch (unless ``force``). Returns ``{"kept", "retired", "gone"}``. ``join_timeout``: how long
+    to look for ``keep``; ``timeout``: how long to wait for each answer."""
+    client.join(keep, timeout=join_timeout)
     reports = custody(client, companion, timeout=min(timeout, 5.0))
     key = keys.request_key(client.mesh, keep, "migration", "resume")
     alive = {name for name, report in reports.items() if "error" not in report}
     if keep not in reports:
-        raise client.not_alive(keep, 0.0)
+        raise client.not_alive(keep, join_timeout)
     kept = reports[keep]
     if "error" in kept or kept.get("state") != "active":
         raise RequestRejected(f"{keep!r} holds no running copy of {companion!r} to keep "

@@ -57,6 +57,17 @@ def check_name(name: str, what: str = "name") -> str:
     return _refuse(name, what)
 
 
+def check_entity(name: str) -> str:
+    """``check_name`` for a world-model entity, which also holds no ``.``: a dotted path means
+    entity.property in every read and write, so an entity named with a dot could be added but
+    never read nor removed (``InvalidName`` saying what to use)."""
+    check_name(name, "entity")
+    if "." in name:
+        raise InvalidName(f"entity {name!r} holds '.', which world-model paths read as entity.property: "
+                          f"name it without a dot (e.g. {name.replace('.', '_')!r})")
+    return name
+
+
 def is_name(name: str) -> bool:
     """Whether ``check_name`` accepts ``name`` (for input that is skipped, not refused, when invalid)."""
     return isinstance(name, str) and _VALID_NAME.fullmatch(name) is not None

@@ -55,6 +55,13 @@ class Interrupter:
 
     def __init__(self) -> None:
         self._stopper = Stopper()
+        # ``interrupt_main`` raises KeyboardInterrupt only where SIGINT has Python's handler: a
+        # command started in the background by a shell script inherits SIGINT ignored, and would
+        # never be interrupted. The signals themselves are blocked and collected by ``sigwait``
+        # (Linux queues a blocked signal even when ignored), so this handler only ever runs for
+        # ``interrupt_main``.
+        if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         self.stopped = threading.Event()
         self._waiting = False
         self._thread = threading.Thread(target=self._collect, name="signals", daemon=True)
@@ -67,6 +74,16 @@ class Interrupter:
         self.stopped.set()
         if not self._waiting:
             _thread.interrupt_main()  # KeyboardInterrupt on the main thread at its next step
+
+    @property
+    def received(self) -> int | None:
+        """The signal that stopped us, if one did."""
+        return self._stopper.received
+
+    def exit_code(self) -> int:
+        """The shell's code for a command a signal stopped: 128 + the signal (130 for SIGINT,
+        143 for SIGTERM)."""
+        return 128 + (self.received or signal.SIGINT)
 
     def wait(self) -> None:
         """Until SIGINT or SIGTERM (at once if one came already)."""

@@ -414,6 +414,11 @@ class Store(Component):
             raise StorageError(f"{where} already exists", code=Code.EXISTS)
         if not path and self.root_kinds is not None and kind not in self.root_kinds:
             raise StorageError(f"{where}: kind {kind!r} is not one of {sorted(self.root_kinds)}", code=Code.INVALID)
+        if not path and self.root_kinds is not None:
+            try:
+                keys.check_entity(name)
+            except InvalidName as exc:
+                raise StorageError(f"{self.name}: {exc}", code=Code.INVALID) from None
 
     def _containers(self, path: tuple[str, ...], written: set[tuple[str, ...]], added: list[_Change]) -> Node:
         """The container at ``path``, the missing ones on the way added (kind ``CONTAINER_KIND``)
@@ -578,7 +583,7 @@ def _init_entity(element: Any, path: str, seen: dict[str, int]) -> InitEntity:
     name = element.get("Name", "").strip()
     line = xmlsafe.sourceline(element)
     try:
-        keys.check_name(name, "entity name")
+        keys.check_entity(name)
     except InvalidName as exc:
         raise ConfigError(str(exc), path=path, line=line) from None
     if name in seen:

@@ -167,10 +167,12 @@ def test_call_sends_a_typed_request_and_decodes_its_answer(bodies: Scenario) -> 
     assert malformed.returncode == 2 and "missing required field `name`" in malformed.stderr
 
 
-def complete(line: str, tmp_path: Path) -> list[str]:
-    """What the shell would offer for ``line``, through argcomplete's protocol, as bash asks it."""
+def complete(line: str, tmp_path: Path, point: int | None = None) -> list[str]:
+    """What the shell would offer for ``line`` with the cursor at ``point`` (default: its end),
+    through argcomplete's protocol, as bash asks it."""
     out = tmp_path / "completions"
-    env = {**os.environ, "_ARGCOMPLETE": "1", "COMP_LINE": line, "COMP_POINT": str(len(line)), "_ARGCOMPLETE_IFS": "\n",
+    env = {**os.environ, "_ARGCOMPLETE": "1", "COMP_LINE": line, "COMP_POINT": str(len(line) if point is None else point),
+           "_ARGCOMPLETE_IFS": "\n",
            "_ARGCOMPLETE_STDOUT_FILENAME": str(out)}
     done = subprocess.run([sys.executable, "-m", "cmion_mesh.cli"], env=env, capture_output=True, text=True, timeout=30,
                           stdin=subprocess.DEVNULL)
@@ -193,8 +195,30 @@ def test_completion_offers_live_names(bodies: Scenario, tmp_path: Path) -> None:
     assert complete(nobody, tmp_path) == []
 
 
+
+def test_completion_reads_the_mesh_options_after_the_cursor_and_offers_store_paths(bodies: Scenario, tmp_path: Path) -> None:
+    mesh = " ".join(shlex.quote(a) for a in net(bodies))
+    before = "cmion-mesh act robot G"
+    assert complete(f"{before} {mesh}", tmp_path, point=len(before)) == ["GoTo", "Greet"]
+    with client_of(bodies) as client:
+        client.join("robot")
+        stored = client.lookup("robot", "wm", "", below=True)
+    prefix = f"cmion/{bodies.mesh}/robot/wm/"
+    paths = sorted(k.removeprefix(prefix) for k in stored if k.startswith(prefix))
+    assert paths, "the robot's world model holds something to complete"
+    offered = [w for w in complete(f"cmion-mesh wm get {mesh} robot ", tmp_path) if not w.startswith("-")]
+    assert offered == paths and "README.md" not in offered, offered  # the store's paths, never the folder's files
+    assert complete(f"cmion-mesh wm get {mesh} robot {paths[0][:2]}", tmp_path) == [p for p in paths if p.startswith(paths[0][:2])]
+    # a new entity's name: nothing but options
+    assert not [w for w in complete(f"cmion-mesh wm add {mesh} robot ", tmp_path) if not w.startswith("-")]
+
+
 def test_demo_web_prints_commands_that_attach_to_its_mesh(bodies: Scenario, tmp_path: Path) -> None:
-    lines = attach_commands(bodies.mesh, bodies.endpoints["robot"])
+    lines = attach_commands(bodies.mesh, bodies.endpoints["robot"], foxglove=True)
+    without = attach_commands(bodies.mesh, bodies.endpoints["robot"], foxglove=False)
+    assert not [line for line in without if line.strip().startswith("cmion-mesh foxglove")]
+    assert any("pip install 'cmion-mesh[foxglove]'" in line for line in without), without
+    assert any(line.endswith("-o attach-2.mcap") for line in attach_commands("m", "tcp/127.0.0.1:1", recording="x/attach.mcap"))
     commands = {shlex.split(line)[1]: shlex.split(line)[2:] for line in lines if line.strip().startswith("cmion-mesh")}
     assert set(commands) == {"record", "view", "foxglove", "peers"}
     for argv in commands.values():
@@ -202,7 +226,8 @@ def test_demo_web_prints_commands_that_attach_to_its_mesh(bodies: Scenario, tmp_
     peers = real_cli("peers", *commands["peers"], "--json")
     assert sorted(p["name"] for p in json.loads(peers.stdout)) == ["phone", "robot", "screen"]
     record = commands["record"]
-    record[record.index("-o") + 1] = str(tmp_path / "demo.mcap")
+    assert record[record.index("-o") + 1] == "attach.mcap"  # not demo.mcap, which `demo --web --record demo.mcap` writes
+    record[record.index("-o") + 1] = str(tmp_path / "attach.mcap")
     with Daemon(cli_argv("record", *record, "--duration", "1"), name="record") as recorder:
         assert "alive: phone, robot, screen" in recorder.wait_line("recording mesh", 30)
         recorder.wait_line("recorded", 30)
@@ -231,3 +256,38 @@ def test_doctor_says_when_the_peers_speak_tls_only(tmp_path: Path) -> None:
     report: dict[str, Any] = json.loads(doctor.stdout)
     assert f"{endpoint} speaks TLS only" in " ".join(report["problems"]), report["problems"]
     assert any("--certs DIR" in hint for hint in report["hints"]), report["hints"]
+
+
+def test_commands_that_need_embodiments_look_for_join_seconds_and_say_so() -> None:
+    """--join is how long to look for the embodiments; --timeout waits for the outcome after."""
+    nobody = ("--mesh", unique_mesh(), "--no-multicast", "--connect", f"tcp/127.0.0.1:{free_port()}", "--join", "1")
+    for argv in (["invite", "screen", "--timeout", "2"], ["custody", "resolve", "spirit", "--keep", "robot", "--timeout", "3"]):
+        done = real_cli(*argv, *nobody)
+        assert done.returncode == 1 and "no embodiment at all found within 1 s" in done.stderr, (argv, done.stderr)
+    migrate = real_cli("migrate", "spirit", "--to", "screen", "--timeout", "3", *nobody)
+    assert migrate.returncode == 1 and "hosts companion 'spirit'" in migrate.stderr, migrate.stderr
+
+
+def test_keys_hints_doctor_only_when_no_embodiment_was_reached(bodies: Scenario) -> None:
+    idle = real_cli("keys", "robot/nothing/**", *net(bodies), "--watch", "0")
+    assert idle.returncode == 0 and "no key matching" in idle.stdout and "doctor" not in idle.stdout, idle.stdout
+    nobody = real_cli("keys", "--mesh", unique_mesh(), "--no-multicast", "--connect", f"tcp/127.0.0.1:{free_port()}",
+                      "--watch", "0", "--timeout", "1")
+    assert "try `cmion-mesh doctor`" in nobody.stdout, nobody.stdout
+
+
+def test_act_json_prints_the_refusal_on_stdout_too(bodies: Scenario) -> None:
+    refused = real_cli("act", "robot", "NoSuchAction", *net(bodies), "--json", "--id", "a1")
+    assert refused.returncode == 1 and refused.stderr.count("\n") == 1, refused.stderr
+    outcome = json.loads(refused.stdout)
+    assert outcome["action_id"] == "a1" and outcome["status"] == "rejected" and outcome["reason"], outcome
+
+
+def test_a_reader_that_leaves_gets_no_error_line() -> None:
+    """`cmion-mesh ... | head`: the reader closes the pipe; the command stops quietly."""
+    proc = subprocess.Popen(cli_argv("service", "unit", "robot"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            stdin=subprocess.DEVNULL)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # gone before the command writes (it is still importing)
+    err = proc.stderr.read().decode()
+    assert proc.wait(30) == 141 and err == "", err

@@ -5,6 +5,7 @@ they started, and the one meaning of --timeout and --join."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import time
@@ -12,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from cmion_mesh import keys
 from cmion_mesh.cli import main as cli
-from cmion_mesh.cli.common import item, table_lines
+from cmion_mesh.cli.common import item, plural, table_lines
 from cmion_mesh.messages import Event, encode
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.tools.recording import Recorder
@@ -77,6 +79,35 @@ def test_every_verb_has_a_description_and_an_example_in_its_help(verb: list[str]
     assert "\nexample" in out and f"  cmion-mesh {verb[0]} " in out.rsplit("\nexample", 1)[1], out
 
 
+def nested_verbs(parser: argparse.ArgumentParser, words: tuple[str, ...] = ()) -> list[list[str]]:
+    """Every verb under a verb (certs init, custody show, wm add...), at any depth."""
+    found: list[list[str]] = []
+    for action in parser._actions:  # argparse has no public walk of its subparsers
+        if isinstance(action, argparse._SubParsersAction):
+            for word, sub in action.choices.items():
+                if words:
+                    found.append([*words, word])
+                found += nested_verbs(sub, (*words, word))
+    return found
+
+
+NESTED = nested_verbs(cli.whole_parser())
+
+
+def test_the_nested_verbs_are_all_found() -> None:
+    assert {("certs", "init"), ("custody", "resolve"), ("service", "unit"), ("wm", "add")} <= {tuple(v) for v in NESTED}
+
+
+@pytest.mark.parametrize("verb", NESTED, ids=" ".join)
+def test_every_nested_verb_has_a_description_and_an_example_in_its_help(verb: list[str]) -> None:
+    code, out, _ = run(*verb, "--help")
+    assert code == 0
+    usage, _, rest = out.partition("\n\n")
+    description = rest.split("\n\n", 1)[0]
+    assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
+    assert "\nexample" in out and f"cmion-mesh {' '.join(verb)} " in out.rsplit("\nexample", 1)[1], out
+
+
 def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> None:
     parser = cli.whole_parser()
     helps = {}
@@ -104,6 +135,15 @@ def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> No
         assert args.join_timeout == 7.0 and args.timeout == 120.0
     args = cli.build_parser("bb").parse_args(["bb", "get", "robot", "--timeout", "2", "--join", "9"])
     assert (args.timeout, args.join_timeout) == (2.0, 9.0)
+    # Commands that need embodiments take --join too, and keep --timeout for the outcome.
+    for argv in (["migrate", "spirit", "--to", "screen"], ["invite", "screen"], ["custody", "show", "spirit"],
+                 ["custody", "resolve", "spirit", "--keep", "robot"]):
+        args = cli.build_parser(argv[0]).parse_args([*argv, "--join", "2", "--timeout", "7"])
+        assert (args.join_timeout, args.timeout) == (2.0, 7.0), argv
+    # Where --timeout is the whole wait, --join is no typo of --json: the hint says what to use.
+    for verb in ("peers", "doctor"):
+        code, _, err = run(verb, "--join", "2")
+        assert code == 2 and "use --timeout SECONDS" in err and "--json" not in err and err.count("\n") == 1, err
 
 
 def test_a_table_wraps_at_spaces_and_never_cuts_a_word() -> None:
@@ -134,3 +174,62 @@ def test_each_part_of_a_split_recording_says_when_it_started(tmp_path: Path) -> 
     first, second = info(files[0]), info(files[1])
     assert first["started"] < second["started"], (first["started"], second["started"])
     assert second["started"] >= time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(between)), "the part's own start"
+
+
+def test_each_part_of_a_split_recording_says_who_inhabited_what_when_it_started(tmp_path: Path) -> None:
+    network = MemoryNetwork()
+    with MemoryTransport(network, "mesh") as t, MemoryTransport(network, "bodies") as bodies:
+        robot = bodies.declare_token(keys.custody_key("m", "robot", "spirit", 1))
+        with Recorder(t, "m", tmp_path / "q.mcap", split_bytes=1, flush_interval=0.01) as recorder:
+            recorder.describe([{"name": "robot", "inhabitant": "spirit"}, {"name": "screen", "inhabitant": None}])
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 0}, 0, 1.0)))
+            wait_for(lambda: recorder.stats.samples == 2, 10, "the token and the first tick")
+            # spirit migrates to the screen: the robot's claim goes, the screen's comes
+            robot.close()
+            screen = bodies.declare_token(keys.custody_key("m", "screen", "spirit", 2))
+            wait_for(lambda: recorder.stats.samples == 4, 10, "the custody moving")
+            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
+            wait_for(lambda: len(recorder.stats.files) == 2, 10, "the second part")
+            screen.close()
+        files = recorder.stats.files
+    # A part starts with whatever comes next once one is full (a token, the description, a tick):
+    # an early part holds the description as given, the last one (the tick after the migration)
+    # the state after it.
+    inhabitants = [{n: d["inhabitant"] for n, d in info(f)["described"].items()} for f in files]
+    assert {"robot": "spirit", "screen": ""} in inhabitants[:-1], inhabitants
+    assert inhabitants[-1] == {"robot": "", "screen": "spirit"}, inhabitants
+    assert dict(metadata_of(files[-1]))["cmion-mesh"]["custody_at_start"] == "screen:spirit@2"
+
+
+def metadata_of(path: str) -> list[tuple[str, dict[str, str]]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+
+
+def test_wm_add_takes_its_properties_on_either_side_of_its_options() -> None:
+    parser = cli.build_parser("wm")
+    for argv in (["wm", "add", "robot", "Box", "--object", "weight=3.5", "fragile=false"],
+                 ["wm", "add", "robot", "Box", "weight=3.5", "--object", "fragile=false", "--persistent"],
+                 ["wm", "add", "robot", "Box", "weight=3.5", "fragile=false", "--object"]):
+        args = cli.parse(parser, argv)
+        assert (args.entity, args.kind, args.properties) == ("Box", "object", ["weight=3.5", "fragile=false"]), argv
+    # Anything else left over is still refused, in one line.
+    code, _, err = run("wm", "add", "robot", "Box", "--object", "heavy")
+    assert code == 2 and "unrecognized arguments: heavy" in err and err.count("\n") == 1, err
+    code, _, err = run("bb", "get", "robot", "a", "x=1")
+    assert code == 2 and "unrecognized arguments: x=1" in err, err
+
+
+def test_small_manners() -> None:
+    # a missing file is a usage error (exit 2), as the exit-code table says
+    code, _, err = run("validate", "/nonexistent/a.xml")
+    assert code == 2 and "/nonexistent/a.xml" in err, err
+    # act's parameters are optional: the usage error names what is missing only
+    code, _, err = run("act", "robot")
+    assert code == 2 and err.endswith("required: action\n"), err
+    # options before the command: where they go, not "invalid choice"
+    code, _, err = run("--mesh", "x", "peers")
+    assert code == 2 and "options go after the command: cmion-mesh peers --mesh x" in err and "invalid choice" not in err, err
+    assert (plural(1, "competency", "competencies"), plural(2, "rule")) == ("1 competency", "2 rules")

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,7 +15,7 @@ import pytest
 from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.tools.demo import GUEST, Timeline, mind_state, run_scenario, start_bodies, stop_bodies
+from cmion_mesh.tools.demo import GUEST, STATE_PREFIX, Timeline, mind_state, remove_stale_state, run_scenario, start_bodies, stop_bodies
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
@@ -92,6 +94,45 @@ def test_a_terminated_demo_stops_its_daemons() -> None:
         assert mesh is not None, line
         demo.wait_line("found each other", 60)
         assert len(processes_naming(mesh.group(1))) >= 3
-        assert demo.stop(signal.SIGTERM, grace=60) in (0, 130, 143), demo.lines  # not killed
+        assert demo.stop(signal.SIGTERM, grace=60) == 143, demo.lines  # not killed: stopped by SIGTERM, as a shell says it
         assert any("stopping the daemons" in seen for seen in demo.lines), demo.lines
     wait_for(lambda: not processes_naming(mesh.group(1)), 30, f"no process left of mesh {mesh.group(1)}")
+
+
+#: Runs the rest of its command line with SIGINT ignored, as a shell script's background job is.
+IGNORING_SIGINT = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); os.execv(sys.argv[1], sys.argv[1:])"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_background_web_demo_stops_on_a_signal_while_it_waits_for_the_visitor(sig: signal.Signals) -> None:
+    """A background job inherits SIGINT ignored: the demo stops all the same, with the shell's code."""
+    argv = cli_argv("demo", "--web")
+    demo = Daemon([argv[0], "-c", IGNORING_SIGINT, *argv], name="demo")
+    with demo:
+        demo.wait_line("say \"I am here\"", 90)  # the story waits for a person at the screen's page
+        demo.proc.send_signal(sig)
+        demo.wait_line("stopping the daemons", 5)
+        assert demo.proc.wait(60) == 128 + sig, demo.lines
+        demo.stop()
+        assert demo.lines[-1].endswith("] done"), demo.lines
+
+
+def test_a_killed_web_demo_leaves_no_view_and_its_state_goes_with_the_next_demo(tmp_path: Path) -> None:
+    """SIGKILL gives the demo no chance to stop anything: its children must go by themselves (the
+    kernel tells them), and its state folder is removed by the next demo."""
+    demo = Daemon(cli_argv("demo", "--web"), name="demo")
+    with demo:
+        line = demo.wait_line("starting three embodiment daemons", 60)
+        mesh = re.search(r"in mesh '([^']+)'", line)
+        assert mesh is not None, line
+        demo.wait_line("view: http", 60)
+        assert len(processes_naming(mesh.group(1))) >= 4  # three daemons and the view
+        state = list(Path(tempfile.gettempdir()).glob(f"{STATE_PREFIX}{demo.proc.pid}-*"))
+        assert len(state) == 1, state
+        demo.kill()
+    wait_for(lambda: not processes_naming(mesh.group(1)), 30, f"no process left of mesh {mesh.group(1)}")
+    assert state[0].is_dir()  # nobody removed it: the demo was killed
+    alive = tmp_path / f"{STATE_PREFIX}{os.getpid()}-x"  # a running demo's: kept
+    alive.mkdir()
+    assert state[0] in remove_stale_state() and not state[0].exists()
+    assert remove_stale_state(str(tmp_path)) == [] and alive.is_dir()

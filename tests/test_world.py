@@ -17,7 +17,7 @@ from cmion_mesh.body.rules import load_rules, substitute
 from cmion_mesh.client import MeshClient
 from cmion_mesh.competency import Competency, RunContext
 from cmion_mesh.errors import InvalidName, RequestRejected, StorageError
-from cmion_mesh.messages import Code, Container, Event, Outcome, Property, RemoveContainer, SetProperty
+from cmion_mesh.messages import AddContainer, Code, Container, Event, Outcome, Property, RemoveContainer, SetProperty
 from cmion_mesh.mind import Mind, MindAction
 from cmion_mesh.minds.fatima.connector import FAtiMAConnector
 from cmion_mesh.testing.fatima_peer import Peer
@@ -229,20 +229,26 @@ def test_world_model_paths_mean_the_same_in_every_read_and_write(robot: tuple[Em
         client.set_property("robot", "wm", *keys.property_path("wm", "Visitor.mood"), "happy")
     assert missing.value.code == Code.NOT_FOUND
     client.add_entity("robot", "Visitor")
-    client.add_entity("robot", "my.robot", kind="object")
+    # An entity's name holds no dot: "my.robot" would be added, then read as my's property robot.
+    with pytest.raises(RequestRejected, match=r"entity 'my\.robot' holds '\.'.*'my_robot'") as dotted_entity:
+        client.add_entity("robot", "my.robot", kind="object")
+    assert dotted_entity.value.code == Code.INVALID
+    refused_container = client.write("robot", "wm", AddContainer("", "my.robot", "object"))
+    assert refused_container.status == "rejected" and refused_container.code == Code.INVALID
+    client.add_entity("robot", "my_robot", kind="object")
     client.set_property("robot", "wm", *keys.property_path("wm", "Visitor.mood"), "happy")
-    client.set_property("robot", "wm", *keys.property_path("wm", "my.robot/pose.x"), 1.5)
+    client.set_property("robot", "wm", *keys.property_path("wm", "my_robot/pose.x"), 1.5)
     prefix = f"cmion/{mesh}/robot/wm"
     dotted, slashed = client.lookup("robot", "wm", "Visitor.mood"), client.lookup("robot", "wm", "Visitor/mood")
     assert dotted == slashed == {f"{prefix}/Visitor/mood": Property("happy")}
-    assert client.lookup("robot", "wm", "my.robot/pose.x") == {f"{prefix}/my.robot/pose.x": Property(1.5)}
+    assert client.lookup("robot", "wm", "my_robot/pose.x") == {f"{prefix}/my_robot/pose.x": Property(1.5)}
     assert embodiment.world_model.property("Visitor", "mood") == ("happy", False)
     # $WM(...) reads by the same grammar
     def wm(container: str, name: str) -> Any:
         return embodiment.world_model.property(container, name)[0]
 
     action = MindAction("Look")
-    assert substitute("$WM(Visitor.mood) $WM(Visitor/mood) $WM(my.robot/pose.x)", action, bb=lambda _: None, wm=wm) == \
+    assert substitute("$WM(Visitor.mood) $WM(Visitor/mood) $WM(my_robot/pose.x)", action, bb=lambda _: None, wm=wm) == \
         "happy happy 1.5"
     # The world model's root holds entities only
     refused = client.write("robot", "wm", SetProperty("", "Visitor.mood", "sad"))
@@ -252,7 +258,7 @@ def test_world_model_paths_mean_the_same_in_every_read_and_write(robot: tuple[Em
     with pytest.raises(StorageError, match=r"no property or container 'Visitor\.mood'"):
         client.lookup("robot", "wm", "Visitor.mood", timeout=2)
     client.remove_container("robot", "wm", "Visitor")
-    assert sorted(embodiment.world_model.tree()["children"]) == ["my.robot"]
+    assert sorted(embodiment.world_model.tree()["children"]) == ["my_robot"]
 
 
 def test_a_mind_adds_and_removes_entities_without_waiting(robot: tuple[Embodiment, Watcher]) -> None:

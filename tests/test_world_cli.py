@@ -105,6 +105,14 @@ def test_wm_add_and_remove_reach_minds_as_entities_coming_and_going(world: World
     world.perceives({"op": "removed", "entity": "Vase", "kind": "object"})
     bad = world.cli("wm", "add", "robot", "Cat", "hungry")
     assert bad.returncode == 2 and "'hungry' is not PROPERTY=VALUE" in bad.stderr
+    # a dotted name would be read as entity.property: refused before anything is written, saying what to use
+    dotted = world.cli("wm", "add", "robot", "Bad.Name", "x=1")
+    assert dotted.returncode == 2 and dotted.stderr.count("\n") == 1, dotted.stderr
+    assert "entity 'Bad.Name' holds '.'" in dotted.stderr and "'Bad_Name'" in dotted.stderr
+    assert "Bad.Name" not in world.ok("wm", "tree", "robot")
+    # properties after the options, as after the name
+    assert "added object Box weight=3.5 fragile=false" in world.ok("wm", "add", "robot", "Box", "--object", "weight=3.5",
+                                                                   "fragile=false")
 
 
 def test_dotted_paths_mean_the_same_in_get_and_set(world: World) -> None:

@@ -12,10 +12,10 @@ from typing import Any
 import msgspec
 
 from cmion_mesh import keys
-from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, table, timeout_option
+from cmion_mesh.cli.common import Spinner, item, join_timeout_option, mesh_options, subverb, table, timeout_option
 from cmion_mesh.cli.session import session
 from cmion_mesh.client import mesh_problems
-from cmion_mesh.errors import ExitCode
+from cmion_mesh.errors import ExitCode, RequestRejected
 from cmion_mesh.requests import require_accepted
 from cmion_mesh.signals import Stopper
 from cmion_mesh.transport import security
@@ -125,8 +125,14 @@ def act_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_act(args: argparse.Namespace) -> int:
     stop = Stopper()  # Ctrl-C is collected by the main thread, whichever thread the signal reaches
     with session(args) as client:
-        run = client.start_action(args.embodiment, args.action, args.parameters, subject=args.subject, action_id=args.id or "",
-                                  deadline=args.deadline, join_timeout=args.join_timeout, on_end=stop.stop)
+        try:
+            run = client.start_action(args.embodiment, args.action, args.parameters, subject=args.subject,
+                                      action_id=args.id or "", deadline=args.deadline, join_timeout=args.join_timeout,
+                                      on_end=stop.stop)
+        except RequestRejected as exc:
+            if args.json:  # a script reads the outcome on stdout, a refusal too (the line on stderr as ever)
+                print(json.dumps({"action_id": args.id or "", "status": exc.status, "reason": exc.reason, "code": exc.code}))
+            raise
         with run:
             if args.detach:
                 print(json.dumps({"action_id": run.action_id, "status": "running"}) if args.json else
@@ -208,12 +214,13 @@ def migrate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("companion", help="the companion to move (see `peers`: INHABITANT)")
     p.add_argument("--to", required=True, metavar="EMBODIMENT", help="where to")
     timeout_option(p, 60.0, "seconds to wait for the handshake's end")
+    join_timeout_option(p)
     mesh_options(p)
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"migrating {args.companion} to {args.to}", enabled=not args.json):
-        result = client.migrate(args.companion, args.to, timeout=args.timeout)
+        result = client.migrate(args.companion, args.to, timeout=args.timeout, join_timeout=args.join_timeout)
     if args.json:
         print(json.dumps(result))
     else:
@@ -230,12 +237,13 @@ def invite_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--to", action="append", metavar="EMBODIMENT",
                    help="invite only this embodiment; repeatable (default: the device table's, or every live one)")
     timeout_option(p, 30.0, "seconds to wait for every answer")
+    join_timeout_option(p)
     mesh_options(p)
 
 
 def cmd_invite(args: argparse.Namespace) -> int:
     with session(args) as client, Spinner(f"{args.embodiment} invites the companion", enabled=not args.json):
-        result = client.invite(args.embodiment, args.to or (), timeout=args.timeout)
+        result = client.invite(args.embodiment, args.to or (), timeout=args.timeout, join_timeout=args.join_timeout)
     if args.json:
         print(json.dumps(result))
     else:
@@ -246,24 +254,31 @@ def cmd_invite(args: argparse.Namespace) -> int:
 
 
 def custody_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("`custody show COMPANION`: what every live embodiment reports of the companion's "
-                     "custody, the evidence of a fork (who equivocated) and the command that resolves it. "
-                     "`custody resolve COMPANION --keep EMBODIMENT`: keep one branch of a fork; every other "
-                     "branch holder stands down first (its copy retired on its disk), then the kept one "
-                     "runs again. Refused when a holder of another branch cannot be reached (it would make "
-                     "two), or when the evidence shows an equivocator holding the branch kept (--force).")
+    p.description = ("A companion's custody across the mesh. `custody show COMPANION`: what every live embodiment "
+                     "reports of it and of forks of its chain. `custody resolve COMPANION --keep EMBODIMENT`: keep "
+                     "one branch of a fork (see each one's --help).")
     actions = p.add_subparsers(dest="custody_command", required=True, metavar="ACTION")
-    cp = actions.add_parser("show", help="what every embodiment reports of a companion's custody, forks and their evidence")
+    cp = subverb(actions, "show", "what every embodiment reports of a companion's custody, forks and their evidence",
+                 "cmion-mesh custody show spirit --json",
+                 description="What every live embodiment reports of COMPANION's custody: who holds which epoch, the "
+                             "evidence of a fork (who equivocated) and the command that resolves it.")
     cp.add_argument("companion", help="the companion")
     timeout_option(cp, 3.0, "longest wait for the whole mesh to answer")
+    join_timeout_option(cp)
     mesh_options(cp)
-    cp = actions.add_parser("resolve", help="keep one branch of a fork of a companion's chain of custody; the others stand down")
+    cp = subverb(actions, "resolve", "keep one branch of a fork of a companion's chain of custody; the others stand down",
+                 "cmion-mesh custody resolve spirit --keep robot --gone phone",
+                 description="Keep EMBODIMENT's branch of a fork of COMPANION's chain of custody: every other branch "
+                             "holder stands down first (its copy retired on its disk), then the kept one runs again. "
+                             "Refused when a holder of another branch cannot be reached (it would make two), or when "
+                             "the evidence shows an equivocator holding the branch kept (--force).")
     cp.add_argument("companion", help="the companion")
     cp.add_argument("--keep", required=True, metavar="EMBODIMENT", help="the embodiment whose branch runs the companion")
     cp.add_argument("--force", action="store_true", help="keep it even though the evidence shows an equivocator holding it")
     cp.add_argument("--gone", action="append", metavar="EMBODIMENT",
                     help="a branch holder that is gone for good (wiped, revoked): not waited for; repeatable")
     timeout_option(cp, 10.0, "seconds to wait for each answer")
+    join_timeout_option(cp)
     mesh_options(cp)
 
 
@@ -276,7 +291,8 @@ def cmd_custody(args: argparse.Namespace) -> int:
         if args.certs:
             sender = security.choose_identity(args.certs, args.identity)
         with session(args) as client, Spinner(f"resolving the fork of {companion}", enabled=not args.json):
-            result = client.resolve_fork(companion, keep, force=args.force, gone=gone, sender=sender, timeout=args.timeout)
+            result = client.resolve_fork(companion, keep, force=args.force, gone=gone, sender=sender, timeout=args.timeout,
+                                         join_timeout=args.join_timeout)
         if args.json:
             print(json.dumps(result))
         else:
@@ -285,7 +301,7 @@ def cmd_custody(args: argparse.Namespace) -> int:
                   f"it runs on {keep} again")
         return ExitCode.OK
     with session(args) as client, Spinner(f"asking the mesh about {companion}", enabled=not args.json):
-        reports = client.custody(companion, timeout=args.timeout)
+        reports = client.custody(companion, timeout=args.timeout, join_timeout=args.join_timeout)
     forks = {f["description"]: f for report in reports.values() for f in report.get("forks") or ()}
     equivocators = sorted({str(e) for report in reports.values() for e in report.get("equivocators") or ()})
     branches: dict[str, dict[str, Any]] = {}

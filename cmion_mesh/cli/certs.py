@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from cmion_mesh import keys
-from cmion_mesh.cli.common import json_option, table
+from cmion_mesh.cli.common import json_option, subverb, table
 from cmion_mesh.errors import ExitCode
 from cmion_mesh.transport import certs, security
 from cmion_mesh.transport.certs import CA_DAYS, CERT_DAYS, DEFAULT_SANS, ROLES
@@ -16,13 +16,15 @@ from cmion_mesh.transport.certs import CA_DAYS, CERT_DAYS, DEFAULT_SANS, ROLES
 def certs_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="certs_command", required=True, metavar="COMMAND")
     folder = "the certificates folder"
-    p = sub.add_parser("init", help="create the certificate authority and an empty trust list in DIR")
+    p = subverb(sub, "init", "create the certificate authority and an empty trust list in DIR",
+                "cmion-mesh certs init pki/ --label 'Lab mesh'")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("--label", help="what the authority's name says (default: the folder's name)")
     p.add_argument("--days", type=int, default=CA_DAYS, help="validity (default: %(default)s days)")
     p.add_argument("--force", action="store_true", help="replace an existing authority (every certificate must then be reissued)")
 
-    p = sub.add_parser("issue", help="issue the certificate of an embodiment (or operator) NAME and trust it")
+    p = subverb(sub, "issue", "issue the certificate of an embodiment (or operator) NAME and trust it",
+                "cmion-mesh certs issue pki/ robot --san robot.lab.example --san 10.0.0.5")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="embodiment name (the certificate's common name)")
     p.add_argument("--san", action="append", default=[], metavar="HOST_OR_IP",
@@ -35,28 +37,33 @@ def certs_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--days", type=int, default=CERT_DAYS, help="validity (default: %(default)s days)")
     p.add_argument("--force", action="store_true", help="replace an existing certificate of NAME")
 
-    p = sub.add_parser("list", help="list the certificates in DIR, whether the authority signed them and who is trusted")
+    p = subverb(sub, "list", "list the certificates in DIR, whether the authority signed them and who is trusted",
+                "cmion-mesh certs list pki/")
     p.add_argument("dir", metavar="DIR", help=folder)
     json_option(p)
 
-    p = sub.add_parser("trust", help="add NAME to the trust list (its certificate must already exist)")
+    p = subverb(sub, "trust", "add NAME to the trust list (its certificate must already exist)",
+                "cmion-mesh certs trust pki/ operator --role operator")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="the certificate's name")
     p.add_argument("--role", choices=ROLES, default="embodiment", help="what NAME may do (default: %(default)s)")
     p.add_argument("--unrevoke", action="store_true", help="trust NAME although it was revoked (certs revoke)")
 
-    p = sub.add_parser("revoke", help="revoke NAME: out of the trust list, recorded as revoked so that trust and issue do "
-                                      "not add it back; the access control never admits it (restart the members)")
+    p = subverb(sub, "revoke", "revoke NAME: out of the trust list, recorded as revoked so that trust and issue do "
+                               "not add it back; the access control never admits it (restart the members)",
+                "cmion-mesh certs revoke pki/ screen --reason 'stolen'")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="the certificate's name")
     p.add_argument("--reason", default="", help="why (kept in the trust list), e.g. 'equivocated custody of spirit'")
 
-    p = sub.add_parser("untrust", help="remove NAME from the trust list (revocation: restart the members afterwards)")
+    p = subverb(sub, "untrust", "remove NAME from the trust list (revocation: restart the members afterwards)",
+                "cmion-mesh certs untrust pki/ phone")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="the certificate's name")
 
-    p = sub.add_parser("config", help="print the zenoh JSON5 configuration of NAME (mTLS + access control), e.g. "
-                                      "for a client written in another language")
+    p = subverb(sub, "config", "print the zenoh JSON5 configuration of NAME (mTLS + access control), e.g. "
+                               "for a client written in another language",
+                "cmion-mesh certs config pki/ robot --listen tcp/0.0.0.0:7447 -o robot.json5")
     p.add_argument("dir", metavar="DIR", help=folder)
     p.add_argument("name", metavar="NAME", help="whose configuration")
     p.add_argument("--mesh", default=keys.DEFAULT_MESH, help="deployment name (default: %(default)s)")

@@ -73,6 +73,16 @@ def zenoh_options(group: Any, **helps: str) -> None:
         group.add_argument("--" + name.replace("_", "-"), help=helps[name], **spec)
 
 
+def subverb(sub: Any, name: str, text: str, example: str, description: str | None = None) -> argparse.ArgumentParser:
+    """A verb under a verb (``certs init``, ``custody show``), added to ``sub`` (an
+    ``add_subparsers`` result) with its line in the verb's help (``text``), its description (``text``
+    as a sentence unless given) and ``example`` ending its ``--help``, as every verb has (kept as
+    written: the parser is of its parent's class, ``main.Parser``)."""
+    parser: argparse.ArgumentParser = sub.add_parser(name, help=text, description=description or text[0].upper() + text[1:] + ".",
+                                                     epilog=f"example: {example}")
+    return parser
+
+
 def json_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="machine-readable output (JSON)")
 
@@ -89,6 +99,11 @@ def join_timeout_option(parser: argparse.ArgumentParser, default: float = 5.0) -
     parser.add_argument("--join", "--join-timeout", "--discover-timeout", dest="join_timeout", type=float, default=default,
                         metavar="SECONDS", help="how long to look for the embodiments it needs in the mesh before it gives up "
                                                 "(default: %(default)s s)")
+
+
+def plural(count: int, one: str, many: str | None = None) -> str:
+    """``1 rule``, ``2 rules``; ``many`` where adding an s is wrong (competency, competencies)."""
+    return f"{count} {one if count == 1 else many or one + 's'}"
 
 
 def table(rows: Sequence[tuple[str, ...]], width: int | None = None) -> None:

@@ -38,15 +38,45 @@ def autocomplete(build_parser: Callable[[str | None, str | None], argparse.Argum
     except ImportError:  # the `completion` extra is not installed: never run the command instead
         raise SystemExit(1) from None
 
-    line = os.environ.get("COMP_LINE", "")[: int(os.environ.get("COMP_POINT", "0") or 0)]
-    try:
-        words = shlex.split(line)
-    except ValueError:  # an open quote: complete what can be
-        words = line.split()
+    whole = os.environ.get("COMP_LINE", "")
+    point = int(os.environ.get("COMP_POINT", "0") or 0)
+    line = whole[:point]
+    words = _split(line)
     done = words[1:] if line.endswith(" ") else words[1:-1]  # the words finished, the one being typed left out
+    # The mesh options anywhere on the line, after the cursor too (`act robot G<TAB> --mesh lab`):
+    # argcomplete parses only what is before it.
+    after = _split(whole[point:])
+    if after and not whole[point:point + 1].isspace():
+        after = after[1:]  # the rest of the word being typed
+    _line_options.update(line_mesh_options([*done, *after]))
     parser = build_parser(*verb_of(done))
     attach(parser)
     argcomplete.autocomplete(parser)
+
+
+def _split(text: str) -> list[str]:
+    try:
+        return shlex.split(text)
+    except ValueError:  # an open quote: complete what can be
+        return text.split()
+
+
+#: The mesh options the whole line gives (``line_mesh_options``), over what argcomplete parsed.
+_line_options: dict[str, Any] = {}
+
+
+def line_mesh_options(words: list[str]) -> dict[str, Any]:
+    """The mesh options (``common.mesh_options``) given in ``words``, wherever they stand."""
+    from cmion_mesh.cli.common import mesh_options
+
+    parser = argparse.ArgumentParser(add_help=False)
+    mesh_options(parser, json_output=False)
+    try:
+        known, _ = parser.parse_known_args(words)
+    except SystemExit:  # a mesh option without its value: none of them then
+        return {}
+    given = {k: v for k, v in vars(known).items() if v != DEFAULTS.get(k)}
+    return given
 
 
 def attach(parser: argparse.ArgumentParser) -> None:
@@ -63,11 +93,36 @@ def attach(parser: argparse.ArgumentParser) -> None:
             action.completer = actions  # type: ignore[attr-defined]
         elif action.dest == "filters" and parser.prog.endswith(" record"):
             action.completer = record_words  # type: ignore[attr-defined]
+        elif action.dest == "path" and parser.prog.split()[1:2] in (["bb"], ["wm"]):
+            action.completer = store_paths  # type: ignore[attr-defined]
+        elif parser.prog.split()[1:2] in (["bb"], ["wm"]) and not action.option_strings:
+            action.completer = nothing  # type: ignore[attr-defined]  # values, new names: not file names
 
 
 def record_words(prefix: str, parsed_args: argparse.Namespace, **_: Any) -> list[str]:
     """``record``'s FILTERs are key expressions, free to write; ``info`` is its other verb."""
     return ["info"] if "info".startswith(prefix) and not getattr(parsed_args, "filters", None) else []
+
+
+def nothing(prefix: str, parsed_args: argparse.Namespace, **_: Any) -> list[str]:
+    return []
+
+
+def store_paths(prefix: str, parsed_args: argparse.Namespace, **_: Any) -> list[str]:
+    """The paths in the line's embodiment's store (``bb``/``wm`` get, set...) starting with ``prefix``."""
+    embodiment, store = getattr(parsed_args, "embodiment", None), getattr(parsed_args, "store", None)
+    if not embodiment or not store:
+        return []
+    found: list[str] = []
+
+    def ask(client: Any) -> None:
+        root = keys.storage_key(client.mesh, embodiment, store, ()) + "/"
+        client.join(embodiment, timeout=LOOKUP_WAIT)
+        found.extend(key.removeprefix(root) for key in client.lookup(embodiment, store, "", below=True, timeout=LOOKUP_WAIT)
+                     if key.startswith(root))
+
+    bounded(parsed_args, ask)
+    return sorted(p for p in found if p.startswith(prefix))
 
 
 def embodiments(prefix: str, parsed_args: argparse.Namespace, **_: Any) -> list[str]:
@@ -98,21 +153,32 @@ def describe(parsed_args: argparse.Namespace) -> list[dict[str, Any]]:
         return _described["found"]
     found: list[dict[str, Any]] = []
 
-    def ask() -> None:
+    def ask(client: Any) -> None:
+        found.extend(d for d in client.describe_all(timeout=LOOKUP_WAIT) if not d.get("error"))
+
+    _described["found"] = list(found) if bounded(parsed_args, ask) else []
+    return _described["found"]
+
+
+def bounded(parsed_args: argparse.Namespace, ask: Callable[[Any], None]) -> bool:
+    """Run ``ask(client)`` in a session of the line's mesh, at most ``LOOKUP_LIMIT``: whether it
+    ended (any error ends it, unsaid: a completion never shows one)."""
+
+    def run() -> None:
         from cmion_mesh.cli.session import session
 
-        args = argparse.Namespace(**{**DEFAULTS, **{k: v for k, v in vars(parsed_args).items() if v is not None}})
+        args = argparse.Namespace(**{**DEFAULTS, **{k: v for k, v in vars(parsed_args).items() if v is not None},
+                                     **_line_options})
         try:
             with session(args) as client:
-                found.extend(d for d in client.describe_all(timeout=LOOKUP_WAIT) if not d.get("error"))
-        except Exception:  # a completion never shows an error: no names is the answer
+                ask(client)
+        except Exception:
             return
 
-    worker = threading.Thread(target=ask, name="complete", daemon=True)  # argcomplete leaves by os._exit
+    worker = threading.Thread(target=run, name="complete", daemon=True)  # argcomplete leaves by os._exit
     worker.start()
     worker.join(LOOKUP_LIMIT)
-    _described["found"] = list(found) if not worker.is_alive() else []
-    return _described["found"]
+    return not worker.is_alive()
 
 
 #: The mesh options' values when the line gives none (as ``mesh_options`` defaults them).

@@ -33,7 +33,7 @@ from cmion_mesh.body import architecture
 from cmion_mesh.body import library as library_files
 from cmion_mesh.body.architecture import read_architecture
 from cmion_mesh.claim import Joining
-from cmion_mesh.cli.common import JOIN_WINDOW, mesh_options, transport_config
+from cmion_mesh.cli.common import JOIN_WINDOW, mesh_options, plural, transport_config
 from cmion_mesh.diagnostics import Diagnostics
 from cmion_mesh.errors import ConfigError, ExitCode, WebServerError
 from cmion_mesh.migration import devices
@@ -323,7 +323,8 @@ def _run_daemon(args: argparse.Namespace, embodiment: Embodiment, table: devices
         logs.event(log, "metrics served", url=f"{metrics_server.url}/metrics", health=f"{metrics_server.url}/healthz")
     logs.flush()  # what was logged while starting (plain mode, a companion living elsewhere...) comes before "up"
     print(f"embodiment {embodiment.name!r} up in mesh {args.mesh!r} (zenoh id {embodiment.transport.id}; "
-          f"{len(embodiment.execution.competencies)} competencies, {len(embodiment.rules.rules)} rules; state {state})",
+          f"{plural(len(embodiment.execution.competencies), 'competency', 'competencies')}, "
+          f"{plural(len(embodiment.rules.rules), 'rule')}; state {state})",
           flush=True)
     logs.event(log, "embodiment up", mesh=args.mesh, zenoh_id=str(embodiment.transport.id),
                competencies=len(embodiment.execution.competencies), rules=len(embodiment.rules.rules), state=state,

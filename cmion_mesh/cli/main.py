@@ -11,7 +11,8 @@ JSON5 file), ``--no-multicast``, ``--multicast-interface`` and ``--certs``; comm
 is data take ``--json``. One-shot commands join the mesh before they ask (``client``). Errors are
 one clear line on stderr, never a traceback, and the exit code says what happened
 (``errors.ExitCode``): 0 succeeded, 1 failed or refused, 2 usage or configuration error,
-3 cancelled, 4 outcome unknown, 130 left on a second Ctrl-C.
+3 cancelled, 4 outcome unknown, 130 left on a second Ctrl-C; 141, quietly, when the reader of its
+output left (``| head``), as a command SIGPIPE ends.
 """
 
 from __future__ import annotations
@@ -20,9 +21,11 @@ import argparse
 import importlib
 import os
 import re
+import shlex
+import signal
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 from cmion_mesh import __version__
 from cmion_mesh.errors import ExitCode, MeshError, exit_code
@@ -163,16 +166,33 @@ class HelpFormatter(argparse.HelpFormatter):
 
 class Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose usage errors are one line (exit 2) that says what was meant when
-    a verb or an option is a typo of one (``peer``: ``peers``; ``--mehs``: ``--mesh``)."""
+    a verb or an option is a typo of one (``peer``: ``peers``; ``--mehs``: ``--mesh``). Its help
+    keeps examples as written (``HelpFormatter``), in the parsers of verbs under a verb too (they
+    are of their parent's class: ``common.subverb``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(ExitCode.USAGE, f"{self.prog}: error: {hint(self, message)}\n")
+
+
+#: ``--join``'s spellings (``common.join_timeout_option``).
+JOIN_SPELLINGS = ("--join", "--join-timeout", "--discover-timeout")
 
 
 def hint(parser: argparse.ArgumentParser, message: str) -> str:
     """argparse's ``message``, with a did-you-mean for an unknown choice or option."""
     import difflib  # only on a usage error
 
+    required = re.match(r"the following arguments are required: (.*)$", message)
+    if required:
+        # argparse lists a missing nargs="*" positional as required (act's parameters): name only the needed.
+        optional = {action.metavar or action.dest for action in parser._actions
+                    if not action.option_strings and action.nargs in ("*", "?")}
+        needed = [name for name in required.group(1).split(", ") if name not in optional]
+        return f"the following arguments are required: {', '.join(needed)}" if needed else message
     choice = re.match(r"(argument .*?: invalid choice: '(.*?)') \(choose from (.*)\)$", message)
     if choice:
         options = re.findall(r"'([^']*)'", choice.group(3))
@@ -182,9 +202,14 @@ def hint(parser: argparse.ArgumentParser, message: str) -> str:
         return message
     unknown = re.match(r"unrecognized arguments: (.*)$", message)
     if unknown:
+        known = option_strings(parser)
         for word in unknown.group(1).split():
+            if word.split("=", 1)[0] in JOIN_SPELLINGS and "--timeout" in known:
+                # peers, doctor: finding the embodiments is their whole work, one wait for both
+                return f"{message} (this command has no --join: its --timeout is its whole wait, looking for the " \
+                       "embodiments included: use --timeout SECONDS)"
             if word.startswith("-"):
-                close = difflib.get_close_matches(word.split("=", 1)[0], option_strings(parser), n=1, cutoff=0.6)
+                close = difflib.get_close_matches(word.split("=", 1)[0], known, n=1, cutoff=0.6)
                 if close:
                     return f"{message} (did you mean '{close[0]}'?)"
     return message
@@ -247,15 +272,47 @@ def _verb(arguments: Sequence[str]) -> tuple[str | None, str | None]:
     return command, word
 
 
+def parse(parser: argparse.ArgumentParser, arguments: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args``, but a verb that sets ``intermixed`` (the name of its ``nargs="*"``
+    positional, ``wm add``'s PROPERTY=VALUE) also takes those words after its options: argparse
+    ends such a list at the first option and leaves the rest unrecognized (its
+    ``parse_intermixed_args`` refuses subparsers)."""
+    args, extra = parser.parse_known_args(arguments)
+    field = getattr(args, "intermixed", None)
+    if extra and field and all("=" in word and not word.startswith("-") for word in extra):
+        setattr(args, field, [*getattr(args, field), *extra])
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
     if "_ARGCOMPLETE" in os.environ:  # the shell asks for completions (argcomplete's protocol)
         from cmion_mesh.cli import complete
 
         complete.autocomplete(build_parser, _verb)
+    try:
+        code = _main(arguments)
+        sys.stdout.flush()  # here, not at exit: a reader gone (| head) is then ours to say nothing of
+        return code
+    except BrokenPipeError:
+        # The reader of our output left (| head): stop quietly, as other commands do. Standard output
+        # goes to /dev/null so that Python's flush at exit does not complain again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+
+
+def _main(arguments: list[str]) -> int:
+    if arguments and arguments[0].startswith("-") and arguments[0] not in ("-h", "--help", "--version"):
+        # `cmion-mesh --mesh x peers`: the top level takes no option but --help and --version.
+        at = next((i for i, a in enumerate(arguments) if a in COMMANDS), None)
+        moved = ("COMMAND " + " ".join(map(shlex.quote, arguments)) if at is None else
+                 " ".join(shlex.quote(a) for a in [arguments[at], *arguments[at + 1:], *arguments[:at]]))
+        build_parser().error(f"options go after the command: cmion-mesh {moved}")
     command, word = _verb(arguments)
     parser = build_parser(command, word)
-    args = parser.parse_args(arguments)
+    args = parse(parser, arguments)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         if getattr(args, "settings", None):
@@ -270,6 +327,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exit_code(exc)
     except KeyboardInterrupt:
         return ExitCode.INTERRUPTED
+    except BrokenPipeError:
+        raise  # main's: no error line for a reader that left
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return ExitCode.FAILED

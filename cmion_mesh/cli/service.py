@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from cmion_mesh.cli.common import subverb
 from cmion_mesh.errors import ExitCode
 from cmion_mesh.ops import systemd
 
@@ -14,7 +15,10 @@ def service_arguments(parser: argparse.ArgumentParser) -> None:
                           "/etc/systemd/system/cmion-mesh-NAME.service, then systemctl daemon-reload && systemctl "
                           "enable --now cmion-mesh-NAME. See docs/deploy.md.")
     sub = parser.add_subparsers(dest="service_command", required=True, metavar="ACTION")
-    p = sub.add_parser("unit", help="print the unit file of embodiment NAME (Type=notify, watchdog, hardened)")
+    p = subverb(sub, "unit", "print the unit file of embodiment NAME (Type=notify, watchdog, hardened)",
+                "cmion-mesh service unit robot --metrics 127.0.0.1:9464 > /etc/systemd/system/cmion-mesh-robot.service",
+                description="Print the systemd unit file that runs `cmion-mesh up NAME` (Type=notify, a watchdog, "
+                            "hardened): save it as /etc/systemd/system/cmion-mesh-NAME.service. See docs/deploy.md.")
     p.add_argument("name", metavar="NAME", help="the embodiment the unit runs")
     p.add_argument("--mesh", help="the deployment name given to up (default: the settings file's, else up's default)")
     p.add_argument("--metrics", metavar="HOST:PORT", help="serve metrics and /healthz there (given to up)")

@@ -34,7 +34,7 @@ ACTIONS: dict[str, tuple[str, dict[str, str]]] = {
              keys.WORLD_MODEL: "cmion-mesh wm get robot Self.location      # the same as Self/location"}),
     "tree": ("list a container and all below it",
              {keys.BLACKBOARD: "cmion-mesh bb tree robot", keys.WORLD_MODEL: "cmion-mesh wm tree robot Visitor"}),
-    "set": ("set a property",
+    "set": ("set a property to a value",
             {keys.BLACKBOARD: "cmion-mesh bb set robot battery 0.8 --persistent",
              keys.WORLD_MODEL: "cmion-mesh wm set robot Visitor.present true   # Visitor must be there: wm add"}),
     "add": ("add an entity (an agent, or an object) with its properties, in one write: minds hear it added "
@@ -48,8 +48,7 @@ ACTIONS: dict[str, tuple[str, dict[str, str]]] = {
 }
 WM_PATHS = ("World-model paths are entity/.../property or entity.property (as $WM(...) writes it), alike in every "
             "action: a path without / is split at its first dot. A name holding a dot is written with slashes "
-            "(my.robot/location); an entity's name with a dot cannot be written in the dotted form. The world "
-            "model's root holds entities only.")
+            "(Self/pose.x); an entity's name holds no dot. The world model's root holds entities only.")
 
 
 def store_arguments(parser: argparse.ArgumentParser, store: str) -> None:
@@ -72,6 +71,7 @@ def store_arguments(parser: argparse.ArgumentParser, store: str) -> None:
                             help="its properties; each VALUE is JSON (3, true, [1,2]) or plain text, split at the first =")
             ap.add_argument("--object", dest="kind", action="store_const", const="object", default="agent",
                             help="the entity is an object (default: an agent)")
+            ap.set_defaults(intermixed="properties")  # PROPERTY=VALUE after the options too (cli.main.parse)
         else:
             ap.add_argument("path", nargs="?" if action in ("get", "tree", "watch") else None, default="",
                             help="container/.../property" + (" or entity.property" if world else ""))
@@ -125,7 +125,7 @@ def cmd_store(args: argparse.Namespace) -> int:
         raise InvalidName(f"{args.action} needs a path")
     properties = _properties(args) if args.action == "add" else {}
     if args.action == "add":
-        keys.check_name(args.entity, "entity")
+        keys.check_entity(args.entity)
     with session(args) as client:
         client.join(args.embodiment, timeout=args.join_timeout)
         prefix = keys.storage_key(args.mesh, args.embodiment, store, ()) + "/"

@@ -86,4 +86,7 @@ def demo_arguments(p: argparse.ArgumentParser) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     stop = Interrupter()  # before any thread: interrupted or terminated, the demo still stops its daemons
-    return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait, record=args.record)
+    try:
+        return run_demo(mesh=args.mesh, web=args.web, wait=stop.wait, record=args.record)
+    except KeyboardInterrupt:  # the story cut short by SIGINT or SIGTERM: the shell's 130 or 143
+        return stop.exit_code()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -14,7 +15,8 @@ from cmion_mesh.errors import ConfigError, ExitCode
 
 def validate_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Check CMION XML files and list every problem of every file: errors (exit code 1), "
-                     "warnings (stand-ins for CMION classes with no equivalent; exit code 0) and notes.")
+                     "warnings (stand-ins for CMION classes with no equivalent; exit code 0) and notes. A path that "
+                     "is not there, or a folder without XML files, is a usage error (exit code 2).")
     p.add_argument("files", nargs="+", metavar="PATH", help="a file, a folder (its *.xml files) or a shipped embodiment's name")
     p.add_argument("--strict", action="store_true", help="warnings count as errors (exit code 1)")
     p.add_argument("--remote-type", action="append", metavar="TYPE",
@@ -25,13 +27,18 @@ def validate_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_validate(args: argparse.Namespace) -> int:
     reports: list[FileReport] = []
     paths: list[str] = []
+    unusable = False  # a path that is not there, or a folder with nothing to check: a usage error (exit 2)
     for given in args.files:
         try:
-            paths += expand(given)
+            found = expand(given)
         except ConfigError as exc:
             failed = FileReport(given)
             failed.diagnostics.problem(exc)
             reports.append(failed)
+            unusable = True
+            continue
+        unusable = unusable or not all(os.path.exists(path) for path in found)
+        paths += found
     reports += validate_paths(paths, remote_types=args.remote_type or ())
     strict = bool(args.strict)
     if args.json:
@@ -59,4 +66,6 @@ def cmd_validate(args: argparse.Namespace) -> int:
             failed_files = sum(not r.ok(strict) for r in reports)
             print(f"{len(reports)} files: {failed_files} failed; {totals['error']} errors, {totals['warning']} warnings"
                   f"{' (errors with --strict)' if strict and totals['warning'] else ''}", file=sys.stderr)
+    if unusable:
+        return ExitCode.USAGE
     return ExitCode.OK if all(r.ok(strict) for r in reports) else ExitCode.FAILED

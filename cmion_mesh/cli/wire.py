@@ -78,7 +78,9 @@ def cmd_keys(args: argparse.Namespace) -> int:
         print(json.dumps([{"key": k, "kind": kind, "type": kind_type} for k, kind, kind_type in rows]))
         return ExitCode.OK
     if not rows:
-        print(f"(no key{' matching ' + pattern if pattern else ''} in mesh {args.mesh!r}: try `cmion-mesh doctor`)")
+        # `doctor` only where nothing of the mesh was reached: a pattern matching nothing in a live mesh is no fault of it.
+        hint = "" if names else ": try `cmion-mesh doctor`"
+        print(f"(no key{' matching ' + pattern if pattern else ''} in mesh {args.mesh!r}{hint})")
         return ExitCode.OK
     table([("KEY", "KIND", "TYPE"), *((k.removeprefix(prefix), kind, kind_type) for k, kind, kind_type in rows)])
     return ExitCode.OK

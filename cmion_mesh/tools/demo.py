@@ -15,12 +15,16 @@ mesh runs (``view``), on free loopback ports whose addresses it prints; nobody p
 person at the screen's page says "I am here" and answers "yes" (or "no"), and watches the companion
 go on to the phone's page. The daemons keep running after the story, for a look at the pages, until
 Ctrl-C or SIGTERM; either way the demo stops its daemons (they live in sessions of their own).
+A signal before the story's end stops it too (exit 130 for SIGINT, 143 for SIGTERM), even in a
+background job that inherited SIGINT ignored.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import queue
+import shutil
 import signal
 import sys
 import tempfile
@@ -130,7 +134,8 @@ def web_pages(scenario: Scenario, stack: contextlib.ExitStack) -> dict[str, str]
     from cmion_mesh.web.view import spawn_view
 
     pages = {name: web_address(scenario.daemons[name]) for name in WEB_BODIES}
-    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values())
+    # die_with_parent, as the daemons: a SIGKILLed demo leaves no view serving behind (called from the main thread).
+    view, pages["view"] = spawn_view(scenario.mesh, scenario.endpoints.values(), die_with_parent=True)
     stack.enter_context(view)
     return pages
 
@@ -224,15 +229,53 @@ def _record(client: MeshClient, path: str, stack: contextlib.ExitStack) -> Recor
     return recorder
 
 
-def attach_commands(mesh: str, endpoint: str) -> list[str]:
+def attach_commands(mesh: str, endpoint: str, *, foxglove: bool | None = None, recording: str | None = None) -> list[str]:
     """What ``demo --web`` prints so that tools in another terminal join its mesh: the demo's daemons
-    scout nobody (a mesh of their own), so a tool connects to one of them, which brings the rest."""
+    scout nobody (a mesh of their own), so a tool connects to one of them, which brings the rest.
+    The recording's name is not the demo's own ``recording`` (``record`` refuses a file that exists); the ``foxglove``
+    line only where Foxglove's SDK is installed (``foxglove``: None looks), else how to install it."""
+    import importlib.util
+
     join = f"--mesh {mesh} --no-multicast --connect {endpoint}"
+    output = "attach.mcap" if recording is None or Path(recording).name != "attach.mcap" else "attach-2.mcap"
+    if foxglove is None:
+        foxglove = importlib.util.find_spec("foxglove") is not None
+    if foxglove:
+        live = f"  cmion-mesh foxglove {join}"
+    else:
+        from cmion_mesh.tools.foxglove import INSTALL_HINT
+
+        live = f"  (cmion-mesh foxglove, the mesh live in Foxglove, needs Foxglove's SDK: {INSTALL_HINT})"
     return ["attach from another terminal:",
-            f"  cmion-mesh record {join} -o demo.mcap",
+            f"  cmion-mesh record {join} -o {output}",
             f"  cmion-mesh view {join} --web 127.0.0.1:8091",
-            f"  cmion-mesh foxglove {join}",
+            live,
             f"  cmion-mesh peers {join}"]
+
+
+#: The demo's daemons keep their state in a temporary folder named with the demo's process id: a
+#: demo that could not remove its own (SIGKILLed) leaves it to the next one (``remove_stale_state``).
+STATE_PREFIX = "cmion-demo-"
+
+
+def remove_stale_state(where: str | None = None) -> list[Path]:
+    """Remove the state folders of demos that are gone (their process id in the name no longer
+    runs); return them. Folders of running demos, of other users, or not named so are left."""
+    removed: list[Path] = []
+    for folder in Path(where or tempfile.gettempdir()).glob(f"{STATE_PREFIX}*-*"):
+        pid = folder.name[len(STATE_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or not folder.is_dir() or folder.stat().st_uid != os.getuid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # that demo still runs
+        except ProcessLookupError:
+            pass
+        except PermissionError:  # another user's process
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        removed.append(folder)
+    return removed
 
 
 def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], object] | None = None,
@@ -245,7 +288,8 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
     if record is not None and Path(record).exists():  # refused before any daemon starts
         raise ConfigError("exists already: not overwritten (another name)", path=record)
     serve = ("--web", "127.0.0.1:0")
-    with tempfile.TemporaryDirectory(prefix="cmion-demo-") as state, contextlib.ExitStack() as stack:
+    remove_stale_state()
+    with tempfile.TemporaryDirectory(prefix=f"{STATE_PREFIX}{os.getpid()}-") as state, contextlib.ExitStack() as stack:
         tl.say(f"starting three embodiment daemons (robot, screen, phone) in mesh {mesh!r}")
         # From the main thread, which lives as long as the demo: a SIGKILLed demo leaves no daemon behind.
         scenario = start_bodies(mesh, Path(state), per_body=dict.fromkeys(WEB_BODIES, serve) if web else None, die_with_parent=True)
@@ -259,7 +303,7 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
                 if web:
                     for name, address in web_pages(scenario, stack).items():
                         tl.say(f"{name}: {address}")
-                    for line in attach_commands(mesh, scenario.endpoints["robot"]):
+                    for line in attach_commands(mesh, scenario.endpoints["robot"], recording=record):
                         tl.say(line)
                     if sys.stdin.isatty():
                         input("open the screen's page, then press Enter: the operator types the command ")
@@ -286,5 +330,6 @@ def run_demo(*, mesh: str | None = None, web: bool = False, wait: Callable[[], o
         finally:
             tl.say("stopping the daemons")
             stop_bodies(scenario)
-    tl.say("done")
+            if sys.exc_info()[0] in (None, KeyboardInterrupt):  # ended, or stopped by a signal: its last line
+                tl.say("done")
     return 0

@@ -256,6 +256,9 @@ class Recorder:
         self._split = bool(split_bytes or split_seconds)
         self._split_due = False  # the part is full or old: the next thing written starts a new one
         self._alive: set[str] = set()
+        # Custody tokens seen (embodiment -> companion -> epoch): who inhabits what when a part starts.
+        self._custody: dict[str, dict[str, str]] = {}
+        self._custody_seen = False
         self._meta: dict[str, dict[str, str]] = {"cmion-mesh": {
             "mesh": self.mesh, "filters": " ".join(self.filters), "recorder": f"cmion-mesh {__version__}", "format": str(FORMAT),
             "host": socket.gethostname(), "pid": str(os.getpid()), "started": _iso(time.time()),
@@ -303,6 +306,16 @@ class Recorder:
             meta["cmion-mesh"]["recording_started"] = meta["cmion-mesh"]["started"]
             meta["cmion-mesh"]["started"] = _iso(time.time())
         meta["cmion-mesh"]["alive_at_start"] = ",".join(sorted(self._alive))
+        if index and self._custody_seen:
+            # Each part stands alone: who held which companion when it started, not when the
+            # recording did (the descriptions are from then: their inhabitants are brought up to date).
+            meta["cmion-mesh"]["custody_at_start"] = ",".join(
+                f"{embodiment}:{companion}@{epoch}" for embodiment, held in sorted(self._custody.items())
+                for companion, epoch in sorted(held.items()))
+            for name, record in meta.items():
+                if name.startswith("embodiment:"):
+                    held = sorted(self._custody.get(name.split(":", 1)[1], {}))
+                    record["inhabitant"] = ",".join(held) if held else "null"
         return meta
 
     def _run(self) -> None:
@@ -355,10 +368,18 @@ class Recorder:
             self._part.writer.add_metadata(name, record)
             return
         key, alive = item
-        if key.split("/")[2:3] == [keys.ALIVE]:
+        chunks = key.split("/")
+        if chunks[2:3] == [keys.ALIVE]:
             name = key.rsplit("/", 1)[-1]
             self.stats.embodiments.add(name)
             (self._alive.add if alive else self._alive.discard)(name)
+        elif chunks[2:3] == [keys.CUSTODY] and len(chunks) == 6:
+            self._custody_seen = True
+            held = self._custody.setdefault(chunks[3], {})
+            if alive:
+                held[chunks[4]] = chunks[5]
+            elif held.get(chunks[4]) == chunks[5]:
+                del held[chunks[4]]
         routed = route_token(key, alive, stamp)
         for message in routed:
             self._part.add(message, stamp, self.mesh)

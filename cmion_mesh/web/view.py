@@ -84,12 +84,15 @@ RECHECK_FIRST = 0.3
 Schedule = Callable[..., None]
 
 
-def spawn_view(mesh: str, connect: Iterable[str], *extra: str, web: str = "127.0.0.1:0", timeout: float = 30.0) -> tuple[Daemon, str]:
+def spawn_view(mesh: str, connect: Iterable[str], *extra: str, web: str = "127.0.0.1:0", timeout: float = 30.0,
+               die_with_parent: bool = False) -> tuple[Daemon, str]:
     """``cmion-mesh view`` in a process of its own, connected to the ``connect`` endpoints only
     (no multicast): the process (a context manager that stops it) and the page's address, once
-    it serves. For the demo's pages and the tests."""
+    it serves. For the demo's pages and the tests. ``die_with_parent``: as ``procs.Daemon``'s
+    (from the main thread only)."""
     endpoints = [arg for endpoint in connect for arg in ("--connect", endpoint)]
-    view = Daemon(cli_argv("view", "--mesh", mesh, "--web", web, "--no-multicast", *endpoints, *extra), name="view")
+    view = Daemon(cli_argv("view", "--mesh", mesh, "--web", web, "--no-multicast", *endpoints, *extra), name="view",
+                  die_with_parent=die_with_parent)
     try:
         line = view.wait_line("view of mesh", timeout)
     except BaseException:
