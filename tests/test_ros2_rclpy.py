@@ -14,7 +14,6 @@ import itertools
 import json
 import random
 import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,7 +33,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import start_daemon
-from tests.test_ros2_robot import Standin
+from tests.helpers.robot_procs import RclpyRobot, Standin
 
 pytestmark = pytest.mark.timeout(120)
 BODY = "dds_robot"
@@ -106,50 +105,6 @@ def embodiment(folder: Path, *, common: str, sensor: str, action: str) -> Path:
     (folder / "CompetencyLibrary.xml").write_text(LIBRARY.format(common=common, sensor=sensor, action=action))
     (folder / "WorldModel.xml").write_text((embodiment_dir("ros_robot") / "WorldModel.xml").read_text())
     return folder
-
-
-# Fast DDS announces a participant's lease: 20 s by default, the time a robot killed without a
-# goodbye stays in the graph. The test robot announces 2 s, so that its death is seen soon.
-SHORT_LEASE = """<?xml version="1.0" encoding="UTF-8" ?>
-<dds xmlns="http://www.eprosima.com"><profiles>
-  <participant profile_name="short_lease" is_default_profile="true"><rtps><builtin><discovery_config>
-    <leaseDuration><sec>2</sec></leaseDuration><leaseAnnouncement><nanosec>500000000</nanosec></leaseAnnouncement>
-  </discovery_config></builtin></rtps></participant>
-</profiles></dds>
-"""
-
-
-class RclpyRobot:
-    """tests/helpers/rclpy_robot.py in its own process; ``event`` waits for one of its JSON lines."""
-
-    def __init__(self, tmp_path: Path, *options: str) -> None:
-        profile = tmp_path / "short_lease.xml"
-        profile.write_text(SHORT_LEASE)
-        self.proc = Daemon([sys.executable, "-m", "tests.helpers.rclpy_robot", *options], name="rclpy_robot", stdin=True,
-                           env={"FASTDDS_DEFAULT_PROFILES_FILE": str(profile)})
-        try:
-            self.event("ready", 30)
-        except BaseException:
-            self.proc.kill()
-            raise
-
-    def event(self, kind: str, timeout: float = 20.0) -> dict[str, Any]:
-        return dict(json.loads(self.proc.wait_line(json.dumps({"event": kind})[:-1], timeout)))
-
-    def events(self, kind: str) -> list[dict[str, Any]]:
-        prefix = json.dumps({"event": kind})[:-1]
-        return [json.loads(line) for line in list(self.proc.lines) if line.startswith(prefix)]
-
-    def exit(self) -> int:
-        if self.proc.proc.poll() is None:
-            self.proc.send("exit")
-        return self.proc.stop()
-
-    def __enter__(self) -> RclpyRobot:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.exit()
 
 
 @pytest.fixture
