@@ -48,6 +48,7 @@ from cmion_mesh.procs import unique_mesh
 from cmion_mesh.ros2 import wire
 from cmion_mesh.ros2.interfaces import Types
 from cmion_mesh.transport.zenoh import ZenohTransport
+from tests.helpers.ros2_embodiment import DRIVE, GOAL, write_embodiment
 
 ACTION = "test_msgs/action/Fibonacci"
 TWIST = "geometry_msgs/msg/Twist"
@@ -58,27 +59,6 @@ LABELS = {
     "zenoh_goal": "Goal -> goal at the action server, rmw_zenoh (context)",
     "rclpy_goal": "Goal -> goal accepted by a real rclpy action server, rclpy + Fast DDS",
 }
-
-RULES = """<?xml version="1.0" encoding="UTF-8"?>
-<CompetencyManagerRules>
-  <Rule>
-    <MindAction Name="Drive"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /><Parameter No="3" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="Velocity">
-        <CompetencyParameter Name="Linear" Value="$parameter1" />
-        <CompetencyParameter Name="Angular" Value="$parameter2" />
-        <CompetencyParameter Name="Duration" Value="$parameter3" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Goal"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="goal" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-</CompetencyManagerRules>
-"""
 
 LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 <CompetencyLibrary>
@@ -94,15 +74,7 @@ def log(text: str) -> None:
 
 
 def embodiment(folder: Path, name: str, common: str) -> Path:
-    folder.mkdir(parents=True)
-    (folder / "CompetencyManagerRules.xml").write_text(RULES)
-    (folder / "CompetencyLibrary.xml").write_text(LIBRARY.format(common=common, action=ACTION))
-    (folder / "WorldModel.xml").write_text('<?xml version="1.0" encoding="UTF-8"?>\n<WorldModel />\n')
-    architecture = folder / "ArchitectureConfiguration.xml"
-    architecture.write_text(f'<?xml version="1.0" encoding="UTF-8"?>\n<ArchitectureConfiguration Embodiment="{name}" '
-                            'CompetencyManagerRulesFile="CompetencyManagerRules.xml" '
-                            'CompetencyLibraryConfigurationFile="CompetencyLibrary.xml" WorldModelInitFile="WorldModel.xml" />\n')
-    return architecture
+    return write_embodiment(folder, name, rules=(DRIVE, GOAL), library=LIBRARY.format(common=common, action=ACTION))
 
 
 class Arrivals:

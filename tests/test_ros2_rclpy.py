@@ -34,53 +34,14 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import start_daemon
 from tests.helpers.robot_procs import RclpyRobot, Standin
+from tests.helpers.ros2_embodiment import DRIVE, FIBONACCI_FROM, GOAL, SAY, write_embodiment
 
 pytestmark = pytest.mark.timeout(120)
 BODY = "dds_robot"
 
-# The same rules for both transports: Say and Drive as the shipped ros_robot has them, and a goal
-# of whatever action the library's RobotGoal competency serves (a JSON object of goal fields, or
-# the Fibonacci order from the blackboard).
-RULES = """<?xml version="1.0" encoding="UTF-8"?>
-<CompetencyManagerRules>
-  <Rule>
-    <MindAction Name="Say"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="LanguageGeneration">
-        <CompetencyParameter Name="SpeechActID" Value="$parameter1" />
-        <CompetencyParameter Name="Addressee" Value="$parameter2" />
-        <CompetencyParameter Name="TextOutName" Value="text/$parameter1-$parameter2" />
-      </Competency>
-      <Competency ID="2" Type="SpeechSynthesis" Dependency="1">
-        <CompetencyParameter Name="TextInName" Value="text/$parameter1-$parameter2" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Drive"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /><Parameter No="3" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="Velocity">
-        <CompetencyParameter Name="Linear" Value="$parameter1" />
-        <CompetencyParameter Name="Angular" Value="$parameter2" />
-        <CompetencyParameter Name="Duration" Value="$parameter3" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Goal"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="goal" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="FibonacciFrom"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="orderInName" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-</CompetencyManagerRules>
-"""
-
+# The same rules for both transports (tests/helpers/ros2_embodiment.py): Say and Drive as the
+# shipped ros_robot has them, and a goal of whatever action the library's RobotGoal competency
+# serves (a JSON object of goal fields, or the Fibonacci order from the blackboard).
 LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 <CompetencyLibrary>
   <Competency ClassName="cmion_mesh.ros2.competencies:Ros2Velocity" ConstructorParameters="{common},rate=20,subscriber_timeout=20" />
@@ -92,19 +53,11 @@ LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 </CompetencyLibrary>
 """
 
-ARCHITECTURE = """<?xml version="1.0" encoding="UTF-8"?>
-<ArchitectureConfiguration Embodiment="dds_robot" CompetencyManagerRulesFile="CompetencyManagerRules.xml"
-  CompetencyLibraryConfigurationFile="CompetencyLibrary.xml" WorldModelInitFile="WorldModel.xml" />
-"""
-
 
 def embodiment(folder: Path, *, common: str, sensor: str, action: str) -> Path:
-    folder.mkdir()
-    (folder / "ArchitectureConfiguration.xml").write_text(ARCHITECTURE)
-    (folder / "CompetencyManagerRules.xml").write_text(RULES)
-    (folder / "CompetencyLibrary.xml").write_text(LIBRARY.format(common=common, sensor=sensor, action=action))
-    (folder / "WorldModel.xml").write_text((embodiment_dir("ros_robot") / "WorldModel.xml").read_text())
-    return folder
+    return write_embodiment(folder, BODY, rules=(SAY, DRIVE, GOAL, FIBONACCI_FROM),
+                            library=LIBRARY.format(common=common, sensor=sensor, action=action),
+                            world=(embodiment_dir("ros_robot") / "WorldModel.xml").read_text()).parent
 
 
 @pytest.fixture
