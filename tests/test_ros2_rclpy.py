@@ -26,13 +26,10 @@ pytest.importorskip("test_msgs", reason="test_msgs is not installed (the ros2 ex
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.zenoh import ZenohTransport
-from tests.conftest import start_daemon
+from tests.helpers.mesh_setups import blackboard, body_and_client
 from tests.helpers.robot_procs import RclpyRobot, Standin
 from tests.helpers.ros2_embodiment import DRIVE, FIBONACCI_FROM, GOAL, SAY, write_embodiment
 
@@ -73,15 +70,8 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> int:
 
 @contextmanager
 def body_client(tmp_path: Path, common: str, sensor: str, action: str) -> Iterator[tuple[Daemon, str, MeshClient]]:
-    folder = embodiment(tmp_path / BODY, common=common, sensor=sensor, action=action)
-    mesh = unique_mesh()
-    daemon, endpoint = start_daemon(mesh, BODY, str(folder))
-    try:
-        with ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, MeshClient(transport, mesh) as client:
-            client.join(BODY, timeout=20)
-            yield daemon, endpoint, client
-    finally:
-        daemon.stop()
+    with body_and_client(BODY, str(embodiment(tmp_path / BODY, common=common, sensor=sensor, action=action))) as started:
+        yield started
 
 
 @pytest.fixture
@@ -92,11 +82,7 @@ def dds_body(tmp_path: Path, ros_domain: int) -> Iterator[tuple[Daemon, str, Mes
 
 
 def bb(client: MeshClient, path: str) -> Any:
-    container, _, name = path.rpartition("/")
-    try:
-        return client.get_property(BODY, keys.BLACKBOARD, container, name).value
-    except MeshError:
-        return None
+    return blackboard(client, BODY, path)
 
 
 def test_drive_say_and_a_sensor_reach_a_real_rclpy_robot(dds_body: tuple[Daemon, str, MeshClient], tmp_path: Path) -> None:

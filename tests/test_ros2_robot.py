@@ -18,12 +18,10 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import start_daemon
+from tests.helpers.mesh_setups import blackboard, body_and_client
 from tests.helpers.robot_procs import Standin
 
 pytestmark = pytest.mark.timeout(120)
@@ -32,22 +30,12 @@ BODY = "ros_robot"
 
 @pytest.fixture(scope="module")
 def body() -> Iterator[tuple[Daemon, str, MeshClient]]:
-    mesh = unique_mesh()
-    daemon, endpoint = start_daemon(mesh, BODY, BODY)
-    try:
-        with ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, MeshClient(transport, mesh) as client:
-            client.join(BODY, timeout=20)
-            yield daemon, endpoint, client
-    finally:
-        daemon.stop()
+    with body_and_client(BODY, BODY) as started:
+        yield started
 
 
 def bb(client: MeshClient, path: str) -> Any:
-    container, _, name = path.rpartition("/")
-    try:
-        return client.get_property(BODY, keys.BLACKBOARD, container, name).value
-    except MeshError:
-        return None
+    return blackboard(client, BODY, path)
 
 
 def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon, str, MeshClient]) -> None:

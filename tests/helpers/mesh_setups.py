@@ -1,4 +1,4 @@
-"""Meshes and recordings that several test files start the same way."""
+"""Meshes, bodies and recordings that several test files start (and read) the same way."""
 
 from __future__ import annotations
 
@@ -6,8 +6,14 @@ import subprocess
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
+from typing import Any
 
-from cmion_mesh.procs import cli_argv
+from cmion_mesh import keys
+from cmion_mesh.client import MeshClient
+from cmion_mesh.errors import MeshError
+from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
+from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import start_daemon
 
 
@@ -32,3 +38,26 @@ def record_demo(path: Path) -> Path:
                             stdin=subprocess.DEVNULL)
     assert result.returncode == 0, result.stdout + result.stderr
     return path
+
+
+@contextmanager
+def body_and_client(name: str, config: str) -> Iterator[tuple[Daemon, str, MeshClient]]:
+    """``cmion-mesh up`` of ``config`` as ``name`` in a mesh of its own, and a client connected to it
+    alone that has joined it; yields (daemon, its endpoint, client) and stops the daemon at the end."""
+    mesh = unique_mesh()
+    daemon, endpoint = start_daemon(mesh, name, config)
+    try:
+        with ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, MeshClient(transport, mesh) as client:
+            client.join(name, timeout=20)
+            yield daemon, endpoint, client
+    finally:
+        daemon.stop()
+
+
+def blackboard(client: MeshClient, body: str, path: str) -> Any:
+    """The value at ``path`` (``container/name``) on ``body``'s blackboard; None while there is none."""
+    container, _, name = path.rpartition("/")
+    try:
+        return client.get_property(body, keys.BLACKBOARD, container, name).value
+    except MeshError:
+        return None
