@@ -14,12 +14,15 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.harness import REPO_ROOT, loopback_endpoint
+from bench.harness import REPO_ROOT, loopback_config, loopback_endpoint
+from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.transport.base import TransportConfig
+from cmion_mesh.transport.zenoh import ZenohTransport
 
 EMBODIMENT = Path(__file__).resolve().parent / "embodiment"
 RULES = EMBODIMENT / "rules.xml"
@@ -138,6 +141,20 @@ def stop_and_report(nodes: Iterable[Node], log: Callable[[str], None]) -> None:
     """``stop_all`` for an ``ExitStack`` callback: problems are logged, not raised."""
     for problem in stop_all(nodes):
         log(problem)
+
+
+def up_with_client(stack: ExitStack, node: Node, log: Callable[[str], None]) -> MeshClient:
+    """``node`` started and up (stopped, problems logged, when ``stack`` closes) and a client
+    connected to it alone that has seen its embodiment."""
+    node.start()
+    stack.callback(stop_and_report, [node], log)
+    node.wait_up(60.0)
+    transport = ZenohTransport(loopback_config(connect=node.listen))
+    stack.callback(transport.close)
+    client = MeshClient(transport, node.mesh)
+    stack.callback(client.close)
+    client.wait_for_embodiment(node.name, timeout=20.0)
+    return client
 
 
 def stop_all(nodes: Iterable[Node], grace: float = 10.0) -> list[str]:

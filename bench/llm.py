@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from bench import actions
-from bench.daemons import LIBRARY, RULES, Node, stop_and_report
-from bench.harness import interleaved, loopback_config
+from bench.daemons import LIBRARY, RULES, Node, up_with_client
+from bench.harness import interleaved
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
@@ -36,7 +36,6 @@ from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import MindMessage
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.helpers.chat_standin import StandIn
 
 EMBODIMENT = "bench-llm"
@@ -124,13 +123,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         standin = stack.enter_context(StandIn())
         node = Node(EMBODIMENT, mesh, tmp / EMBODIMENT, companion=COMPANION, architecture=str(write_config(tmp / "config")),
                     extra_env={"CMION_MESH_LLM_BASE_URL": standin.base_url})
-        node.start()
-        stack.callback(stop_and_report, [node], log)
-        node.wait_up(60.0)
-        transport = ZenohTransport(loopback_config(connect=node.listen))
-        stack.callback(transport.close)
-        client = MeshClient(transport, mesh)
-        client.wait_for_embodiment(EMBODIMENT, timeout=20.0)
+        client = up_with_client(stack, node, log)
         wait_for(lambda: standin.timings(0)["requests"] >= 1, 30.0, "the mind's first turn (its arrival)")
         log(f"daemon and stand-in up after {time.monotonic() - started:.2f} s (mesh {mesh})")
         pooled = interleaved([ClientAct(client, "One", "llm_act_client"), ToolCalls(client, standin)], samples=options.samples,

@@ -29,14 +29,12 @@ from pathlib import Path
 from typing import Any
 
 from bench.actions import COMPANION, EMBODIMENT, ClientAct
-from bench.daemons import Node, stop_and_report
-from bench.harness import Probe, interleaved, loopback_config
+from bench.daemons import Node, up_with_client
+from bench.harness import Probe, interleaved
 from bench.registry import Options, Row, compare
 from bench.stats import summarize
-from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.procs import cli_argv, unique_mesh
-from cmion_mesh.transport.zenoh import ZenohTransport
 
 LABELS = {
     "mcp_ping_stdio": "MCP ping -> answer, over stdio (the protocol's own round trip: context)",
@@ -92,14 +90,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
     with ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-mcp-")))
         node = Node(EMBODIMENT, mesh, tmp / EMBODIMENT, companion=COMPANION)
-        node.start()
-        stack.callback(stop_and_report, [node], log)
-        node.wait_up(60.0)
-        transport = ZenohTransport(loopback_config(connect=node.listen))
-        stack.callback(transport.close)
-        client = MeshClient(transport, mesh)
-        stack.callback(client.close)
-        client.wait_for_embodiment(EMBODIMENT, timeout=20.0)
+        client = up_with_client(stack, node, log)
 
         argv = cli_argv("mcp", COMPANION, "--allow-actions", "--mesh", mesh, "--no-multicast", "--connect", node.listen)
         portal = stack.enter_context(start_blocking_portal())

@@ -25,6 +25,7 @@ import queue
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -58,48 +59,63 @@ def log(text: str) -> None:
     print(f"  [ros2] {text}", flush=True)
 
 
-class Nav2Node:
-    """The measuring process as a Nav2 node: goals are accepted and succeed at once; the moment each
-    send_goal request arrives and each result is sent is recorded (``time.perf_counter``)."""
+class RawRosNode:
+    """A raw zenoh session playing an rmw_zenoh node: its liveliness token, then what is declared on
+    it (``serve_action``); ``close`` undeclares all, newest first, and joins the queryables' threads."""
 
-    def __init__(self, session: zenoh.Session, types: Types, domain: int = 0, name: str = "bench_nav2") -> None:
-        self.session, self.types = session, types
-        zid = str(session.zid())
-        self.goals: queue.SimpleQueue[float] = queue.SimpleQueue()
-        self.results: queue.SimpleQueue[float] = queue.SimpleQueue()
-        self._undeclare: list[Any] = [session.liveliness().declare_token(ros2.node_token(domain, zid, 0, "", name))]
+    def __init__(self, session: zenoh.Session, types: Types, domain: int, name: str) -> None:
+        self.session, self.types, self.domain, self.name = session, types, domain, name
+        self.zid = str(session.zid())
+        self._undeclare: list[Any] = [session.liveliness().declare_token(ros2.node_token(domain, self.zid, 0, "", name))]
         self._threads: list[threading.Thread] = []
-        for eid, (service, answer) in enumerate((("send_goal", self._send_goal), ("get_result", self._get_result)), start=1):
-            type_name = f"{ACTION}_{'SendGoal' if service == 'send_goal' else 'GetResult'}"
-            type_hash = types.hash(type_name)
-            topic = f"/navigate_to_pose/_action/{service}"
-            key = ros2.topic_key(domain, topic, type_name, type_hash)
-            queryable = session.declare_queryable(key, zenoh.handlers.FifoChannel(256), complete=True)
-            self._undeclare.append(queryable)
-            self._threads.append(_drain(f"bench-nav2-{service}", queryable.handler.recv, answer))
-            token = ros2.entity_token(domain, zid, 0, eid, "SS", "", name, topic, type_name, type_hash)
-            self._undeclare.append(session.liveliness().declare_token(token))
 
-    def _reply(self, query: zenoh.Query, type_name: str, values: dict[str, Any]) -> None:
+    def serve_action(self, action_type: str, action_name: str, first_eid: int, send_goal: Callable[[zenoh.Query], None],
+                     get_result: Callable[[zenoh.Query], None], threads: str) -> None:
+        """The action's send_goal and get_result services (entities ``first_eid`` and the next), each
+        a queryable drained by a thread named ``threads``-<service>."""
+        for eid, (service, answer) in enumerate((("send_goal", send_goal), ("get_result", get_result)), start=first_eid):
+            type_name = f"{action_type}_{'SendGoal' if service == 'send_goal' else 'GetResult'}"
+            type_hash = self.types.hash(type_name)
+            topic = f"{action_name}/_action/{service}"
+            key = ros2.topic_key(self.domain, topic, type_name, type_hash)
+            queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(256), complete=True)
+            self._undeclare.append(queryable)
+            self._threads.append(_drain(f"{threads}-{service}", queryable.handler.recv, answer))
+            token = ros2.entity_token(self.domain, self.zid, 0, eid, "SS", "", self.name, topic, type_name, type_hash)
+            self._undeclare.append(self.session.liveliness().declare_token(token))
+
+    def reply(self, query: zenoh.Query, type_name: str, values: dict[str, Any]) -> None:
+        """``values`` as the service's response, with the request's attachment (rmw_zenoh's sequence number and GID)."""
         attachment = query.attachment
         payload = self.types.encode(f"{type_name}_Response", values)
         query.reply(query.key_expr, payload, attachment=attachment.to_bytes() if attachment is not None else None)
-
-    def _send_goal(self, query: zenoh.Query) -> None:
-        self.goals.put(time.perf_counter())
-        with query:
-            self._reply(query, f"{ACTION}_SendGoal", {"accepted": True})
-
-    def _get_result(self, query: zenoh.Query) -> None:
-        with query:
-            self.results.put(time.perf_counter())
-            self._reply(query, f"{ACTION}_GetResult", {"status": ros2.STATUS_SUCCEEDED})
 
     def close(self) -> None:
         for entity in reversed(self._undeclare):
             entity.undeclare()
         for thread in self._threads:
             thread.join(5.0)
+
+
+class Nav2Node(RawRosNode):
+    """The measuring process as a Nav2 node: goals are accepted and succeed at once; the moment each
+    send_goal request arrives and each result is sent is recorded (``time.perf_counter``)."""
+
+    def __init__(self, session: zenoh.Session, types: Types, domain: int = 0, name: str = "bench_nav2") -> None:
+        super().__init__(session, types, domain, name)
+        self.goals: queue.SimpleQueue[float] = queue.SimpleQueue()
+        self.results: queue.SimpleQueue[float] = queue.SimpleQueue()
+        self.serve_action(ACTION, "/navigate_to_pose", 1, self._send_goal, self._get_result, "bench-nav2")
+
+    def _send_goal(self, query: zenoh.Query) -> None:
+        self.goals.put(time.perf_counter())
+        with query:
+            self.reply(query, f"{ACTION}_SendGoal", {"accepted": True})
+
+    def _get_result(self, query: zenoh.Query) -> None:
+        with query:
+            self.results.put(time.perf_counter())
+            self.reply(query, f"{ACTION}_GetResult", {"status": ros2.STATUS_SUCCEEDED})
 
 
 def goto_once(client: MeshClient, robot: Nav2Node) -> tuple[float, float]:

@@ -37,10 +37,11 @@ from typing import Any
 
 import zenoh
 
-from bench.core import _drain, open_session
+from bench.core import open_session
 from bench.daemons import Node, stop_and_report
 from bench.harness import loopback_config
 from bench.registry import Options, Row, compare
+from bench.ros2 import RawRosNode
 from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
@@ -48,6 +49,7 @@ from cmion_mesh.procs import unique_mesh
 from cmion_mesh.ros2 import wire
 from cmion_mesh.ros2.interfaces import Types
 from cmion_mesh.transport.zenoh import ZenohTransport
+from tests.helpers.ros2_embodiment import DRIVE, GOAL, write_embodiment
 
 ACTION = "test_msgs/action/Fibonacci"
 TWIST = "geometry_msgs/msg/Twist"
@@ -58,27 +60,6 @@ LABELS = {
     "zenoh_goal": "Goal -> goal at the action server, rmw_zenoh (context)",
     "rclpy_goal": "Goal -> goal accepted by a real rclpy action server, rclpy + Fast DDS",
 }
-
-RULES = """<?xml version="1.0" encoding="UTF-8"?>
-<CompetencyManagerRules>
-  <Rule>
-    <MindAction Name="Drive"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /><Parameter No="3" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="Velocity">
-        <CompetencyParameter Name="Linear" Value="$parameter1" />
-        <CompetencyParameter Name="Angular" Value="$parameter2" />
-        <CompetencyParameter Name="Duration" Value="$parameter3" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Goal"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="goal" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-</CompetencyManagerRules>
-"""
 
 LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 <CompetencyLibrary>
@@ -94,15 +75,7 @@ def log(text: str) -> None:
 
 
 def embodiment(folder: Path, name: str, common: str) -> Path:
-    folder.mkdir(parents=True)
-    (folder / "CompetencyManagerRules.xml").write_text(RULES)
-    (folder / "CompetencyLibrary.xml").write_text(LIBRARY.format(common=common, action=ACTION))
-    (folder / "WorldModel.xml").write_text('<?xml version="1.0" encoding="UTF-8"?>\n<WorldModel />\n')
-    architecture = folder / "ArchitectureConfiguration.xml"
-    architecture.write_text(f'<?xml version="1.0" encoding="UTF-8"?>\n<ArchitectureConfiguration Embodiment="{name}" '
-                            'CompetencyManagerRulesFile="CompetencyManagerRules.xml" '
-                            'CompetencyLibraryConfigurationFile="CompetencyLibrary.xml" WorldModelInitFile="WorldModel.xml" />\n')
-    return architecture
+    return write_embodiment(folder, name, rules=(DRIVE, GOAL), library=LIBRARY.format(common=common, action=ACTION))
 
 
 class Arrivals:
@@ -168,54 +141,31 @@ class RclpyRobot(Arrivals):
         self._context.try_shutdown()
 
 
-class ZenohRobot(Arrivals):
+class ZenohRobot(Arrivals, RawRosNode):
     """A raw zenoh session as an rmw_zenoh node: a cmd_vel subscriber and a Fibonacci server."""
 
     def __init__(self, session: zenoh.Session, types: Types, domain: int = 0, name: str = "bench_zenoh_robot") -> None:
-        super().__init__()
-        self.session, self.types = session, types
-        zid = str(session.zid())
+        Arrivals.__init__(self)
+        RawRosNode.__init__(self, session, types, domain, name)
         types.find_action(ACTION)
-        self._undeclare: list[Any] = [session.liveliness().declare_token(wire.node_token(domain, zid, 0, "", name))]
-        self._threads: list[threading.Thread] = []
         twist_hash = types.hash(TWIST)
         self._undeclare.append(session.declare_subscriber(wire.topic_key(domain, "/cmd_vel", TWIST, twist_hash), self._on_twist))
         self._undeclare.append(session.liveliness().declare_token(
-            wire.entity_token(domain, zid, 0, 1, "MS", "", name, "/cmd_vel", TWIST, twist_hash)))
-        for eid, (service, answer) in enumerate((("send_goal", self._send_goal), ("get_result", self._get_result)), start=2):
-            type_name = f"{ACTION}_{'SendGoal' if service == 'send_goal' else 'GetResult'}"
-            type_hash = types.hash(type_name)
-            topic = f"/fibonacci/_action/{service}"
-            queryable = session.declare_queryable(wire.topic_key(domain, topic, type_name, type_hash), zenoh.handlers.FifoChannel(256),
-                                                  complete=True)
-            self._undeclare.append(queryable)
-            self._threads.append(_drain(f"bench-zenoh-robot-{service}", queryable.handler.recv, answer))
-            self._undeclare.append(session.liveliness().declare_token(
-                wire.entity_token(domain, zid, 0, eid, "SS", "", name, topic, type_name, type_hash)))
+            wire.entity_token(domain, self.zid, 0, 1, "MS", "", name, "/cmd_vel", TWIST, twist_hash)))
+        self.serve_action(ACTION, "/fibonacci", 2, self._send_goal, self._get_result, "bench-zenoh-robot")
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
         if self.types.decode(TWIST, sample.payload.to_bytes()).linear.x > 0:
             self.twists.put(time.perf_counter())
 
-    def _reply(self, query: zenoh.Query, type_name: str, values: dict[str, Any]) -> None:
-        attachment = query.attachment
-        payload = self.types.encode(f"{type_name}_Response", values)
-        query.reply(query.key_expr, payload, attachment=attachment.to_bytes() if attachment is not None else None)
-
     def _send_goal(self, query: zenoh.Query) -> None:
         self.goals.put(time.perf_counter())
         with query:
-            self._reply(query, f"{ACTION}_SendGoal", {"accepted": True})
+            self.reply(query, f"{ACTION}_SendGoal", {"accepted": True})
 
     def _get_result(self, query: zenoh.Query) -> None:
         with query:
-            self._reply(query, f"{ACTION}_GetResult", {"status": wire.STATUS_SUCCEEDED, "result": {"sequence": [0, 1]}})
-
-    def close(self) -> None:
-        for entity in reversed(self._undeclare):
-            entity.undeclare()
-        for thread in self._threads:
-            thread.join(5.0)
+            self.reply(query, f"{ACTION}_GetResult", {"status": wire.STATUS_SUCCEEDED, "result": {"sequence": [0, 1]}})
 
 
 def once(client: MeshClient, embodiment_name: str, robot: Arrivals, action: str, parameters: list[str]) -> float:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import signal
-import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -40,6 +39,7 @@ from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import DATA
+from tests.helpers.mesh_setups import record_demo
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -298,11 +298,7 @@ def test_a_channels_first_subscriber_gets_its_last_messages_then_the_rest() -> N
 
 @pytest.fixture(scope="module")
 def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("foxglove") / "demo.mcap"
-    result = subprocess.run(cli_argv("demo", "--record", str(path)), capture_output=True, text=True, timeout=150,
-                            stdin=subprocess.DEVNULL)
-    assert result.returncode == 0, result.stdout + result.stderr
-    return path
+    return record_demo(tmp_path_factory.mktemp("foxglove") / "demo.mcap")
 
 
 @pytest.mark.mesh

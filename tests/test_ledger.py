@@ -14,7 +14,6 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import MindMessage
@@ -26,6 +25,7 @@ from cmion_mesh.migration.sections import FSYNCS
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
+from .helpers.memory_bodies import body, close
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(120)
@@ -196,17 +196,6 @@ def test_a_migration_interrupted_after_the_ledger_was_written_keeps_the_ledger(t
 
 
 # --- migrations with the ledger compacted at every step ----------------------------------------------
-
-
-def body(network: MemoryNetwork, mesh: str, name: str, state: Path, companion: str | None = None) -> Embodiment:
-    return Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=state / name,
-                      companion=companion, components=[Diary()])
-
-
-def close(*embodiments: Embodiment) -> None:
-    for e in embodiments:
-        e.close()
-        e.transport.close()
 
 
 def test_compaction_under_running_migrations_loses_nothing(network: MemoryNetwork, mesh: str, tmp_path: Path,

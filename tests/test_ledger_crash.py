@@ -18,13 +18,12 @@ from cmion_mesh.client import MeshClient
 from cmion_mesh.messages import Migrate, MindMessage
 from cmion_mesh.migration.journal import BOUND_ENV, LOG
 from cmion_mesh.migration.ledger import read_ledger
-from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 
-from .helpers.remote_helpers import Node, diary_embodiment_config
-from .test_migration_crash import Watcher, inhabitants, settle
+from .helpers.remote_helpers import Node
+from .test_migration_crash import crash_while_migrating, inhabitants, node_pair, settle
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -47,17 +46,8 @@ CASES = [
 
 @pytest.fixture
 def nodes(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node]]:
-    robot_port, screen_port = free_port(), free_port()
-    bound = {BOUND_ENV: "1"}
-    robot = Node("robot", mesh, diary_embodiment_config(tmp_path / "robot", "robot"), tmp_path / "state-robot", robot_port,
-                 [f"tcp/127.0.0.1:{screen_port}"], companion="spirit", env=dict(bound))
-    screen = Node("screen", mesh, diary_embodiment_config(tmp_path / "screen", "screen"), tmp_path / "state-screen", screen_port,
-                  [f"tcp/127.0.0.1:{robot_port}"], env=dict(bound))
-    try:
-        yield robot, screen
-    finally:
-        robot.stop()
-        screen.stop()
+    with node_pair(tmp_path, mesh, {BOUND_ENV: "1"}) as pair:  # a compaction after every entry appended
+        yield pair
 
 
 @pytest.mark.parametrize(("crash_at", "side_name", "home"), CASES)
@@ -65,26 +55,9 @@ def test_kill_inside_the_ledger_at_each_step(nodes: tuple[Node, Node], mesh: str
                                              home: str | tuple[str, ...]) -> None:
     robot, screen = nodes
     side = robot if side_name == "robot" else screen
-    robot.start(crash_at if side is robot else "")
-    screen.start(crash_at if side is screen else "")
-    with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
-        client = MeshClient(t, mesh)
-        wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
-        notes = ["met Ada", f"crash at {crash_at}"]
-        for note in notes:
-            assert client.request("robot", "mind", "message", MindMessage({"note": note})).status == "accepted"
-        watcher = Watcher(client)
-        try:
-            started = client.request("robot", "migration", "migrate", Migrate("spirit", "screen"))
-            assert started.status == "accepted", started
-            assert side.died() == -9, f"{side.name} did not die at {crash_at}"
-            side.start()  # restart on the same state, no crash point
-            durable = [] if crash_at == "ledger:torn:prepared" else notes
-            settle(client, home, durable)  # exactly one host, its identity as it was last made durable
-        finally:
-            watcher.close()
-        assert not watcher.both, f"two inhabited embodiments seen: {watcher.both[:3]}"
-        assert watcher.samples > 0
+    notes = ["met Ada", f"crash at {crash_at}"]
+    durable = [] if crash_at == "ledger:torn:prepared" else notes  # its identity as it was last made durable
+    crash_while_migrating(nodes, mesh, crash_at, side, notes, home, durable)
     dead = side.history[-2].proc.pid
     leftovers = [p.name for p in side.state.iterdir() if p.name.startswith(f".{LOG}.{dead}.")]
     assert not leftovers, f"the compaction's temporary file is swept at the restart: {leftovers}"

@@ -268,13 +268,18 @@ def test_a_whole_answer_is_decoded_by_its_schema_and_anything_else_is_an_endpoin
 # --- the mind in a body on the in-memory transport (its endpoint unreachable) -----------------------
 
 
+def unreachable_mind(tmp_path: Path, settings: str) -> LlmMind:
+    """A mind whose endpoint nobody answers (port 1 on loopback); ``settings`` follow its endpoint's
+    base_url and model in its settings file."""
+    path = tmp_path / "llm.toml"
+    path.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\n' + settings)
+    return LlmMind("mind", str(path))
+
+
 @pytest.mark.mesh  # the client library runs `uname -p` once (its platform headers): a child process
 def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_stops_the_worker(
         tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
-    settings = tmp_path / "llm.toml"
-    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\ntimeout = 2\n'
-                        "[budget]\nbackoff_first = 0.05\nbackoff_cap = 0.2\n")
-    mind = LlmMind("mind", str(settings))
+    mind = unreachable_mind(tmp_path, "timeout = 2\n[budget]\nbackoff_first = 0.05\nbackoff_cap = 0.2\n")
     events: list[Event] = []
     with MemoryTransport(network, "robot") as t, MemoryTransport(network, "watcher") as w:
         client = MeshClient(w, mesh)
@@ -299,9 +304,7 @@ def test_an_unreachable_endpoint_is_one_event_the_body_keeps_the_mind_and_close_
 @pytest.mark.mesh  # as above: the client library's `uname -p`
 def test_migrate_is_offered_to_the_embodiments_alive_that_the_companions_policy_accepts(
         tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
-    settings = tmp_path / "llm.toml"
-    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\n[budget]\nbackoff_first = 1\n')
-    mind = LlmMind("mind", str(settings))
+    mind = unreachable_mind(tmp_path, "[budget]\nbackoff_first = 1\n")
     with MemoryTransport(network, "w") as w:
         client = MeshClient(w, mesh)
         bodies = [Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=tmp_path / name, rules=ROBOT_RULES,
@@ -330,9 +333,7 @@ def test_migrate_is_offered_to_the_embodiments_alive_that_the_companions_policy_
 @pytest.mark.mesh  # as above: the client library's `uname -p`
 def test_an_action_that_ends_while_the_mind_sleeps_leaves_the_conversation_as_it_was_until_it_wakes(
         tmp_path: Path, network: MemoryNetwork, mesh: str) -> None:
-    settings = tmp_path / "llm.toml"
-    settings.write_text('[endpoint]\nbase_url = "http://127.0.0.1:1/v1"\nmodel = "m"\n[budget]\nbackoff_first = 60\n')
-    mind = LlmMind("mind", str(settings))
+    mind = unreachable_mind(tmp_path, "[budget]\nbackoff_first = 60\n")
     seen: dict[str, Any] = {}
     with MemoryTransport(network, "robot") as t, Embodiment("robot", mesh=mesh, transport=t, rules=ROBOT_RULES,
                                                             components=[mind]) as body:

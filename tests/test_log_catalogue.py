@@ -32,7 +32,7 @@ from cmion_mesh.transport import certs, security
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.web.body import WebBody
 
-from .helpers.remote_helpers import Diary
+from .helpers.memory_bodies import body
 from .test_logs import parse_text, strict_json
 
 pytestmark = pytest.mark.timeout(60)
@@ -76,11 +76,6 @@ def log_file(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LogFile
         yield LogFile(path, request.param)
     finally:
         logs.unconfigure()
-
-
-def body(network: MemoryNetwork, mesh: str, name: str, state: Path, companion: str | None = None) -> Embodiment:
-    return Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=state / name,
-                      companion=companion, components=[Diary()])
 
 
 def number(value: Any) -> float:

@@ -22,6 +22,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .helpers.custody_helpers import Holder
+from .helpers.memory_bodies import body, close
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(60)
@@ -31,17 +32,6 @@ pytestmark = pytest.mark.timeout(60)
 def client(network: MemoryNetwork, mesh: str) -> Iterator[MeshClient]:
     with MemoryTransport(network, "cli") as t:
         yield MeshClient(t, mesh)
-
-
-def body(network: MemoryNetwork, mesh: str, name: str, state: Path, companion: str | None = None) -> Embodiment:
-    return Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=state / name,
-                      companion=companion, components=[Diary()])
-
-
-def close(*embodiments: Embodiment) -> None:
-    for e in embodiments:
-        e.close()
-        e.transport.close()
 
 
 def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:

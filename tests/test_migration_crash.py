@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -30,18 +31,25 @@ pytestmark = pytest.mark.timeout(180)
 
 
 
-@pytest.fixture
-def nodes(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node]]:
+@contextmanager
+def node_pair(folder: Path, mesh: str, env: dict[str, str] | None = None) -> Iterator[tuple[Node, Node]]:
+    """robot (where spirit is born) and screen, connected to each other, not started; stopped at the end."""
     robot_port, screen_port = free_port(), free_port()
-    robot = Node("robot", mesh, diary_embodiment_config(tmp_path / "robot", "robot"), tmp_path / "state-robot", robot_port,
-                 [f"tcp/127.0.0.1:{screen_port}"], companion="spirit")
-    screen = Node("screen", mesh, diary_embodiment_config(tmp_path / "screen", "screen"), tmp_path / "state-screen", screen_port,
-                  [f"tcp/127.0.0.1:{robot_port}"])
+    robot = Node("robot", mesh, diary_embodiment_config(folder / "robot", "robot"), folder / "state-robot", robot_port,
+                 [f"tcp/127.0.0.1:{screen_port}"], companion="spirit", env=dict(env or {}))
+    screen = Node("screen", mesh, diary_embodiment_config(folder / "screen", "screen"), folder / "state-screen", screen_port,
+                  [f"tcp/127.0.0.1:{robot_port}"], env=dict(env or {}))
     try:
         yield robot, screen
     finally:
         robot.stop()
         screen.stop()
+
+
+@pytest.fixture
+def nodes(tmp_path: Path, mesh: str) -> Iterator[tuple[Node, Node]]:
+    with node_pair(tmp_path, mesh) as pair:
+        yield pair
 
 
 def inhabitants(client: MeshClient, names: tuple[str, ...] = ("robot", "screen")) -> dict[str, Any]:
@@ -112,6 +120,32 @@ def settle(client: MeshClient, expected: str | tuple[str, ...], notes: list[str]
     return home
 
 
+def crash_while_migrating(nodes: tuple[Node, Node], mesh: str, crash_at: str, side: Node, notes: list[str],
+                          home: str | tuple[str, ...], durable: list[str]) -> None:
+    """spirit, born on the robot and told ``notes``, migrates to the screen; ``side`` (one of
+    ``nodes``) dies at ``crash_at`` and is restarted: then spirit inhabits exactly one of ``home``
+    with the memory ``durable``, and never two embodiments at once meanwhile."""
+    robot, screen = nodes
+    robot.start(crash_at if side is robot else "")
+    screen.start(crash_at if side is screen else "")
+    with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
+        client = MeshClient(t, mesh)
+        wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
+        for note in notes:
+            assert client.request("robot", "mind", "message", MindMessage({"note": note})).status == "accepted"
+        watcher = Watcher(client)
+        try:
+            started = client.request("robot", "migration", "migrate", Migrate("spirit", "screen"))
+            assert started.status == "accepted", started  # the end is not awaited: only the settled state counts
+            assert side.died() == -9, f"{side.name} did not die at {crash_at}"
+            side.start()  # restart on the same state, no crash point
+            settle(client, home, durable)
+        finally:
+            watcher.close()
+        assert not watcher.both, f"two inhabited embodiments seen: {watcher.both[:3]}"
+        assert watcher.samples > 0
+
+
 #: A note this long makes the identity larger than what travels inside the prepare (outgoing.INLINE):
 #: its sections go apart, in chunks, and the source writes its prepared record while they travel.
 LARGE = 300_000
@@ -134,26 +168,8 @@ CASES = [
 def test_kill_at_each_durable_step(nodes: tuple[Node, Node], mesh: str, crash_at: str, home: str | tuple[str, ...],
                                     large: int) -> None:
     robot, screen = nodes
-    side = robot if crash_at.startswith("source") else screen
-    robot.start(crash_at if side is robot else "")
-    screen.start(crash_at if side is screen else "")
-    with ZenohTransport(TransportConfig(connect=(robot.endpoint, screen.endpoint), multicast=False)) as t:
-        client = MeshClient(t, mesh)
-        wait_for(lambda: inhabitants(client) == {"robot": "spirit", "screen": None}, 30, "spirit born on the robot")
-        notes = ["met Ada", f"crash at {crash_at}"] + (["x" * large] if large else [])
-        for note in notes:
-            assert client.request("robot", "mind", "message", MindMessage({"note": note})).status == "accepted"
-        watcher = Watcher(client)
-        try:
-            started = client.request("robot", "migration", "migrate", Migrate("spirit", "screen"))
-            assert started.status == "accepted", started  # the end is not awaited: only the settled state counts
-            assert side.died() == -9, f"{side.name} did not die at {crash_at}"
-            side.start()  # restart on the same state, no crash point
-            settle(client, home, notes)
-        finally:
-            watcher.close()
-        assert not watcher.both, f"two inhabited embodiments seen: {watcher.both[:3]}"
-        assert watcher.samples > 0
+    notes = ["met Ada", f"crash at {crash_at}"] + (["x" * large] if large else [])
+    crash_while_migrating(nodes, mesh, crash_at, robot if crash_at.startswith("source") else screen, notes, home, notes)
 
 
 def test_both_killed_at_once_then_restarted(nodes: tuple[Node, Node], mesh: str) -> None:

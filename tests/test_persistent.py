@@ -17,6 +17,8 @@ from cmion_mesh.storage import WorldModel
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
+from .helpers.memory_bodies import close
+
 pytestmark = pytest.mark.timeout(60)
 ROBOT_WM = embodiment_dir("robot") / "WorldModel.xml"
 
@@ -30,12 +32,6 @@ def client(network: MemoryNetwork, mesh: str) -> Iterator[MeshClient]:
 def body(network: MemoryNetwork, mesh: str, name: str, state: Path, companion: str | None = None) -> Embodiment:
     return Embodiment(name, mesh=mesh, transport=MemoryTransport(network, name), state_dir=state / name, companion=companion,
                       world_model_init=ROBOT_WM)
-
-
-def close(*embodiments: Embodiment) -> None:
-    for e in embodiments:
-        e.close()
-        e.transport.close()
 
 
 def test_persistent_properties_survive_a_restart_and_the_others_do_not(network: MemoryNetwork, mesh: str, tmp_path: Path,

@@ -14,7 +14,6 @@ import itertools
 import json
 import random
 import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,61 +26,19 @@ pytest.importorskip("test_msgs", reason="test_msgs is not installed (the ros2 ex
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, cli_argv, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv
 from cmion_mesh.resources import embodiment_dir
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.zenoh import ZenohTransport
-from tests.conftest import start_daemon
-from tests.test_ros2_robot import Standin
+from tests.helpers.mesh_setups import blackboard, body_and_client
+from tests.helpers.robot_procs import RclpyRobot, Standin
+from tests.helpers.ros2_embodiment import DRIVE, FIBONACCI_FROM, GOAL, SAY, write_embodiment
 
 pytestmark = pytest.mark.timeout(120)
 BODY = "dds_robot"
 
-# The same rules for both transports: Say and Drive as the shipped ros_robot has them, and a goal
-# of whatever action the library's RobotGoal competency serves (a JSON object of goal fields, or
-# the Fibonacci order from the blackboard).
-RULES = """<?xml version="1.0" encoding="UTF-8"?>
-<CompetencyManagerRules>
-  <Rule>
-    <MindAction Name="Say"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="LanguageGeneration">
-        <CompetencyParameter Name="SpeechActID" Value="$parameter1" />
-        <CompetencyParameter Name="Addressee" Value="$parameter2" />
-        <CompetencyParameter Name="TextOutName" Value="text/$parameter1-$parameter2" />
-      </Competency>
-      <Competency ID="2" Type="SpeechSynthesis" Dependency="1">
-        <CompetencyParameter Name="TextInName" Value="text/$parameter1-$parameter2" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Drive"><Parameter No="1" Value="*" /><Parameter No="2" Value="*" /><Parameter No="3" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="Velocity">
-        <CompetencyParameter Name="Linear" Value="$parameter1" />
-        <CompetencyParameter Name="Angular" Value="$parameter2" />
-        <CompetencyParameter Name="Duration" Value="$parameter3" />
-      </Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="Goal"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="goal" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-  <Rule>
-    <MindAction Name="FibonacciFrom"><Parameter No="1" Value="*" /></MindAction>
-    <CompetencyExecutionPlan>
-      <Competency ID="1" Type="RobotGoal"><CompetencyParameter Name="orderInName" Value="$parameter1" /></Competency>
-    </CompetencyExecutionPlan>
-  </Rule>
-</CompetencyManagerRules>
-"""
-
+# The same rules for both transports (tests/helpers/ros2_embodiment.py): Say and Drive as the
+# shipped ros_robot has them, and a goal of whatever action the library's RobotGoal competency
+# serves (a JSON object of goal fields, or the Fibonacci order from the blackboard).
 LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 <CompetencyLibrary>
   <Competency ClassName="cmion_mesh.ros2.competencies:Ros2Velocity" ConstructorParameters="{common},rate=20,subscriber_timeout=20" />
@@ -93,63 +50,11 @@ LIBRARY = """<?xml version="1.0" encoding="UTF-8"?>
 </CompetencyLibrary>
 """
 
-ARCHITECTURE = """<?xml version="1.0" encoding="UTF-8"?>
-<ArchitectureConfiguration Embodiment="dds_robot" CompetencyManagerRulesFile="CompetencyManagerRules.xml"
-  CompetencyLibraryConfigurationFile="CompetencyLibrary.xml" WorldModelInitFile="WorldModel.xml" />
-"""
-
 
 def embodiment(folder: Path, *, common: str, sensor: str, action: str) -> Path:
-    folder.mkdir()
-    (folder / "ArchitectureConfiguration.xml").write_text(ARCHITECTURE)
-    (folder / "CompetencyManagerRules.xml").write_text(RULES)
-    (folder / "CompetencyLibrary.xml").write_text(LIBRARY.format(common=common, sensor=sensor, action=action))
-    (folder / "WorldModel.xml").write_text((embodiment_dir("ros_robot") / "WorldModel.xml").read_text())
-    return folder
-
-
-# Fast DDS announces a participant's lease: 20 s by default, the time a robot killed without a
-# goodbye stays in the graph. The test robot announces 2 s, so that its death is seen soon.
-SHORT_LEASE = """<?xml version="1.0" encoding="UTF-8" ?>
-<dds xmlns="http://www.eprosima.com"><profiles>
-  <participant profile_name="short_lease" is_default_profile="true"><rtps><builtin><discovery_config>
-    <leaseDuration><sec>2</sec></leaseDuration><leaseAnnouncement><nanosec>500000000</nanosec></leaseAnnouncement>
-  </discovery_config></builtin></rtps></participant>
-</profiles></dds>
-"""
-
-
-class RclpyRobot:
-    """tests/helpers/rclpy_robot.py in its own process; ``event`` waits for one of its JSON lines."""
-
-    def __init__(self, tmp_path: Path, *options: str) -> None:
-        profile = tmp_path / "short_lease.xml"
-        profile.write_text(SHORT_LEASE)
-        self.proc = Daemon([sys.executable, "-m", "tests.helpers.rclpy_robot", *options], name="rclpy_robot", stdin=True,
-                           env={"FASTDDS_DEFAULT_PROFILES_FILE": str(profile)})
-        try:
-            self.event("ready", 30)
-        except BaseException:
-            self.proc.kill()
-            raise
-
-    def event(self, kind: str, timeout: float = 20.0) -> dict[str, Any]:
-        return dict(json.loads(self.proc.wait_line(json.dumps({"event": kind})[:-1], timeout)))
-
-    def events(self, kind: str) -> list[dict[str, Any]]:
-        prefix = json.dumps({"event": kind})[:-1]
-        return [json.loads(line) for line in list(self.proc.lines) if line.startswith(prefix)]
-
-    def exit(self) -> int:
-        if self.proc.proc.poll() is None:
-            self.proc.send("exit")
-        return self.proc.stop()
-
-    def __enter__(self) -> RclpyRobot:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.exit()
+    return write_embodiment(folder, BODY, rules=(SAY, DRIVE, GOAL, FIBONACCI_FROM),
+                            library=LIBRARY.format(common=common, sensor=sensor, action=action),
+                            world=(embodiment_dir("ros_robot") / "WorldModel.xml").read_text()).parent
 
 
 @pytest.fixture
@@ -165,15 +70,8 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> int:
 
 @contextmanager
 def body_client(tmp_path: Path, common: str, sensor: str, action: str) -> Iterator[tuple[Daemon, str, MeshClient]]:
-    folder = embodiment(tmp_path / BODY, common=common, sensor=sensor, action=action)
-    mesh = unique_mesh()
-    daemon, endpoint = start_daemon(mesh, BODY, str(folder))
-    try:
-        with ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, MeshClient(transport, mesh) as client:
-            client.join(BODY, timeout=20)
-            yield daemon, endpoint, client
-    finally:
-        daemon.stop()
+    with body_and_client(BODY, str(embodiment(tmp_path / BODY, common=common, sensor=sensor, action=action))) as started:
+        yield started
 
 
 @pytest.fixture
@@ -184,11 +82,7 @@ def dds_body(tmp_path: Path, ros_domain: int) -> Iterator[tuple[Daemon, str, Mes
 
 
 def bb(client: MeshClient, path: str) -> Any:
-    container, _, name = path.rpartition("/")
-    try:
-        return client.get_property(BODY, keys.BLACKBOARD, container, name).value
-    except MeshError:
-        return None
+    return blackboard(client, BODY, path)
 
 
 def test_drive_say_and_a_sensor_reach_a_real_rclpy_robot(dds_body: tuple[Daemon, str, MeshClient], tmp_path: Path) -> None:

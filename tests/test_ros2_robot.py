@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from collections.abc import Iterator
 from typing import Any
 
@@ -19,66 +18,24 @@ import pytest
 
 from cmion_mesh import keys
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import MeshError
-from cmion_mesh.procs import Daemon, cli_argv, free_port, unique_mesh
+from cmion_mesh.procs import Daemon, cli_argv, free_port
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.base import TransportConfig
-from cmion_mesh.transport.zenoh import ZenohTransport
 from tests.conftest import start_daemon
+from tests.helpers.mesh_setups import blackboard, body_and_client
+from tests.helpers.robot_procs import Standin
 
 pytestmark = pytest.mark.timeout(120)
 BODY = "ros_robot"
 
 
-class Standin:
-    """The stand-in robot, connected to the daemon; ``event`` waits for one of its JSON lines."""
-
-    def __init__(self, endpoint: str, *options: str) -> None:
-        self.proc = Daemon([sys.executable, "-m", "tests.helpers.ros2_robot_standin", "--connect", endpoint, *options],
-                           name="standin", stdin=True)
-        try:
-            self.zid = self.event("ready", 20)["zid"]
-        except BaseException:
-            self.proc.kill()
-            raise
-
-    def event(self, kind: str, timeout: float = 15.0) -> dict[str, Any]:
-        return dict(json.loads(self.proc.wait_line(json.dumps({"event": kind})[:-1], timeout)))
-
-    def events(self, kind: str) -> list[dict[str, Any]]:
-        prefix = json.dumps({"event": kind})[:-1]
-        return [json.loads(line) for line in list(self.proc.lines) if line.startswith(prefix)]
-
-    def exit(self) -> int:
-        if self.proc.proc.poll() is None:
-            self.proc.send("exit")
-        return self.proc.stop()
-
-    def __enter__(self) -> Standin:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.exit()
-
-
 @pytest.fixture(scope="module")
 def body() -> Iterator[tuple[Daemon, str, MeshClient]]:
-    mesh = unique_mesh()
-    daemon, endpoint = start_daemon(mesh, BODY, BODY)
-    try:
-        with ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False)) as transport, MeshClient(transport, mesh) as client:
-            client.join(BODY, timeout=20)
-            yield daemon, endpoint, client
-    finally:
-        daemon.stop()
+    with body_and_client(BODY, BODY) as started:
+        yield started
 
 
 def bb(client: MeshClient, path: str) -> Any:
-    container, _, name = path.rpartition("/")
-    try:
-        return client.get_property(BODY, keys.BLACKBOARD, container, name).value
-    except MeshError:
-        return None
+    return blackboard(client, BODY, path)
 
 
 def test_goto_reaches_nav2_as_a_goal_with_feedback_and_result(body: tuple[Daemon, str, MeshClient]) -> None:

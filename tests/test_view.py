@@ -25,6 +25,7 @@ from cmion_mesh.web.view import spawn_view
 
 from .conftest import start_daemon
 from .helpers.browser import screenshot
+from .helpers.mesh_setups import three_daemons
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -40,14 +41,7 @@ def start_view(mesh: str, endpoints: list[str], *extra: str) -> tuple[Daemon, st
 @pytest.fixture
 def mesh3(mesh: str, tmp_path: Path) -> Iterator[list[str]]:
     """robot (where the companion spirit is born), screen and phone, each a daemon."""
-    with ExitStack() as stack:
-        robot, first = start_daemon(mesh, "robot", "--companion", "spirit", "--state-dir", str(tmp_path / "robot"))
-        stack.enter_context(robot)
-        endpoints = [first]
-        for name in ("screen", "phone"):
-            daemon, endpoint = start_daemon(mesh, name, "--connect", first, "--state-dir", str(tmp_path / name))
-            stack.enter_context(daemon)
-            endpoints.append(endpoint)
+    with three_daemons(mesh, tmp_path) as endpoints:
         yield endpoints
 
 

@@ -7,23 +7,20 @@ with a deadline. Screenshots go to tests/screenshots/ for a person to look at.
 
 from __future__ import annotations
 
-import subprocess
 from collections.abc import Iterator
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from cmion_mesh.client import MeshClient
-from cmion_mesh.procs import cli_argv
 from cmion_mesh.testing.wait import migrate_once_seen
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web.view import spawn_view
 
-from .conftest import start_daemon
 from .helpers.browser import screenshot
+from .helpers.mesh_setups import record_demo, three_daemons
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -70,14 +67,8 @@ def wait_for_resting(page: Any, companion: str, host: str, what: str) -> None:
 
 @pytest.fixture
 def mesh3(mesh: str, tmp_path: Path) -> Iterator[list[str]]:
-    with ExitStack() as stack:
-        robot, first = start_daemon(mesh, "robot", "--companion", "spirit", "--state-dir", str(tmp_path / "robot"))
-        stack.enter_context(robot)
-        endpoints = [first]
-        for name in ("screen", "phone"):
-            daemon, endpoint = start_daemon(mesh, name, "--connect", first, "--state-dir", str(tmp_path / name))
-            stack.enter_context(daemon)
-            endpoints.append(endpoint)
+    """robot (where the companion spirit is born), screen and phone, each a daemon."""
+    with three_daemons(mesh, tmp_path) as endpoints:
         yield endpoints
 
 
@@ -233,11 +224,7 @@ def test_one_to_thirty_two_embodiments_are_drawn_without_overlap(chromium_browse
 
 @pytest.fixture(scope="module")
 def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("view") / "demo.mcap"
-    result = subprocess.run(cli_argv("demo", "--record", str(path)), capture_output=True, text=True, timeout=150,
-                            stdin=subprocess.DEVNULL)
-    assert result.returncode == 0, result.stdout + result.stderr
-    return path
+    return record_demo(tmp_path_factory.mktemp("view") / "demo.mcap")
 
 
 def test_a_recording_of_the_demo_plays_through_the_view_its_three_migrations_in_order(

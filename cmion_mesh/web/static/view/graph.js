@@ -388,12 +388,8 @@ function axis() {
   return [lo, Math.max(hi, lo + 0.001)];
 }
 
-let timelineQueued = false;
 function drawTimeline() {
-  // At most once a frame, however many events come in one batch.
-  if (timelineQueued) return;
-  timelineQueued = true;
-  requestAnimationFrame(() => { timelineQueued = false; drawTimelineNow(); });
+  oncePerFrame(drawTimelineNow);
 }
 
 function drawTimelineNow() {

@@ -191,12 +191,17 @@ function select(name) {
   scheduleGraph();
 }
 
-let graphQueued = false;
+// Each drawing at most once a frame, however many changes one message (or batch) brings: the graph
+// here, the timeline (graph.js).
+const framesQueued = new Set();
+function oncePerFrame(draw) {
+  if (framesQueued.has(draw)) return;
+  framesQueued.add(draw);
+  requestAnimationFrame(() => { framesQueued.delete(draw); draw(); });
+}
+
 function scheduleGraph() {
-  // Drawn at most once a frame, however many changes one message brings.
-  if (graphQueued) return;
-  graphQueued = true;
-  requestAnimationFrame(() => { graphQueued = false; drawGraph(); });
+  oncePerFrame(drawGraph);
 }
 
 function companionsKnown() {
