@@ -359,8 +359,11 @@ def test_a_foxglove_client_in_another_process_sees_a_migration_live(bodies: tupl
         assert server.stop(signal.SIGINT) == 0, server.lines  # Ctrl-C: it says what it served and exits 0
         assert server.lines[-1].startswith("served "), server.lines
     got = received()
-    assert steps() == [("robot", "prepared"), ("screen", "incoming"), ("robot", "handed"), ("screen", "active")], \
-        "each step once, none lost on a channel advertised with the first of them"
+    # The source writes its prepared beside the transfer (issue 32), so prepared and incoming come
+    # in either order; each step once, none lost on a channel advertised with the first of them.
+    said = steps()
+    assert len(said) == 4 and set(said[:2]) == {("robot", "prepared"), ("screen", "incoming")}, said
+    assert said[2:] == [("robot", "handed"), ("screen", "active")], said
     schemas = {m["schemaName"]: json.loads(m["schema"]) for m in got if "schema" in m}
     assert {EVENT_SCHEMA, LOG_SCHEMA} <= set(schemas) and all(json.loads(SCHEMAS[n]) == s for n, s in schemas.items())
     check_channel_messages(schemas, [(m["schemaName"], m["message"]) for m in got])
