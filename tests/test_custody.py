@@ -3,6 +3,7 @@ backs a claim, a holder's verdict, a target's objection, and a record checked at
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import msgspec
@@ -11,10 +12,12 @@ import pytest
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import MigratePrepare
 from cmion_mesh.migration import custody, handshake, signing
+from cmion_mesh.migration.claims import ClaimChecker, ClaimKey
 from cmion_mesh.migration.custody import ClaimProof
 from cmion_mesh.migration.handshake import Claim
 from cmion_mesh.migration.ledger import Record
 from cmion_mesh.migration.signing import SignatureRefused
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport import certs, security
 
 DOC = custody.digest(b"<Identity/>")
@@ -270,3 +273,25 @@ def test_a_revoked_name_is_never_admitted_nor_trusted_again_silently(tmp_path: P
     certs.trust_name(folder, "screen", unrevoke=True)
     again = certs.Trust.load(folder)
     assert again.role("screen") == "embodiment" and "screen" not in again.revoked
+
+
+def test_a_claim_whose_token_went_is_no_longer_pending_even_while_a_retry_waits() -> None:
+    # A target that moved on to the next epoch refuses to back its token of the one before; the
+    # retry of that refusal must not keep the claim pending (offers on the companion wait for it).
+    done: list[ClaimKey] = []
+    asked = threading.Event()
+
+    def check(key: ClaimKey, tries: int) -> float | None:
+        asked.set()
+        return 60.0  # not backed this time: asked again in a minute
+
+    stale, live = ("b", "spirit", 3), ("b", "spirit", 4)
+    with ClaimChecker(check, done.append) as checker:
+        assert checker.submit(stale)
+        assert asked.wait(5.0)
+        assert checker.pending("spirit")
+        checker.withdraw(live)  # never submitted: nothing happens
+        assert checker.pending("spirit") and done == []
+        checker.withdraw(stale)
+        wait_for(lambda: done == [stale], 5.0, "the withdrawn claim done")
+        assert not checker.pending("spirit")

@@ -10,6 +10,8 @@ holder played by the test (``custody_helpers.Holder``) over the in-memory transp
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -277,6 +279,51 @@ def test_a_stranger_cannot_fill_the_disk_with_sections(screen: tuple[Embodiment,
 
 
 # --- the store and the format ------------------------------------------------------------------------
+
+
+def test_a_chunk_received_is_hashed_while_its_write_goes_on_and_is_synced_before_it_is_named(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The loop takes the next chunk (or another request) while a chunk is written: ``add`` does not
+    # wait for the disk; ``finish`` does, before the fsync and the name.
+    store = SectionStore(tmp_path / "sections")
+    data = bytes(range(256)) * 64
+    ref = SectionRef("blob", hashlib.sha256(data).hexdigest(), len(data))
+    incoming = store.receive(ref)
+    gate, written = threading.Event(), threading.Event()
+    pwrite = os.pwrite
+
+    def held(fd: int, chunk: Any, offset: int) -> int:
+        gate.wait(2.0)
+        done = pwrite(fd, chunk, offset)
+        written.set()
+        return done
+
+    monkeypatch.setattr(os, "pwrite", held)
+    half = len(data) // 2
+    assert incoming.add(half, data[half:]) == "" and incoming.add(0, data[:half]) == ""
+    assert not written.is_set() and incoming.complete, "both chunks taken and hashed, neither written yet"
+    gate.set()
+    assert incoming.finish() == ""
+    assert store.path(ref.sha256).read_bytes() == data and incoming.data == data
+
+
+def test_a_chunk_that_cannot_be_written_fails_the_section_and_leaves_nothing(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    store = SectionStore(tmp_path / "sections")
+    data = b"x" * 1000
+    ref = SectionRef("blob", hashlib.sha256(data).hexdigest(), len(data))
+    incoming = store.receive(ref)
+
+    def full(fd: int, chunk: Any, offset: int) -> int:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    assert incoming.add(0, data) == ""
+    with pytest.raises(OSError, match="No space left"):
+        incoming.finish()
+    assert not store.path(ref.sha256).exists() and list(store.dir.iterdir()) == [], "no name, no temporary file"
+
+
 
 
 def test_sections_are_checked_on_every_read_and_the_cache_evicts_the_oldest_unnamed(tmp_path: Path) -> None:

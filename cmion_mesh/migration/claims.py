@@ -76,6 +76,7 @@ class ClaimChecker:
         self._cond = threading.Condition()
         self._queue: list[tuple[float, int, ClaimKey, int]] = []  # (due, order, key, tries): a heap
         self._pending: set[ClaimKey] = set()
+        self._gone: set[ClaimKey] = set()  # pending claims whose token went while they were being checked
         self._order = 0
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="migration-claims", daemon=True)
@@ -94,6 +95,7 @@ class ClaimChecker:
         """Queue ``key`` (once while it is pending); False beyond the bounds: then it is not checked."""
         with self._cond:
             if self._closed or key in self._pending:
+                self._gone.discard(key)  # its token is back: keep checking it
                 return True
             if len(self._pending) >= MAX_CLAIMS or sum(k[0] == key[0] for k in self._pending) >= CLAIMS_PER_CLAIMANT:
                 return False
@@ -105,6 +107,20 @@ class ClaimChecker:
         self._order += 1
         heapq.heappush(self._queue, (due, self._order, key, tries))
         self._cond.notify()
+
+    def withdraw(self, key: ClaimKey) -> None:
+        """``key``'s token went: the claim is no longer pending (a retry waiting for it is dropped,
+        a check under way ends with its answer), so that nothing waits for a claim nobody makes."""
+        with self._cond:
+            if key not in self._pending:
+                return
+            if not any(queued[2] == key for queued in self._queue):
+                self._gone.add(key)  # being checked now
+                return
+            self._queue = [queued for queued in self._queue if queued[2] != key]
+            heapq.heapify(self._queue)
+            self._pending.discard(key)
+        self._done(key)
 
     def pending(self, companion: str) -> bool:
         with self._cond:
@@ -131,9 +147,10 @@ class ClaimChecker:
                 log.exception("checking the custody claim of %s on %s at epoch %d failed", *key)
                 again = None
             with self._cond:
-                if again is not None and not self._closed:
+                if again is not None and not self._closed and key not in self._gone:
                     self._push(time.monotonic() + again, key, tries + 1)
                     continue
+                self._gone.discard(key)
                 self._pending.discard(key)
             self._done(key)
 
@@ -242,6 +259,10 @@ class Claims:
                     del self._tokens[companion]
                     self._backed.pop(companion, None)
         checker = self._checker
+        if not alive and checker is not None:
+            # A claim retried while its token was on its way out (a target that moved on to the next
+            # epoch refuses to back the one before) would keep offers on this companion waiting.
+            checker.withdraw((holder, companion, epoch))
         if alive and holder != self.host.sim.embodiment and checker is not None and not checker.submit((holder, companion, epoch)):
             self._ignore(holder, companion, epoch, "too many claims are waiting to be checked")
 
@@ -318,15 +339,18 @@ class Claims:
         if record.epoch != msg.epoch:
             request.reject(f"{me!r} holds {msg.companion!r} at epoch {record.epoch}, not {msg.epoch}", Code.NOT_FOUND)
             return
-        bucket = self._chain_buckets.setdefault(request.requester, TokenBucket())
-        if len(self._chain_buckets) > 1024:
-            self._chain_buckets = {request.requester: bucket}
-        if not bucket.take():
-            request.reject(f"busy: too many chain requests from {request.requester!r}; try again later", Code.BUSY)
-            return
         proof = b""
         private = host.records.key(msg.companion) if record.state != "incoming" else None
         if private is not None:
+            # Only a signature costs enough to budget: the receiving side's answer ("incoming", once
+            # per migration to every peer watching) is a lookup, and refusing it as busy would keep
+            # the asker's offers on this companion waiting for a retry (``CLAIM_RETRY``).
+            bucket = self._chain_buckets.setdefault(request.requester, TokenBucket())
+            if len(self._chain_buckets) > 1024:
+                self._chain_buckets = {request.requester: bucket}
+            if not bucket.take():
+                request.reject(f"busy: too many chain requests from {request.requester!r}; try again later", Code.BUSY)
+                return
             proof = custody.sign_claim(private, custody.ClaimProof(msg.companion, record.epoch, me, request.requester,
                                                                    msg.nonce))
         request.accept({"state": record.state, "epoch": record.epoch, "proof": base64.b64encode(proof).decode(),

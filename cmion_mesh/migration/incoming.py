@@ -166,13 +166,16 @@ class Incoming:
         host.step(incoming)
         log_step(f"companion {msg.companion} incoming from {msg.source}", "incoming", incoming, msg.source)
         self.uploads.end(msg.source, prepared=True)
+        self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
+        request.answer(decision.outcome)
+        # After the answer, off the critical path: the commit is handled on this loop only once this
+        # returns, and the source keeps its own claim until then, so no moment passes in which
+        # nobody claims the companion.
+        host.claim(msg.companion, msg.epoch)
         for ref in decision.manifest.refs:
             if decision.sections is not None:
                 host.memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
                                    decision.identity.sections.get(ref.component))
-        host.claim(msg.companion, msg.epoch)  # receiving: no moment passes in which nobody claims it
-        self._prepared = {msg.attempt: decision.identity}  # one handshake at a time: parsing it again at commit is waste
-        request.answer(decision.outcome)
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
         # abort may be lost for good: once overdue, ask the source, as after a restart.
         host.spawn(f"resolve-{msg.companion}", self.resolve_incoming, incoming, host.retry[1])

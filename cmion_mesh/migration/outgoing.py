@@ -28,10 +28,10 @@ Threads:
 * one handshake thread per attempt runs ``_send`` and then ``commit_until_acked`` (also after a
   restart in ``handed``), and one per abort sent (``send_abort_later``): they touch only the
   records (locked) and hand everything else to the loop (``Host.post``);
-* ``_send`` has one short-lived thread write this side's copy of the sections, then the
-  ``prepared`` record that names them, beside the ``have``, the chunks (two send them) and the
-  prepare itself; it is joined before the prepare's answer is acted on (``handed`` comes after
-  ``prepared``, always).
+* for a large identity, ``_send`` has one short-lived thread write this side's copy of the
+  sections, then the ``prepared`` record that names them, beside the ``have``, the chunks (two
+  send them) and the prepare itself; it is joined before the prepare's answer is acted on
+  (``handed`` comes after ``prepared``, always). A small one is recorded before the prepare.
 
 ``start``, ``contribute``, ``resolve`` and ``refuse`` may be called from any thread.
 
@@ -333,22 +333,30 @@ class Outgoing:
             host.post(host.step, written[0])
             log_prepared(written[0])
 
+        bulk_transfer = sum(ref.size for ref in refs) > INLINE
         writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        writer.start()  # from now on, beside have, the chunks and the prepare
+        if bulk_transfer:
+            writer.start()  # from now on, beside have, the chunks and the prepare
+        else:
+            # Nothing to overlap but the prepare's round trip: one append (the sections inside it)
+            # costs less than the writer thread holding the GIL while zenoh hands the prepare over.
+            writer.run()
         try:
             inline = refs
-            if sum(ref.size for ref in refs) > INLINE:
+            if bulk_transfer:
                 inline, bulk = self._ask_have(out, message, refs)
                 self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
-            writer.join()
+            if bulk_transfer:
+                writer.join()
             why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
             if written:  # active again; the prepare was never sent, so the target holds nothing of this attempt
                 host.records.put(handshake.resume(written[0]))
             host.post(self._abandon, out, f"{why}; the companion stays here")
             return
         reply, unknown = self._prepare(out, message, packed, inline)
-        writer.join()  # prepared is durable before anything acts on the answer (handed comes after it)
+        if bulk_transfer:
+            writer.join()  # prepared is durable before anything acts on the answer (handed comes after it)
         if stored or not written:
             # Nothing here names the attempt (this side stays active): the target may hold it
             # incoming, so it is told; asked, this side would answer "aborted" anyway.

@@ -30,7 +30,7 @@ import os
 import re
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TypeVar
 
@@ -384,10 +384,12 @@ class SectionStore:
 
 class IncomingSection:
     """A section received in chunks, in any order: each is written at its offset of a temporary
-    file at once (on a thread of its own, while the bytes are hashed as far as they are contiguous),
-    and the kernel is asked to start writing it out, so that the fsync at the end has little left
-    to do. ``finish`` checks the hash, fsyncs and gives the file its name; the bytes stay at hand
-    in ``data``. ``finish`` or ``abandon`` ends it (its file and thread)."""
+    file (on a thread of its own, while the bytes are hashed as far as they are contiguous), and
+    the kernel is asked to start writing it out, so that the fsync at the end has little left to
+    do. ``add`` does not wait for the write: the caller (the loop) takes the next chunk, or other
+    requests, meanwhile; a write that failed is said at the next ``add`` or at ``finish``.
+    ``finish`` waits for the writes, checks the hash, fsyncs and gives the file its name; the bytes
+    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and thread)."""
 
     def __init__(self, store: SectionStore, ref: SectionRef) -> None:
         self.store = store
@@ -401,6 +403,7 @@ class IncomingSection:
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._writer: ThreadPoolExecutor | None = None
+        self._writes: list[Future[None]] = []  # chunk writes under way, waited for by ``finish``
         self._written = 0  # bytes in the temporary file, counted in the store's size
 
     @property
@@ -431,14 +434,16 @@ class IncomingSection:
         self.store._added(0, receiving=len(data))
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="section-write")
-        written = self._writer.submit(self._write_out, fd, offset, data)
+        failed = next((w for w in self._writes if w.done() and w.exception() is not None), None)
+        if failed is not None:
+            failed.result()  # a chunk before this one could not be written: say so now
+        self._writes.append(self._writer.submit(self._write_out, fd, offset, data))
         self._chunks[offset] = data
         self._ahead[offset] = data
         while self._hashed in self._ahead:
             chunk = self._ahead.pop(self._hashed)
             self._hasher.update(chunk)
             self._hashed += len(chunk)
-        written.result()
         return ""
 
     def _write_out(self, fd: int, offset: int, data: Bytes) -> None:
@@ -456,6 +461,13 @@ class IncomingSection:
             self.abandon()
             return f"the {self.ref.size} bytes received hash to {digest}, not {self.ref.sha256}"
         self._stop_writer()
+        writes, self._writes = self._writes, []
+        try:
+            for write in writes:
+                write.result()  # every chunk on its way to the disk before the fsync that makes it durable
+        except OSError:
+            self.abandon()
+            raise
         assert self._fd is not None
         fd, self._fd = self._fd, None
         try:
@@ -481,6 +493,7 @@ class IncomingSection:
 
     def abandon(self) -> None:
         self._stop_writer()
+        self._writes = []  # nothing of it is kept: a write that failed changes nothing
         fd, self._fd = self._fd, None
         if fd is not None:
             os.close(fd)
