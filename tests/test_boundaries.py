@@ -402,6 +402,21 @@ def test_a_daemon_without_certificates_or_companion_loads_no_crypto() -> None:
     assert loaded_by(code) == ["lxml"]
 
 
+def test_a_body_serving_no_page_loads_no_web_server() -> None:
+    # The robot's library holds web competencies (a page may be added with --web); without one, the
+    # HTTP server (starlette, uvicorn and asyncio: megabytes and tens of ms of start) stays unloaded.
+    library = PACKAGE.parent / "embodiments" / "robot" / "CompetencyLibrary.xml"
+    probe = ("import sys\n"
+             "from cmion_mesh.body.library import load_library\n"
+             f"print(sorted(type(c).__name__ for c in load_library({str(library)!r})))\n"
+             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('starlette', 'uvicorn', 'asyncio', 'anyio') "
+             "or m == 'cmion_mesh.web.body'))\n")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    classes, loaded = (ast.literal_eval(line) for line in result.stdout.splitlines())
+    assert {"WebSpeechSynthesis", "WebCommandInput"} <= set(classes)
+    assert loaded == []
+
+
 def test_one_set_of_exit_codes() -> None:
     assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4, 130]
     assert exit_code(ConfigError("x")) == ExitCode.USAGE and exit_code(InvalidName("x")) == ExitCode.USAGE
