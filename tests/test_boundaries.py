@@ -417,6 +417,19 @@ def test_a_body_serving_no_page_loads_no_web_server() -> None:
     assert loaded == []
 
 
+def test_a_daemon_starts_without_the_modules_of_paths_it_may_never_take() -> None:
+    # Each is milliseconds of every start (hashlib: OpenSSL, 3.5 MiB): taken when a companion is
+    # hashed, a settings file read, systemd notified, a line spoken, a page's key made.
+    probe = ("import sys\n"
+             "import cmion_mesh.cli.main as cli\n"
+             "cli.build_parser('up').parse_args(['up', 'robot'])\n"
+             "import cmion_mesh.cli.daemon, cmion_mesh.body.embodiment, cmion_mesh.migration.manager, cmion_mesh.ops.systemd, "
+             "cmion_mesh.web.competencies\n"
+             "print(sorted(m for m in ('hashlib', 'secrets', 'random', 'socket', 'tomllib', 'subprocess') if m in sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    assert ast.literal_eval(result.stdout.strip()) == []
+
+
 def test_one_set_of_exit_codes() -> None:
     assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4, 130]
     assert exit_code(ConfigError("x")) == ExitCode.USAGE and exit_code(InvalidName("x")) == ExitCode.USAGE

@@ -37,7 +37,6 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from typing import Literal
 
@@ -92,6 +91,8 @@ _link_decoder = msgspec.msgpack.Decoder(Link)
 
 
 def digest(document: bytes) -> bytes:
+    import hashlib  # here: it loads OpenSSL (3.5 MiB, ms of start) that a daemon with no companion never uses
+
     return hashlib.sha256(document).digest()
 
 

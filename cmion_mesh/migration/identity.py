@@ -26,7 +26,6 @@ this format, and peers that send them. ``Identity.pack`` still writes that self-
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -72,6 +71,8 @@ def max_section() -> int:
 
 
 def sha256_hex(data: Bytes) -> str:
+    import hashlib  # here, as in custody.digest: it loads OpenSSL (3.5 MiB, ms of start) that a daemon with no companion never uses
+
     return hashlib.sha256(data).hexdigest()
 
 

@@ -24,7 +24,6 @@ thread of its own, joined before ``add`` returns.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
@@ -36,7 +35,7 @@ from typing import TypeVar
 
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.migration.bounds import env_limit
-from cmion_mesh.migration.identity import Bytes, SectionRef
+from cmion_mesh.migration.identity import Bytes, SectionRef, sha256_hex
 from cmion_mesh.statedir import left_by_a_crash
 
 log = logging.getLogger(__name__)
@@ -206,7 +205,7 @@ class SectionStore:
             raise ConfigError(f"section {ref.component!r} was altered at rest: {len(data)} bytes, its manifest says "
                               f"{ref.size}", path=str(path))
         same = data == known if known is not None and len(known) == ref.size else None
-        if not (same if same is not None else hashlib.sha256(data).hexdigest() == ref.sha256):
+        if not (same if same is not None else sha256_hex(data) == ref.sha256):
             raise ConfigError(f"section {ref.component!r} was altered at rest (its bytes do not hash to its name)",
                               path=str(path))
         try:
@@ -396,6 +395,8 @@ class IncomingSection:
         self.ref = ref
         self.data: Bytes = b""  # the whole section, once finished
         self._chunks: dict[int, Bytes] = {}  # offset -> chunk
+        import hashlib  # here, as in custody.digest: a daemon that receives no companion never loads it
+
         self._hasher = hashlib.sha256()
         self._hashed = 0
         self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
