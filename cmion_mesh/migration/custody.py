@@ -91,9 +91,7 @@ _link_decoder = msgspec.msgpack.Decoder(Link)
 
 
 def digest(document: bytes) -> bytes:
-    import hashlib  # here: it loads OpenSSL (3.5 MiB, ms of start) that a daemon with no companion never uses
-
-    return hashlib.sha256(document).digest()
+    return signing.sha256(document)
 
 
 def birth(companion: str, holder: str, private: bytes, document: bytes, epoch: int = 1) -> Link:

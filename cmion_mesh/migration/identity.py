@@ -37,6 +37,7 @@ from lxml import etree
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.messages import MAX_MANIFEST, check_value
+from cmion_mesh.migration import signing
 
 SCHEMA = "identity.xsd"
 SCHEMA_VERSION = 2
@@ -71,9 +72,7 @@ def max_section() -> int:
 
 
 def sha256_hex(data: Bytes) -> str:
-    import hashlib  # here, as in custody.digest: it loads OpenSSL (3.5 MiB, ms of start) that a daemon with no companion never uses
-
-    return hashlib.sha256(data).hexdigest()
+    return signing.sha256(data).hex()
 
 
 class MissingSections(ConfigError):

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.migration import signing
 from cmion_mesh.migration.bounds import env_limit
 from cmion_mesh.migration.identity import Bytes, SectionRef, sha256_hex
 from cmion_mesh.statedir import left_by_a_crash
@@ -395,9 +396,7 @@ class IncomingSection:
         self.ref = ref
         self.data: Bytes = b""  # the whole section, once finished
         self._chunks: dict[int, Bytes] = {}  # offset -> chunk
-        import hashlib  # here, as in custody.digest: a daemon that receives no companion never loads it
-
-        self._hasher = hashlib.sha256()
+        self._hasher = signing.Sha256()
         self._hashed = 0
         self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
         self._path = store.path(ref.sha256)

@@ -3,6 +3,10 @@
 Signed things are array-like msgspec Structs encoded as MessagePack (field order fixed, no names),
 so the signed bytes are canonical. Private keys are raw 32 bytes; ``records`` writes them readable by
 this user only, and they never leave the embodiment that made them (see ``custody``).
+
+SHA-256 (documents, sections) is computed here too, by the same library: every process that hashes
+a companion also signs or verifies its chain, and ``hashlib`` would load a second OpenSSL beside
+cryptography's own (the system's libcrypto: 3.3 MiB resident) for the same function at the same speed.
 """
 
 from __future__ import annotations
@@ -60,6 +64,32 @@ def valid(public: bytes, data: bytes, signature: bytes) -> bool:
     except (InvalidSignature, ValueError):
         return False
     return True
+
+
+class Sha256:
+    """A SHA-256 being computed: ``update`` with each part, then ``hexdigest`` (once)."""
+
+    __slots__ = ("_hash",)
+
+    def __init__(self, data: bytes | bytearray | memoryview = b"") -> None:
+        from cryptography.hazmat.primitives import hashes
+
+        self._hash = hashes.Hash(hashes.SHA256())
+        if data:
+            self._hash.update(data)
+
+    def update(self, data: bytes | bytearray | memoryview) -> None:
+        self._hash.update(data)
+
+    def digest(self) -> bytes:
+        return self._hash.finalize()
+
+    def hexdigest(self) -> str:
+        return self.digest().hex()
+
+
+def sha256(data: bytes | bytearray | memoryview) -> bytes:
+    return Sha256(data).digest()
 
 
 def encode_public(public: bytes) -> str:
