@@ -40,9 +40,10 @@ from __future__ import annotations
 
 import ipaddress
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 from lxml import etree
 
 from cmion_mesh import keys, xmlsafe
@@ -265,4 +266,5 @@ def with_table_endpoints(config: TransportConfig, table: DeviceTable | None) -> 
     endpoints given explicitly, or a zenoh configuration file, win over the table's."""
     if table is None or config.config_file is not None:
         return config
-    return replace(config, connect=config.connect or table.connect_endpoints(), listen=config.listen or table.listen_endpoints())
+    return msgspec.structs.replace(config, connect=config.connect or table.connect_endpoints(),
+                                   listen=config.listen or table.listen_endpoints())
