@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import ipaddress
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
@@ -70,8 +69,7 @@ DEFAULT_COMPANION = "companion"
 LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback"})
 
 
-@dataclass(frozen=True, slots=True)
-class Device:
+class Device(msgspec.Struct, frozen=True):
     """An embodiment the table knows."""
 
     name: str
@@ -86,8 +84,7 @@ class Device:
         return f"tcp/{host}:{self.port}"
 
 
-@dataclass(frozen=True, slots=True)
-class DeviceTable:
+class DeviceTable(msgspec.Struct, frozen=True):
     path: Path
     name: str | None  # devicename (None when absent or empty)
     listen_port: int

@@ -83,8 +83,7 @@ class MissingSections(ConfigError):
         self.missing = missing
 
 
-@dataclass(frozen=True)
-class SectionRef:
+class SectionRef(msgspec.Struct, frozen=True):
     """One ``<Section>`` of a version 2 manifest: whose section, and the bytes that hold it."""
 
     component: str
@@ -93,8 +92,7 @@ class SectionRef:
     encoding: str = "msgpack"
 
 
-@dataclass(frozen=True)
-class Packed:
+class Packed(msgspec.Struct, frozen=True):
     """An identity as version 2: the manifest and every section's bytes (by SHA-256, hex)."""
 
     manifest: bytes
@@ -204,15 +202,14 @@ class Identity:
         return Packed(manifest, tuple(refs), data)
 
 
-@dataclass(frozen=True)
-class Manifest:
+class Manifest(msgspec.Struct, frozen=True):
     """A parsed document: version 2 names its sections (``refs``); version 1 holds them (``inline``)."""
 
     companion: str
     epoch: int
     schema_version: int
     refs: tuple[SectionRef, ...] = ()
-    inline: dict[str, Any] = field(default_factory=dict)
+    inline: dict[str, Any] = msgspec.field(default_factory=dict)
     name: str = "<identity>"
 
     def missing(self, have: Mapping[str, Any]) -> list[SectionRef]:
