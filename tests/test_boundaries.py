@@ -430,6 +430,20 @@ def test_a_daemon_starts_without_the_modules_of_paths_it_may_never_take() -> Non
     assert ast.literal_eval(result.stdout.strip()) == []
 
 
+def test_a_companions_birth_loads_one_openssl_and_no_key_serialization() -> None:
+    # Hashing and signing both go through cryptography, which carries its own OpenSSL: hashlib would
+    # load the system's beside it (3.3 MiB resident), serialization 32 modules for raw key bytes.
+    probe = ("import sys\n"
+             "from cmion_mesh.migration import custody, signing\n"
+             "from cmion_mesh.migration.identity import Identity\n"
+             "packed = Identity('spirit', 1, {'mind': {'mood': 1}}).pack_sections()\n"
+             "link = custody.birth('spirit', 'robot', signing.new_key(), packed.manifest)\n"
+             "assert signing.valid(link.public_key, link.signed_bytes(), link.signature)\n"
+             "print(sorted(m for m in ('hashlib', 'cryptography.hazmat.primitives.serialization') if m in sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    assert ast.literal_eval(result.stdout.strip()) == []
+
+
 def test_one_set_of_exit_codes() -> None:
     assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4, 130]
     assert exit_code(ConfigError("x")) == ExitCode.USAGE and exit_code(InvalidName("x")) == ExitCode.USAGE
