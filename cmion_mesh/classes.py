@@ -9,9 +9,10 @@ from __future__ import annotations
 import importlib
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
+
+import msgspec
 
 from cmion_mesh.errors import ConfigError, MeshError
 
@@ -148,8 +149,7 @@ def _candidates(folder: Path, value: str) -> list[Path]:
     return candidates
 
 
-@dataclass(frozen=True, slots=True)
-class Located:
+class Located(msgspec.Struct, frozen=True):
     """Where a file a configuration names was found (``locate_file``): ``path``, None when nowhere;
     ``folders``, the folders looked in, in order; ``in_working_dir`` when it was not beside the
     file naming it but in the working directory."""

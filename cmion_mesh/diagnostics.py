@@ -16,8 +16,9 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from typing import Any, Literal
+
+import msgspec
 
 from cmion_mesh import xmlsafe
 from cmion_mesh.errors import ConfigError
@@ -27,8 +28,7 @@ log = logging.getLogger(__name__)
 Severity = Literal["error", "warning", "info"]
 
 
-@dataclass(frozen=True, slots=True)
-class Diagnostic:
+class Diagnostic(msgspec.Struct, frozen=True):
     severity: Severity
     path: str | None
     line: int | None

@@ -23,7 +23,8 @@ from __future__ import annotations
 import functools
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+
+import msgspec
 
 from cmion_mesh.errors import InvalidName
 
@@ -199,8 +200,7 @@ def event_pattern(mesh: str, embodiment: str = "*", component: str = "*", event:
     )
 
 
-@dataclass(frozen=True, slots=True)
-class ParsedKey:
+class ParsedKey(msgspec.Struct, frozen=True):
     """A key taken apart: ``kind`` is ``bb``, ``wm``, ``ev``, ``rq`` or ``@alive``."""
 
     mesh: str

@@ -38,7 +38,6 @@ import itertools
 import logging
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -70,8 +69,7 @@ from cmion_mesh.requests import IncomingRequest
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True, slots=True)
-class MindAction:
+class MindAction(msgspec.Struct, frozen=True):
     """An action sent by a mind for execution."""
 
     name: str
@@ -81,7 +79,7 @@ class MindAction:
     def __post_init__(self) -> None:
         # Accept a list from callers but keep the instance hashable and immutable.
         if not isinstance(self.parameters, tuple):
-            object.__setattr__(self, "parameters", tuple(self.parameters))
+            msgspec.structs.force_setattr(self, "parameters", tuple(self.parameters))
 
     def describe(self) -> str:
         """The action as one line of text: its name and parameters (as events and reasons show it)."""

@@ -40,7 +40,6 @@ import logging
 import os
 import threading
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -88,20 +87,18 @@ EVENT_FOR_OP = {
 _Change = tuple[str, StorageChange, tuple[str, ...], bytes | None]
 
 
-@dataclass(slots=True)
-class _Prop:
+class _Prop(msgspec.Struct):
     value: Any
     persistent: bool
     wire: bytes  # encoded ``Property``, kept so that reads never re-encode
 
 
-@dataclass(slots=True)
-class Node:
+class Node(msgspec.Struct):
     """One container of a store."""
 
     kind: str
-    properties: dict[str, _Prop] = field(default_factory=dict)
-    children: dict[str, Node] = field(default_factory=dict)
+    properties: dict[str, _Prop] = msgspec.field(default_factory=dict)
+    children: dict[str, Node] = msgspec.field(default_factory=dict)
     wire: bytes = b""
 
     def __post_init__(self) -> None:
@@ -516,15 +513,13 @@ class WorldModel(Store):
         return len(entities)
 
 
-@dataclass(frozen=True, slots=True)
-class InitProperty:
+class InitProperty(msgspec.Struct, frozen=True):
     name: str
     value: Any
     persistent: bool
 
 
-@dataclass(frozen=True, slots=True)
-class InitEntity:
+class InitEntity(msgspec.Struct, frozen=True):
     name: str
     kind: str
     properties: tuple[InitProperty, ...]

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import functools
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +54,10 @@ def parse(path: Path, text: str, what: str) -> dict[str, Any]:
     deep = nesting_problem(text)
     if deep is not None:
         raise ConfigError(f"too deep for a {what}: {deep[1]}", path=str(path), line=deep[0])
+    # Imported here: every daemon imports this module (its --settings option), few read a file, and
+    # tomllib's import is milliseconds of each start.
+    import tomllib
+
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

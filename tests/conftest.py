@@ -199,7 +199,10 @@ TIER_OF_TEST: dict[str, str] = {
     # a fresh interpreter, to see what an import loads
     "test_boundaries::test_importing_the_library_does_not_load_argparse": "mesh",
     "test_boundaries::test_a_one_shot_command_loads_no_xml_crypto_or_planner": "mesh",
+    "test_boundaries::test_a_body_serving_no_page_loads_no_web_server": "mesh",
+    "test_boundaries::test_a_companions_birth_loads_one_openssl_and_no_key_serialization": "mesh",
     "test_boundaries::test_a_daemon_without_certificates_or_companion_loads_no_crypto": "mesh",
+    "test_boundaries::test_a_daemon_starts_without_the_modules_of_paths_it_may_never_take": "mesh",
     "test_boundaries::test_importing_the_package_loads_none_of_the_modules_behind_its_face": "mesh",
     "test_boundaries::test_the_command_table_lists_every_verb_without_importing_one": "mesh",
     "test_boundaries::test_a_verb_imports_its_own_module_only": "mesh",

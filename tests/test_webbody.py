@@ -33,7 +33,7 @@ from cmion_mesh.tools.demo import Scenario, start_bodies, stop_bodies, web_addre
 from cmion_mesh.transport.base import TransportConfig
 from cmion_mesh.transport.zenoh import ZenohTransport
 from cmion_mesh.web import speech
-from cmion_mesh.web.body import ARRIVAL_SHOWN
+from cmion_mesh.web.face import ARRIVAL_SHOWN
 from tests.helpers.browser import screenshot
 
 WAIT = 60.0

@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
+
+import msgspec
 
 from cmion_mesh.body.rules import WILDCARD, Rule, RuleSet
 from cmion_mesh.errors import InvalidArguments
@@ -39,23 +40,21 @@ _ANGLED = re.compile(r"<([^<>]+)>")
 _PARAMETER_TOKEN = re.compile(r"^\$parameter(\d+)$")
 
 
-@dataclass(frozen=True, slots=True)
-class Parameter:
+class Parameter(msgspec.Struct, frozen=True):
     """One positional parameter of an action, named; ``choices`` empty means any text."""
 
     name: str
     choices: tuple[str, ...] = ()
 
 
-@dataclass(frozen=True, slots=True)
-class Ability:
+class Ability(msgspec.Struct, frozen=True):
     """One action of a body with a given parameter count, as a callable tool."""
 
     tool: str
     action: str
     parameters: tuple[Parameter, ...]
     description: str
-    patterns: tuple[str, ...] = field(default=())
+    patterns: tuple[str, ...] = ()
 
     def input_schema(self) -> dict[str, Any]:
         """JSON Schema of the tool's arguments (an object of strings, every parameter required)."""

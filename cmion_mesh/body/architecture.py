@@ -28,9 +28,10 @@ looked up as ``NAME.xml`` (CMION for Android named raw resources so).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import msgspec
 
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.classes import construct, import_class, locate_file, split_parameters
@@ -43,15 +44,13 @@ if TYPE_CHECKING:
     from cmion_mesh.ion import Component
 
 
-@dataclass(frozen=True, slots=True)
-class ComponentSpec:
+class ComponentSpec(msgspec.Struct, frozen=True):
     class_name: str
     parameters: tuple[str, ...]
     line: int | None
 
 
-@dataclass(frozen=True, slots=True)
-class Architecture:
+class Architecture(msgspec.Struct, frozen=True):
     path: Path
     embodiment: str
     rules: Path | None

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
-import socket
+import platform
 import threading
 import time
 from collections.abc import Iterable
@@ -258,7 +258,7 @@ class Embodiment:
         return {
             "name": self.name,
             "alive": sorted(self.presence.alive()) if self.presence is not None else [],
-            "host": socket.gethostname(),
+            "host": platform.node(),  # gethostname(), without importing socket at every start
             "pid": os.getpid(),
             "duplicates": self._claim.duplicates() if self._claim is not None else [],
             "mesh": self.mesh,

@@ -20,8 +20,9 @@ import itertools
 import logging
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 from typing import Any, Literal
+
+import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.body.remote import RemoteCompetency
@@ -46,18 +47,16 @@ StepState = Literal["pending", "waiting", "running", "succeeded", "failed", "can
 PlanState = Literal["running", "failing", "cancelling", "done"]
 
 
-@dataclass(eq=False)
-class _StepRun:
+class _StepRun(msgspec.Struct, eq=False):
     step: Step
     status: StepState = "pending"
-    tried: set[str] = field(default_factory=set)
+    tried: set[str] = msgspec.field(default_factory=set)
     competency: Competency | None = None
     run_id: str = ""
-    reasons: list[str] = field(default_factory=list)
+    reasons: list[str] = msgspec.field(default_factory=list)
 
 
-@dataclass(eq=False)
-class PlanRun:
+class PlanRun(msgspec.Struct, eq=False):
     id: str
     plan: Plan
     action: MindAction

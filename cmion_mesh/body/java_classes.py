@@ -29,8 +29,9 @@ CMION opened them, ``classes.locate_file``; ``NAME.xml`` for an Android raw-reso
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass
 from typing import Literal
+
+import msgspec
 
 Kind = Literal["competency", "Samgar competency", "mind connector", "component", "GUI add-on", "base class", "example"]
 
@@ -40,8 +41,7 @@ JAVA_PREFIX = "cmion."
 DOC = "docs/portmap.md"
 
 
-@dataclass(frozen=True, slots=True)
-class Port:
+class Port(msgspec.Struct, frozen=True):
     java: str
     kind: Kind
     target: str | None

@@ -11,8 +11,9 @@ find the device table a Migration competency names, before it opens its session)
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
+
+import msgspec
 
 from cmion_mesh import xmlsafe
 from cmion_mesh.classes import construct, split_parameters
@@ -22,8 +23,7 @@ from cmion_mesh.errors import ConfigError, MeshError
 from cmion_mesh.migration.devices import DeviceTable, is_migration_class, locate_table, read_device_table, table_parameter
 
 
-@dataclass(frozen=True, slots=True)
-class LibraryEntry:
+class LibraryEntry(msgspec.Struct, frozen=True):
     class_name: str
     parameters: tuple[str, ...]
     line: int | None

@@ -33,7 +33,6 @@ import logging
 import math
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass, field
 
 import msgspec
 
@@ -49,17 +48,16 @@ from cmion_mesh.requests import IncomingRequest
 log = logging.getLogger(__name__)
 
 
-@dataclass(eq=False)
-class _Active:
+class _Active(msgspec.Struct, eq=False):
     act: Act
     action: MindAction
     candidates: deque[tuple[Rule, Plan]]
     run_id: str = ""
     rule: str = ""
     attempts: int = 0
-    reasons: list[str] = field(default_factory=list)
+    reasons: list[str] = msgspec.field(default_factory=list)
     cancel_requested: bool = False
-    started: float = field(default_factory=time.monotonic)
+    started: float = msgspec.field(default_factory=time.monotonic)
 
 
 #: Longest plan deadline an action may ask for (a day).

@@ -54,9 +54,9 @@ import difflib
 import os
 import re
 from collections.abc import Callable, Collection, Iterable
-from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 from lxml import etree
 
 from cmion_mesh import keys, xmlsafe
@@ -97,8 +97,7 @@ _TOKEN = re.compile(
 _OPENER = re.compile(r"\$(?:BB|WM)\(")
 
 
-@dataclass(frozen=True, slots=True)
-class Step:
+class Step(msgspec.Struct, frozen=True):
     """One ``<Competency>`` of a plan; ``parameters`` are (Name, Value) pairs in file order."""
 
     id: str
@@ -108,8 +107,7 @@ class Step:
     line: int
 
 
-@dataclass(frozen=True, slots=True)
-class Plan:
+class Plan(msgspec.Struct, frozen=True):
     """A competency execution plan: steps forming a dependency DAG (checked on load)."""
 
     steps: tuple[Step, ...]
@@ -151,8 +149,7 @@ class Plan:
         return tuple(order)
 
 
-@dataclass(frozen=True, slots=True)
-class Rule:
+class Rule(msgspec.Struct, frozen=True):
     """A mind-action pattern and its alternative plans.  ``index`` is the file position, from 0."""
 
     index: int
@@ -186,8 +183,7 @@ class Rule:
         return _describe(self.name, self.parameters, self.subject)
 
 
-@dataclass(frozen=True, slots=True)
-class RuleSet:
+class RuleSet(msgspec.Struct, frozen=True):
     """The rules of one file, in file order."""
 
     rules: tuple[Rule, ...]

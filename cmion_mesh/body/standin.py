@@ -24,8 +24,9 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
+
+import msgspec
 
 from cmion_mesh.body import java_classes as portmap
 from cmion_mesh.body.java_classes import Port
@@ -114,8 +115,7 @@ def summary(objects: Sequence[object]) -> list[dict[str, Any]]:
     return list(entries.values())
 
 
-@dataclass(frozen=True, slots=True)
-class Resolved:
+class Resolved(msgspec.Struct, frozen=True):
     """What to build for a configured class: ``target`` (``package.module:Class``) with
     ``parameters``, or a stand-in when ``target`` is None."""
 

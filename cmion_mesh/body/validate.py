@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 from pathlib import Path
+
+import msgspec
 
 from cmion_mesh import xmlsafe
 from cmion_mesh.body.architecture import Architecture, embodiment_name, read_architecture
@@ -39,14 +40,12 @@ from cmion_mesh.resources import data_dir
 from cmion_mesh.storage import load_world_model_init
 
 
-@dataclass(frozen=True, slots=True)
-class Options:
+class Options(msgspec.Struct, frozen=True):
     #: Competency types served by other processes (``serve-competency``): provided, though not in the library.
     remote_types: frozenset[str] = frozenset()
 
 
-@dataclass(frozen=True, slots=True)
-class Kind:
+class Kind(msgspec.Struct, frozen=True):
     schema: str
     check: Callable[[str, Diagnostics, Options], None]
     #: The check reads the file and checks the schema itself (to say an absent element in CMION's
@@ -179,13 +178,12 @@ def _report_standins(competencies: list[Competency], ruleset: RuleSet | None, di
 # --- files ----------------------------------------------------------------------------------------------------
 
 
-@dataclass
-class FileReport:
+class FileReport(msgspec.Struct):
     """The outcome of one file: its kind (root element; None if unreadable) and its problems."""
 
     path: str
     kind: str | None = None
-    diagnostics: Diagnostics = field(default_factory=Diagnostics)
+    diagnostics: Diagnostics = msgspec.field(default_factory=Diagnostics)
     #: The architecture configuration this file was checked with, if any.
     checked_with: str | None = None
 

@@ -20,7 +20,6 @@ import contextlib
 import functools
 import logging
 import os
-import secrets
 import signal
 import sys
 import threading
@@ -265,6 +264,8 @@ def _web_bodies(args: argparse.Namespace, components: list[Component]) -> list[A
     (replacing the configuration's first one, or adding one)."""
     if not args.web and "cmion_mesh.web.body" not in sys.modules:
         return []  # starlette and uvicorn cost start time: imported only for a page (--web, or a WebBody configured)
+    import secrets  # with the page: it loads hashlib (OpenSSL), which a daemon with no page or companion never needs
+
     from cmion_mesh.web.body import WebBody
     from cmion_mesh.web.server import parse_bind
 

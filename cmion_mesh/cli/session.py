@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 from collections.abc import Iterator
+
+import msgspec
 
 from cmion_mesh.cli.common import transport_config
 from cmion_mesh.client import MeshClient
@@ -20,6 +21,6 @@ def session(args: argparse.Namespace, name: str | None = None) -> Iterator[MeshC
     config = transport_config(args, name)
     # zenoh's open would wait up to its scouting delay (0.5 s) for the peers it scouts; the client's
     # join waits for exactly what the command needs instead.
-    config = dataclasses.replace(config, overrides=(*config.overrides, NO_WAIT_ON_OPEN))
+    config = msgspec.structs.replace(config, overrides=(*config.overrides, NO_WAIT_ON_OPEN))
     with ZenohTransport(config) as transport, MeshClient(transport, args.mesh) as client:
         yield client

@@ -29,7 +29,7 @@ import base64
 import binascii
 import heapq
 import logging
-import secrets
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -280,7 +280,7 @@ class Claims:
         if not self._token_present(holder, companion, epoch) or host.stopping.is_set():
             return None  # gone meanwhile: nothing to check
         me = host.sim.embodiment
-        nonce = secrets.token_bytes(16)
+        nonce = os.urandom(16)  # what secrets.token_bytes gives, without loading hashlib and random at start
         try:
             reply = host.ask(holder, "chain", MigrateChain(companion, epoch, nonce), timeout=CHAIN_TIMEOUT)
         except OutcomeUnknown as exc:

@@ -37,7 +37,6 @@ of hash D, by attempt A", and is signed by the custody key of epoch e. So:
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from typing import Literal
 
@@ -92,7 +91,7 @@ _link_decoder = msgspec.msgpack.Decoder(Link)
 
 
 def digest(document: bytes) -> bytes:
-    return hashlib.sha256(document).digest()
+    return signing.sha256(document)
 
 
 def birth(companion: str, holder: str, private: bytes, document: bytes, epoch: int = 1) -> Link:

@@ -40,9 +40,9 @@ from __future__ import annotations
 
 import ipaddress
 import os
-from dataclasses import dataclass, replace
 from pathlib import Path
 
+import msgspec
 from lxml import etree
 
 from cmion_mesh import keys, xmlsafe
@@ -69,8 +69,7 @@ DEFAULT_COMPANION = "companion"
 LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback"})
 
 
-@dataclass(frozen=True, slots=True)
-class Device:
+class Device(msgspec.Struct, frozen=True):
     """An embodiment the table knows."""
 
     name: str
@@ -85,8 +84,7 @@ class Device:
         return f"tcp/{host}:{self.port}"
 
 
-@dataclass(frozen=True, slots=True)
-class DeviceTable:
+class DeviceTable(msgspec.Struct, frozen=True):
     path: Path
     name: str | None  # devicename (None when absent or empty)
     listen_port: int
@@ -265,4 +263,5 @@ def with_table_endpoints(config: TransportConfig, table: DeviceTable | None) -> 
     endpoints given explicitly, or a zenoh configuration file, win over the table's."""
     if table is None or config.config_file is not None:
         return config
-    return replace(config, connect=config.connect or table.connect_endpoints(), listen=config.listen or table.listen_endpoints())
+    return msgspec.structs.replace(config, connect=config.connect or table.connect_endpoints(),
+                                   listen=config.listen or table.listen_endpoints())

@@ -86,7 +86,6 @@ from __future__ import annotations
 
 import base64
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import msgspec
@@ -105,8 +104,7 @@ POLICY_SECTION = "policy"
 INCOMING_BOUND = 60.0
 
 
-@dataclass(frozen=True)
-class Decision:
+class Decision(msgspec.Struct, frozen=True):
     """What to write (key first, then the document and the record) and what to answer."""
 
     outcome: Outcome
@@ -119,8 +117,7 @@ class Decision:
     fork: custody.Fork | None = None  # a refusal's proof of equivocation, for the log and the operator
 
 
-@dataclass(frozen=True)
-class Claim:
+class Claim(msgspec.Struct, frozen=True):
     """Another embodiment's claim on a companion, backed: its chain verified and ends with ``holder``,
     who signed the asker's nonce with that link's key (``custody.verify_claim``). A liveliness token
     alone is never one."""
@@ -317,8 +314,7 @@ def check_claims(chain: Sequence[Link], claims: Sequence[Claim], *, source: str)
 # --- a holder and the others' claims ---------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Verdict:
+class Verdict(msgspec.Struct, frozen=True):
     """What backed claims mean for a holder: branches that fork from its chain (each claimant with
     the proof), or a claim whose chain extends its own (its key signed the next link: it handed the
     companion on, and runs it no more)."""

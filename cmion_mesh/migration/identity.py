@@ -26,7 +26,6 @@ this format, and peers that send them. ``Identity.pack`` still writes that self-
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ from lxml import etree
 from cmion_mesh import keys, xmlsafe
 from cmion_mesh.errors import ConfigError, InvalidName
 from cmion_mesh.messages import MAX_MANIFEST, check_value
+from cmion_mesh.migration import signing
 
 SCHEMA = "identity.xsd"
 SCHEMA_VERSION = 2
@@ -72,7 +72,7 @@ def max_section() -> int:
 
 
 def sha256_hex(data: Bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
+    return signing.sha256(data).hex()
 
 
 class MissingSections(ConfigError):
@@ -83,8 +83,7 @@ class MissingSections(ConfigError):
         self.missing = missing
 
 
-@dataclass(frozen=True)
-class SectionRef:
+class SectionRef(msgspec.Struct, frozen=True):
     """One ``<Section>`` of a version 2 manifest: whose section, and the bytes that hold it."""
 
     component: str
@@ -93,8 +92,7 @@ class SectionRef:
     encoding: str = "msgpack"
 
 
-@dataclass(frozen=True)
-class Packed:
+class Packed(msgspec.Struct, frozen=True):
     """An identity as version 2: the manifest and every section's bytes (by SHA-256, hex)."""
 
     manifest: bytes
@@ -204,15 +202,14 @@ class Identity:
         return Packed(manifest, tuple(refs), data)
 
 
-@dataclass(frozen=True)
-class Manifest:
+class Manifest(msgspec.Struct, frozen=True):
     """A parsed document: version 2 names its sections (``refs``); version 1 holds them (``inline``)."""
 
     companion: str
     epoch: int
     schema_version: int
     refs: tuple[SectionRef, ...] = ()
-    inline: dict[str, Any] = field(default_factory=dict)
+    inline: dict[str, Any] = msgspec.field(default_factory=dict)
     name: str = "<identity>"
 
     def missing(self, have: Mapping[str, Any]) -> list[SectionRef]:

@@ -36,7 +36,6 @@ import re
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -457,8 +456,7 @@ class Records:
             return self._keys.get(companion)
 
 
-@dataclass(frozen=True)
-class Contents:
+class Contents(msgspec.Struct, frozen=True):
     """What a ledger holds now, by companion: records, identity documents and custody keys."""
 
     records: dict[str, Record]

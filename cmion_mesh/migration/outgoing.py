@@ -109,8 +109,7 @@ class Departure:
     started: float = field(default_factory=time.monotonic)
 
 
-@dataclass(frozen=True)
-class WaitToken:
+class WaitToken(msgspec.Struct, frozen=True):
     attempt: str
     component: str
 

@@ -24,7 +24,6 @@ thread of its own, joined before ``add`` returns.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
@@ -35,8 +34,9 @@ from pathlib import Path
 from typing import TypeVar
 
 from cmion_mesh.errors import ConfigError
+from cmion_mesh.migration import signing
 from cmion_mesh.migration.bounds import env_limit
-from cmion_mesh.migration.identity import Bytes, SectionRef
+from cmion_mesh.migration.identity import Bytes, SectionRef, sha256_hex
 from cmion_mesh.statedir import left_by_a_crash
 
 log = logging.getLogger(__name__)
@@ -206,7 +206,7 @@ class SectionStore:
             raise ConfigError(f"section {ref.component!r} was altered at rest: {len(data)} bytes, its manifest says "
                               f"{ref.size}", path=str(path))
         same = data == known if known is not None and len(known) == ref.size else None
-        if not (same if same is not None else hashlib.sha256(data).hexdigest() == ref.sha256):
+        if not (same if same is not None else sha256_hex(data) == ref.sha256):
             raise ConfigError(f"section {ref.component!r} was altered at rest (its bytes do not hash to its name)",
                               path=str(path))
         try:
@@ -396,7 +396,7 @@ class IncomingSection:
         self.ref = ref
         self.data: Bytes = b""  # the whole section, once finished
         self._chunks: dict[int, Bytes] = {}  # offset -> chunk
-        self._hasher = hashlib.sha256()
+        self._hasher = signing.Sha256()
         self._hashed = 0
         self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
         self._path = store.path(ref.sha256)

@@ -31,9 +31,10 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
+
+import msgspec
 
 from cmion_mesh import keys, tomlsafe
 from cmion_mesh.transport.base import LEASE_MS
@@ -47,8 +48,7 @@ EXAMPLE: Final = Path(__file__).with_name("device.example.toml")
 MAX_LEASE_MS: Final = 3_600_000
 
 
-@dataclass(frozen=True, slots=True)
-class Option:
+class Option(msgspec.Struct, frozen=True):
     """One key of the settings file: the option of ``up`` it gives (``dest``, as ``argparse``
     names it), its kind of value, and what the example file says of it."""
 
@@ -110,14 +110,13 @@ OPTIONS: Final[tuple[Option, ...]] = (
 BY_KEY: Final = {o.key: o for o in OPTIONS}
 
 
-@dataclass(frozen=True, slots=True)
-class Settings:
+class Settings(msgspec.Struct, frozen=True):
     """A settings file as read: ``values`` by ``argparse`` destination (only the keys the file
     gives, paths made absolute), and the line of each key."""
 
     path: Path
-    values: dict[str, Any] = field(default_factory=dict)
-    lines: dict[str, int | None] = field(default_factory=dict)
+    values: dict[str, Any] = msgspec.field(default_factory=dict)
+    lines: dict[str, int | None] = msgspec.field(default_factory=dict)
 
     def merge(self, args: argparse.Namespace, given: Collection[str] = ()) -> argparse.Namespace:
         """Set on ``args`` each value of the file whose destination is not in ``given`` (the

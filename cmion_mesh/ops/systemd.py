@@ -32,18 +32,20 @@ import logging
 import math
 import os
 import shutil
-import socket
 import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Protocol, Self
+from typing import TYPE_CHECKING, Protocol, Self
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.ion import Simulation
 from cmion_mesh.ops.heartbeat import PERIOD, Heartbeat
 from cmion_mesh.transport.base import Handle
+
+if TYPE_CHECKING:
+    import socket
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +101,8 @@ class Notifier(Handle):
                 return False
             try:
                 if self._socket is None:
+                    import socket  # here: only a daemon systemd started (NOTIFY_SOCKET) needs it
+
                     self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
                 self._socket.sendto(data, _address(self.path))
             except OSError as exc:

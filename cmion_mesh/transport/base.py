@@ -32,8 +32,9 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
+
+import msgspec
 
 
 # Named tuples rather than dataclasses: one of each is made per message received, and a tuple is
@@ -139,8 +140,7 @@ class Handle:
 LEASE_MS = 10000
 
 
-@dataclass(frozen=True, slots=True)
-class TransportConfig:
+class TransportConfig(msgspec.Struct, frozen=True):
     """How to join the mesh.
 
     Defaults give a zenoh peer that finds others on the LAN by multicast scouting.
@@ -156,7 +156,7 @@ class TransportConfig:
     multicast: bool = True
     multicast_interface: str | None = None
     lease_ms: int | None = None
-    overrides: tuple[tuple[str, str], ...] = field(default=())
+    overrides: tuple[tuple[str, str], ...] = ()
 
 
 SampleHandler = Callable[[Sample], None]

@@ -49,9 +49,10 @@ import json
 import logging
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import msgspec
 
 from cmion_mesh import keys
 from cmion_mesh.errors import ConfigError, InvalidName
@@ -189,8 +190,7 @@ def access_control(mesh: str, trust: certs.Trust, *, mode: str = "peer") -> dict
 # --- credentials and TLS ----------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Credentials:
+class Credentials(msgspec.Struct, frozen=True):
     """One identity's files in a certificates folder, checked."""
 
     directory: Path
@@ -300,8 +300,8 @@ def secure(config: TransportConfig, directory: str | os.PathLike[str], name: str
     pairs = settings(cred, mesh, trust, listen=config.listen, connect=config.connect, verify_names=verify_names,
                      default_listen=config.config_file is None and config.mode != "client", mode=config.mode)
     overrides = tuple((key, json.dumps(value)) for key, value in pairs)
-    return replace(config, listen=tuple(to_tls(e) for e in config.listen), connect=tuple(to_tls(e) for e in config.connect),
-                   overrides=config.overrides + overrides)
+    return msgspec.structs.replace(config, listen=tuple(to_tls(e) for e in config.listen),
+                                   connect=tuple(to_tls(e) for e in config.connect), overrides=config.overrides + overrides)
 
 
 def config_document(directory: str | os.PathLike[str], name: str, mesh: str, *, listen: Iterable[str] = (),

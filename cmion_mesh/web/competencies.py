@@ -1,5 +1,6 @@
 """Competencies of a body on a web page (``web.body.WebBody``): speech, animation, gestures,
-visitors and typed commands.
+visitors and typed commands. They reach the body through its component half (``web.face.Face``)
+and never import its HTTP server: an embodiment that serves no page starts without it.
 
 Each one is the simulated competency of the same type (``spirit.py``) with its world made real:
 the same constructor parameters, run parameters, blackboard and world-model writes and events, so
@@ -27,7 +28,7 @@ from cmion_mesh.competencies.common import SELF, parse_seconds
 from cmion_mesh.competencies.spirit import Animation, CommandInput, GestureDetect, SpeechSynthesis, UserDetection
 from cmion_mesh.competency import RunContext
 from cmion_mesh.errors import ConfigError
-from cmion_mesh.web.body import WebBody, WebSense, web_body
+from cmion_mesh.web.face import Face, WebSense, web_body
 from cmion_mesh.web.speech import SpeechUnavailable, duration, synthesize
 
 __all__ = ["WebAnimation", "WebCommandInput", "WebGestureDetect", "WebSpeechSynthesis", "WebUserDetection"]
@@ -40,7 +41,7 @@ ANIMATION_SECONDS: dict[str, float] = {"wave": 1.6, "nod": 1.0, "smile": 1.2, "h
 READING_SPEED = 15.0
 
 
-def _body(competency: Any) -> WebBody | None:
+def _body(competency: Any) -> Face | None:
     sim = competency._sim
     return None if sim is None else web_body(sim)
 
