@@ -183,15 +183,14 @@ def send_request(transport: Transport, key: str, payload: Message, *, timeout: f
     """
     started = time.monotonic()
     try:
-        replies = transport.get(key, encode(payload), timeout=timeout)
+        reply = transport.get_first(key, encode(payload), timeout=timeout)
     except MeshError as exc:
         raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
-    if not replies:
+    if reply is None:
         waited = time.monotonic() - started
         if waited < timeout * 0.9:  # zero replies before the deadline: no queryable was reached at all
             raise NotReached(f"no component answered {key}: nobody reached (after {waited:.2f} s)", key=key)
         raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
-    reply = replies[0]
     if not reply.ok:
         raise OutcomeUnknown(f"{key}: error reply {reply.payload[:200]!r}", key=key)
     try:

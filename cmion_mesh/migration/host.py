@@ -64,8 +64,9 @@ class Host(Protocol):
     def post(self, fn: Callable[..., None], *args: Any) -> None:
         """Run ``fn(*args)`` on the loop (from any thread); dropped once the simulation closes."""
 
-    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> None:
-        """Run ``fn(*args)`` on a handshake thread of its own, joined at ``detach``."""
+    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> bool:
+        """Run ``fn(*args)`` on a handshake thread (``workers.Workers``), joined at ``detach``;
+        False (nothing runs) once the host is stopping."""
 
     def ask(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
         """Send the handshake request ``op`` to ``peer``'s migration component and wait for its

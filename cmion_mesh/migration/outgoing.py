@@ -25,13 +25,13 @@ Threads:
 * the loop runs ``begin`` (the checks), ``contribute``/``wait``/``resolve``/``refuse``, the packing
   and every step that touches the inhabitant or raises an event (``_abandon``, ``_handed``,
   ``_released``, ``_taken_back``); ``departure`` is the loop's;
-* one handshake thread per attempt runs ``_send`` and then ``commit_until_acked`` (also after a
-  restart in ``handed``), and one per abort sent (``send_abort_later``): they touch only the
-  records (locked) and hand everything else to the loop (``Host.post``);
-* for a large identity, ``_send`` has one short-lived thread write this side's copy of the
-  sections, then the ``prepared`` record that names them, beside the ``have``, the chunks (two
-  send them) and the prepare itself; it is joined before the prepare's answer is acted on
-  (``handed`` comes after ``prepared``, always). A small one is recorded before the prepare.
+* a handshake thread (``Host.spawn``: reused workers) per attempt runs ``_send`` and then
+  ``commit_until_acked`` (also after a restart in ``handed``), and one per abort sent
+  (``send_abort_later``): they touch only the records (locked) and hand everything else to the
+  loop (``Host.post``);
+* ``_send`` has another write this side's copy of the sections, then the ``prepared`` record that
+  names them, beside the ``have``, the chunks (two send them) and the prepare itself; it is waited
+  for before the prepare's answer is acted on (``handed`` comes after ``prepared``, always).
 
 ``start``, ``contribute``, ``resolve`` and ``refuse`` may be called from any thread.
 
@@ -318,45 +318,43 @@ class Outgoing:
         out.transfer = {"sent": 0, "total": packed.size, "sections": len(refs), "sections_sent": 0}
         stored: list[BaseException] = []
         written: list[Record] = []
+        done = threading.Event()
 
         def store() -> None:
             # This side's copy, written while the target receives its own; then, once the sections
             # are on disk, the prepared record that names them, still while the chunks (or the
             # prepare itself) travel: a crash from here on is the crash at source:prepared (never
-            # handed: the source resumes). It is joined before anything acts on the prepare's answer.
+            # handed: the source resumes). It is waited for before anything acts on the prepare's answer.
             try:
-                written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
-            except OSError as exc:
-                stored.append(exc)
-                return
-            crash_point("source:prepared")
-            host.post(host.step, written[0])
-            log_prepared(written[0])
+                try:
+                    written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
+                except OSError as exc:
+                    stored.append(exc)
+                    return
+                crash_point("source:prepared")
+                host.post(host.step, written[0])  # before handed's, which waits for this
+                log_prepared(written[0])
+            finally:
+                done.set()
 
-        bulk_transfer = sum(ref.size for ref in refs) > INLINE
-        writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        if bulk_transfer:
-            writer.start()  # from now on, beside have, the chunks and the prepare
-        else:
-            # Nothing to overlap but the prepare's round trip: one append (the sections inside it)
-            # costs less than the writer thread holding the GIL while zenoh hands the prepare over.
-            writer.run()
+        # On a worker of its own from now on, beside have, the chunks and the prepare (for a small
+        # identity, beside the prepare's round trip): the append's fdatasync is off the critical path.
+        if not host.spawn(f"store-{out.companion}", store):
+            store()  # stopping: no worker takes jobs any more
         try:
             inline = refs
-            if bulk_transfer:
+            if sum(ref.size for ref in refs) > INLINE:
                 inline, bulk = self._ask_have(out, message, refs)
                 self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
-            if bulk_transfer:
-                writer.join()
+            done.wait()
             why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
             if written:  # active again; the prepare was never sent, so the target holds nothing of this attempt
                 host.records.put(handshake.resume(written[0]))
             host.post(self._abandon, out, f"{why}; the companion stays here")
             return
         reply, unknown = self._prepare(out, message, packed, inline)
-        if bulk_transfer:
-            writer.join()  # prepared is durable before anything acts on the answer (handed comes after it)
+        done.wait()  # prepared is durable before anything acts on the answer (handed comes after it)
         if stored or not written:
             # Nothing here names the attempt (this side stays active): the target may hold it
             # incoming, so it is told; asked, this side would answer "aborted" anyway.

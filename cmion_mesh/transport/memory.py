@@ -242,6 +242,10 @@ class MemoryTransport:
             done.wait(timeout)
         return list(replies)
 
+    def get_first(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Reply | None:
+        replies = self.get(selector, payload, timeout=timeout)
+        return replies[0] if replies else None
+
     def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
         return {key: payload for key, payload, ok, _ in self.get(selector, timeout=timeout) if ok}
 

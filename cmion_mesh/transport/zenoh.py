@@ -413,6 +413,21 @@ class ZenohTransport:
             raise _mapped(f"query {selector}", exc, self._closed) from None
         return out
 
+    def get_first(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Reply | None:
+        if self._closed:
+            raise ClosedError(f"query {selector}: the transport is closed")
+        concrete = "*" not in selector and "$" not in selector and "?" not in selector
+        try:
+            for reply in self._session.get(selector, payload=payload, timeout=timeout, target=_ALL, consolidation=_NONE):
+                ok = reply.ok
+                if ok is not None:
+                    return Reply(selector if concrete else str(ok.key_expr), ok.payload.to_bytes(), True)
+                err = reply.err
+                return Reply(selector, err.payload.to_bytes() if err is not None else b"", False)
+        except zenoh.ZError as exc:
+            raise _mapped(f"query {selector}", exc, self._closed) from None
+        return None  # the handler's channel goes with this frame: later replies are dropped by zenoh
+
     def _get_attached(self, selector: str, payload: bytes | None, timeout: float, attachment: bytes | None,
                       cancel: QueryCancel | None) -> list[Reply]:
         """``get`` with an attachment or a cancel, the replies' attachments kept (ROS 2 services:
