@@ -61,6 +61,39 @@ def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, me
         close(robot, screen)
 
 
+def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                          client: MeshClient) -> None:
+    # The target's token while it receives the companion is no claim, and the one after the commit
+    # is backed by the link the source signed: asking for them (a chain request, a signature and its
+    # check on both sides) in the middle of every migration cost both daemons time for nothing.
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    asked: list[tuple[str, str]] = []
+    try:
+        for embodiment in (robot, screen):
+            assert embodiment.migration is not None
+            claims = embodiment.migration.claims
+            answer = claims.on_chain
+            claims.on_chain = lambda request, msg, answer=answer, me=embodiment.name: (  # type: ignore[method-assign]
+                asked.append((me, request.requester)), answer(request, msg))
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        wait_for(lambda: screen.migration is not None and screen.migration.claims.backed("spirit") != [], 5,
+                 "the screen checked the robot's claim (a stranger's: asked)")
+        asked.clear()
+        client.migrate("spirit", "screen", timeout=20)
+        assert robot.migration is not None and screen.migration is not None
+        wait_for(lambda: [c.holder for c in robot.migration.claims.backed("spirit")] == ["screen"], 5,  # type: ignore[union-attr]
+                 "the robot backs the screen's claim")
+        backed = robot.migration.claims.backed("spirit")[0]
+        assert list(backed.chain) == Records(tmp_path / "screen").get("spirit").chain  # what the screen holds, link for link
+        assert client.migrate("spirit", "robot", timeout=20)["source"] == "screen"
+        wait_for(lambda: [c.holder for c in screen.migration.claims.backed("spirit")] == ["robot"], 5,  # type: ignore[union-attr]
+                 "the screen backs the robot's claim")
+        assert asked == [], f"chain requests between the two ends of a migration: {asked}"
+    finally:
+        close(robot, screen)
+
+
 class Badge(Component):
     """A component that gives its section straight from the ``MigrationStarting`` handler."""
 

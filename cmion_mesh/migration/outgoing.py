@@ -275,6 +275,7 @@ class Outgoing:
 
     def _abandon(self, out: Departure, reason: str) -> None:
         self.departure = None
+        self.claims.forget(out.target, out.companion)
         log_step(f"migration of {out.companion} to {out.target} aborted: {reason}", "aborted", out.companion, out.target,
                  out.epoch, out.attempt, reason=reason)
         self.host.raise_event("MigrationFailed", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
@@ -341,6 +342,7 @@ class Outgoing:
         # identity, beside the prepare's round trip): the append's fdatasync is off the critical path.
         if not host.spawn(f"store-{out.companion}", store):
             store()  # stopping: no worker takes jobs any more
+        self.claims.receiving(out.target, out.companion, out.epoch)
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
@@ -375,6 +377,8 @@ class Outgoing:
             return
         handed = host.records.put(after)
         crash_point("source:handed")
+        assert handed.link is not None
+        self.claims.vouch(handed.peer, handed.companion, handed.link.epoch, [*handed.chain, handed.link])
         host.post(host.step, handed)
         log_step(f"companion {handed.companion} handed to {handed.peer}", "handed", handed.companion, handed.peer,
                  handed.epoch, handed.attempt)
@@ -542,6 +546,7 @@ class Outgoing:
     def _taken_back(self, record: Record, handed: Record, why: str) -> None:
         out = self.departure
         self.departure = None
+        self.claims.forget(handed.peer, record.companion)
         reason = f"migration of {record.companion!r} to {why}; the companion resumes here"
         log_step(f"migration of {record.companion} to {handed.peer} aborted: {why}", "aborted", record.companion,
                  handed.peer, handed.epoch, handed.attempt, reason=why)
