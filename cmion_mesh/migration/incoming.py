@@ -160,6 +160,11 @@ class Incoming:
             request.answer(decision.outcome)
             return
         assert decision.key is not None and decision.identity is not None and decision.manifest is not None
+        unsynced = self.uploads.settled(msg.attempt, msg.source)  # its sections durable before incoming names them
+        if unsynced:
+            self.uploads.end(msg.source, msg.attempt)
+            request.reject(f"{me!r} cannot take {msg.companion!r}: {unsynced}", Code.INVALID)
+            return
         # The sections it carried were sent because they are missing here, or damaged: written anew.
         incoming = host.records.put(msgspec.structs.replace(decision.record, since=time.time()), document=decision.document,
                                     sections=carried, key=decision.key, replace=True)
