@@ -19,7 +19,7 @@ def test_a_finished_worker_takes_the_next_job() -> None:
         assert workers.spawn("one", lambda: (ran.append(threading.get_ident()), first.set()))
         assert first.wait(5.0)
         # The worker counts itself idle just after its job: wait until the next job finds it so.
-        wait_for(lambda: workers._idle == 1, 5.0, "the worker idle again")
+        wait_for(lambda: workers.idle == 1, 5.0, "the worker idle again")
         assert workers.spawn("two", lambda: (ran.append(threading.get_ident()), done.set()))
         assert done.wait(5.0)
         assert ran[0] == ran[1] and workers.threads == 1
@@ -56,8 +56,8 @@ def test_close_joins_the_workers_and_refuses_new_jobs() -> None:
     done = threading.Event()
     workers.spawn("one", done.set)
     assert done.wait(5.0)
-    threads = list(workers._threads)
+    assert workers.alive == 1
     workers.close()
     workers.close()  # idempotent
-    assert not any(t.is_alive() for t in threads)
+    assert workers.alive == 0
     assert workers.spawn("late", done.set) is False

@@ -50,6 +50,18 @@ class Workers:
         with self._lock:
             return len(self._threads)
 
+    @property
+    def idle(self) -> int:
+        """Workers waiting for a job."""
+        with self._lock:
+            return self._idle
+
+    @property
+    def alive(self) -> int:
+        """Workers whose thread still runs (none once ``close`` returned in time)."""
+        with self._lock:
+            return sum(thread.is_alive() for thread in self._threads)
+
     def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> bool:
         """Run ``fn(*args)`` on a worker now; False (not run) once closed: the host is stopping."""
         with self._lock:
