@@ -69,6 +69,7 @@ class Upload:
     stored: set[str] = field(default_factory=set)  # sections this upload wrote: deleted if no prepare names them
     received: int = 0  # bytes of this upload written to disk (partial sections included)
     settling: list[Future[None]] = field(default_factory=list)  # completed sections being synced
+    unsynced: list[str] = field(default_factory=list)  # why some of them could not be (a prepare is refused)
     last: float = field(default_factory=time.monotonic)  # when it last took a chunk (or began)
 
     def abandon(self) -> None:
@@ -106,6 +107,8 @@ class Uploads:
         host = self.host
         upload = Upload(msg.attempt, msg.source, {ref.sha256: ref for ref in manifest.refs})
         store = host.records.sections
+        for staged in self._uploads.values():
+            _wait(staged)  # what they completed has its name before this one looks for what is here
         found, errors = store.read_many((ref for ref in upload.refs.values() if store.holds(ref)), host.memo.held())
         for error in errors.values():
             log.warning("%s; fetching it again from %s", error, msg.source)
@@ -300,10 +303,9 @@ class Uploads:
 def _wait(upload: Upload) -> str:
     """Wait for the syncs of ``upload``'s completed sections: "" once all are durable, else why not."""
     settling, upload.settling = upload.settling, []
-    problems: list[str] = []
     for done in settling:
         try:
             done.result()
         except OSError as exc:
-            problems.append(f"a section received could not be stored: {exc.strerror or exc}")
-    return "; ".join(problems)
+            upload.unsynced.append(f"a section received could not be stored: {exc.strerror or exc}")
+    return "; ".join(upload.unsynced)
