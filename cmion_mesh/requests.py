@@ -16,6 +16,7 @@ the requests of one update handled together: ``ion.Simulation``.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -25,7 +26,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Message, Outcome, RequestAnswered, check_value, decode, encode
-from cmion_mesh.transport.base import Matching, Transport
+from cmion_mesh.transport.base import Matching, Reply, Transport
 
 log = logging.getLogger(__name__)
 
@@ -181,9 +182,25 @@ def send_request(transport: Transport, key: str, payload: Message, *, timeout: f
     Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable;
     ``NotReached`` when no component was reached at all (not delivered: safe to send again).
     """
+    return send_request_later(transport, key, payload, timeout=timeout)()
+
+
+def send_request_later(transport: Transport, key: str, payload: Message, *,
+                       timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Callable[[], Outcome]:
+    """``send_request`` in two steps: the request is sent when this returns (what the caller sends
+    next goes after it), and the function returned waits for its ``Outcome`` (call it once), with
+    the same errors."""
     started = time.monotonic()
     try:
-        reply = transport.get_first(key, encode(payload), timeout=timeout)
+        first = transport.get_first_later(key, encode(payload), timeout=timeout)
+    except MeshError as exc:
+        raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
+    return functools.partial(_outcome, first, key, started, timeout)
+
+
+def _outcome(first: Callable[[], Reply | None], key: str, started: float, timeout: float) -> Outcome:
+    try:
+        reply = first()
     except MeshError as exc:
         raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
     if reply is None:

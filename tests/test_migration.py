@@ -129,6 +129,53 @@ def test_a_section_contributed_from_the_starting_handler_travels(network: Memory
         close(robot, screen)
 
 
+class Photo(Component):
+    """Gives a large section, new at every migration (an image taken just before leaving)."""
+
+    def __init__(self) -> None:
+        super().__init__("photo")
+        self.taken = 0
+
+    def attach(self, sim: Simulation) -> None:
+        sim.on_event(self._on_migration, component="migration", event="MigrationStarting")
+
+    def _on_migration(self, event: Event) -> None:
+        migration = self.sim.component("migration")
+        assert isinstance(migration, MigrationManager)
+        self.taken += 1
+        migration.contribute(self.name, str(self.taken) * 300_000)
+
+
+def test_a_new_large_section_follows_the_have_without_waiting_for_its_answer(
+        network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+    # No target can hold a section new at the source: it goes right behind the have, before its
+    # answer is waited for (a round trip less).
+    robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
+                       companion="spirit", components=[Photo()]).start()
+    screen = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=tmp_path / "screen",
+                        components=[Photo()]).start()
+    order: list[str] = []
+    try:
+        assert robot.migration is not None and screen.migration is not None
+        uploads = screen.migration.uploads
+        on_sections = uploads.on_sections
+        uploads.on_sections = lambda request, msg: (order.append("screen takes sections"),  # type: ignore[method-assign]
+                                                    on_sections(request, msg))
+        ask_later = robot.migration.ask_later
+
+        def asked(peer: str, op: str, message: Any) -> Any:
+            answer = ask_later(peer, op, message)
+            return lambda: (order.append(f"robot waits for the {op} answer"), answer())[1]
+
+        robot.migration.ask_later = asked  # type: ignore[method-assign]
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        client.migrate("spirit", "screen", timeout=20)
+        assert order == ["screen takes sections", "robot waits for the have answer"], order
+        assert screen.migration.section("photo") == "1" * 300_000
+    finally:
+        close(robot, screen)
+
+
 def test_refusals_leave_the_companion_running_at_the_source(network: MemoryNetwork, mesh: str, tmp_path: Path,
                                                             client: MeshClient) -> None:
     robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()

@@ -72,6 +72,9 @@ class Host(Protocol):
         """Send the handshake request ``op`` to ``peer``'s migration component and wait for its
         answer (a handshake thread; ``OutcomeUnknown`` when none comes)."""
 
+    def ask_later(self, peer: str, op: str, message: Any) -> Callable[[], Outcome]:
+        """``ask`` in two steps: sent when this returns, answered by the function returned (once)."""
+
     def step(self, record: Record) -> None:
         """Raise ``MigrationStep`` for a durable record of a handshake (loop)."""
 

@@ -96,7 +96,7 @@ from cmion_mesh.migration.outgoing import SECTION_DEADLINE, Outgoing, WaitToken
 from cmion_mesh.migration.uploads import MAX_UPLOAD, MAX_UPLOAD_ENV, UPLOAD_IDLE, UPLOAD_IDLE_ENV, Uploads
 from cmion_mesh.migration.workers import Workers
 from cmion_mesh.mind import Mind
-from cmion_mesh.requests import IncomingRequest, send_request
+from cmion_mesh.requests import IncomingRequest, send_request, send_request_later
 from cmion_mesh.storage import Store
 from cmion_mesh.transport.base import Closeable
 
@@ -327,6 +327,10 @@ class MigrationManager(Component):
     def ask(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
         key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
         return send_request(self.sim.transport, key, message, timeout=self.request_timeout if timeout is None else timeout)
+
+    def ask_later(self, peer: str, op: str, message: Any) -> Callable[[], Outcome]:
+        key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
+        return send_request_later(self.sim.transport, key, message, timeout=self.request_timeout)
 
     def step(self, record: Record) -> None:
         # Loop thread. Each durable record of a handshake is one step a watcher (``cmion-mesh view``)

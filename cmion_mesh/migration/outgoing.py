@@ -303,6 +303,7 @@ class Outgoing:
     def _send(self, out: Departure, identity: Identity) -> None:
         """Handshake thread: pack, send what the target lacks, prepare, then (once handed) commit."""
         host = self.host
+        known = set(host.memo.held())  # sections packed or received here before: a target may hold them
         try:
             packed = identity.pack_sections(host.memo)
         except (MeshError, ValueError) as exc:
@@ -346,7 +347,10 @@ class Outgoing:
         try:
             inline = refs
             if sum(ref.size for ref in refs) > INLINE:
-                inline, bulk = self._ask_have(out, message, refs)
+                # A large section new here since the last packing is at no target: it follows the
+                # have at once rather than after its answer (a round trip less).
+                early = [ref for ref in refs if ref.sha256 not in known and ref.size > INLINE]
+                inline, bulk = self._ask_have(out, message, refs, packed, early)
                 self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
             done.wait()
@@ -416,22 +420,34 @@ class Outgoing:
             inline = wanted
             if sum(ref.size for ref in wanted) > INLINE:
                 try:
-                    inline, bulk = self._ask_have(out, message, wanted)
+                    inline, bulk = self._ask_have(out, message, wanted, packed)
                     self._send_bulk(out, message, packed, bulk)
                 except (_Refused, OutcomeUnknown) as exc:
                     unknown = str(exc)
                     break
         return reply, unknown
 
-    def _ask_have(self, out: Departure, message: MigratePrepare,
-                  refs: list[SectionRef]) -> tuple[list[SectionRef], list[SectionRef]]:
+    def _ask_have(self, out: Departure, message: MigratePrepare, refs: list[SectionRef], packed: Packed,
+                  early: list[SectionRef] | None = None) -> tuple[list[SectionRef], list[SectionRef]]:
         """``have``: of the sections the target lacks, the small ones (at most ``INLINE`` bytes
-        together), for the prepare to carry, and the others, to send apart (``_send_bulk``)."""
-        reply = self.host.ask(out.target, "have", handshake.have(message))
+        together), for the prepare to carry, and the others, to send apart (``_send_bulk``).
+        ``early``: sections sent right behind the have, before its answer (the target takes chunks
+        in order after it); those it took are not among the others."""
+        answer = self.host.ask_later(out.target, "have", handshake.have(message))
+        taken: set[str] = set()
+        if early:
+            try:
+                self._send_bulk(out, message, packed, early)
+                taken = {ref.sha256 for ref in early}
+            except (_Refused, OutcomeUnknown) as exc:
+                # The have waited (claims on the companion being checked), or was refused: they
+                # go again once it is answered, or the refusal below says why.
+                log.debug("sections sent behind the have of %s not taken yet: %s", out.attempt, exc)
+        reply = answer()
         if reply.status != "accepted":
             raise _Refused(reply.reason)
         value = reply.value if isinstance(reply.value, dict) else {}
-        held = set(value.get("have") or [])
+        held = set(value.get("have") or []) | taken
         missing = sorted((ref for ref in refs if ref.sha256 not in held), key=lambda r: r.size)
         inline: list[SectionRef] = []
         budget = INLINE
@@ -453,7 +469,6 @@ class Outgoing:
                     size = 0
                 batches[-1].append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
                 size += len(piece)
-            out.transfer["sections_sent"] += 1
         batches = [b for b in batches if b]
         if len(batches) > 1:
             # Two requests in flight: the target checks and writes one while the next is on its way.
@@ -463,6 +478,7 @@ class Outgoing:
         elif batches:
             self._send_chunks(out, message, batches[0])
         out.transfer["sent"] += sum(len(c.data) for batch in batches for c in batch)
+        out.transfer["sections_sent"] += len(missing)
 
     def _send_chunks(self, out: Departure, message: MigratePrepare, chunks: list[SectionChunk]) -> None:
         request = MigrateSections(message.companion, message.attempt, message.source, message.target, chunks)
