@@ -107,6 +107,28 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
     return out
 
 
+def _traced_get_first(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
+    """``ZenohTransport.get_first`` with the ``session.get()`` call and the wait for the reply timed apart."""
+    import zenoh
+
+    from cmion_mesh.transport.base import Reply
+
+    what = request_of(selector)
+    t0 = time.perf_counter_ns()
+    replies = self._session.get(selector, payload=payload, timeout=timeout, target=zenoh.QueryTarget.ALL,
+                                consolidation=zenoh.ConsolidationMode.NONE)
+    t1 = time.perf_counter_ns()
+    _emit(f"zenoh:session.get() call:{what}", t0, t1 - t0)
+    for reply in replies:
+        _emit(f"zenoh:get -> first reply:{what}", t1, time.perf_counter_ns() - t1)
+        ok = reply.ok
+        if ok is not None:
+            return Reply(selector, ok.payload.to_bytes(), True)
+        err = reply.err
+        return Reply(selector, err.payload.to_bytes() if err is not None else b"", False)
+    return None
+
+
 def install() -> None:
     from cmion_mesh import ion
     from cmion_mesh.migration import custody, handshake, identity, signing
@@ -144,6 +166,7 @@ def install() -> None:
     wrap(custody, "verify_chain", "verify custody chain")
     wrap(migration, "send_request", request_label)
     wrap(zenoh_transport.ZenohTransport, "alive", "liveliness_get(target alive?)")
+    zenoh_transport.ZenohTransport.get_first = _traced_get_first  # type: ignore[method-assign]
     zenoh_transport.ZenohTransport.get = _traced_get  # type: ignore[method-assign]
     wrap(ion.Simulation, "_on_query",
          lambda _sim, component, query: f"on a worker:query {request_of(query.key)}")

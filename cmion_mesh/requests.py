@@ -16,6 +16,7 @@ the requests of one update handled together: ``ion.Simulation``.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -25,7 +26,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
 from cmion_mesh.messages import Code, Message, Outcome, RequestAnswered, check_value, decode, encode
-from cmion_mesh.transport.base import Matching, Transport
+from cmion_mesh.transport.base import Matching, Reply, Transport
 
 log = logging.getLogger(__name__)
 
@@ -181,17 +182,32 @@ def send_request(transport: Transport, key: str, payload: Message, *, timeout: f
     Raises ``OutcomeUnknown`` when nobody answered, the link failed or the reply is unreadable;
     ``NotReached`` when no component was reached at all (not delivered: safe to send again).
     """
+    return send_request_later(transport, key, payload, timeout=timeout)()
+
+
+def send_request_later(transport: Transport, key: str, payload: Message, *,
+                       timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Callable[[], Outcome]:
+    """``send_request`` in two steps: the request is sent when this returns (what the caller sends
+    next goes after it), and the function returned waits for its ``Outcome`` (call it once), with
+    the same errors."""
     started = time.monotonic()
     try:
-        replies = transport.get(key, encode(payload), timeout=timeout)
+        first = transport.get_first_later(key, encode(payload), timeout=timeout)
     except MeshError as exc:
         raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
-    if not replies:
+    return functools.partial(_outcome, first, key, started, timeout)
+
+
+def _outcome(first: Callable[[], Reply | None], key: str, started: float, timeout: float) -> Outcome:
+    try:
+        reply = first()
+    except MeshError as exc:
+        raise OutcomeUnknown(f"{key}: {exc}", key=key) from None
+    if reply is None:
         waited = time.monotonic() - started
         if waited < timeout * 0.9:  # zero replies before the deadline: no queryable was reached at all
             raise NotReached(f"no component answered {key}: nobody reached (after {waited:.2f} s)", key=key)
         raise OutcomeUnknown(f"no component answered {key} within {timeout:g} s", key=key)
-    reply = replies[0]
     if not reply.ok:
         raise OutcomeUnknown(f"{key}: error reply {reply.payload[:200]!r}", key=key)
     try:

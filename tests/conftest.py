@@ -142,6 +142,7 @@ TIERS: dict[str, str] = {
     "test_migration": "unit",
     "test_migration_crash": "mesh",
     "test_migration_network": "system",
+    "test_migration_workers": "unit",
     "test_persistent": "unit",
     "test_planner": "unit",
     "test_presence": "unit",

@@ -28,7 +28,7 @@ from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.migration.ledger import Record, Records, read_ledger
 from cmion_mesh.migration.outgoing import INLINE
-from cmion_mesh.migration.sections import SectionStore
+from cmion_mesh.migration.sections import IncomingSection, SectionStore
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
@@ -246,14 +246,39 @@ def test_the_target_asks_for_what_it_lacks_and_checks_every_chunk(screen: tuple[
         answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [piece]))
         assert answer.status == "accepted", answer
     assert answer.value == {"stored": [big.sha256]}
-    stored = body.migration.records.sections.path(big.sha256)
-    assert hashlib.sha256(stored.read_bytes()).hexdigest() == big.sha256
-    # The small one travels inside the prepare; now it is accepted, and the companion commits.
+    # The small one travels inside the prepare; now it is accepted, and the companion commits. The
+    # section's fsync runs beside the prepare's way: it is on the disk, under its name, once the
+    # prepare is recorded (incoming).
     with_small = msgspec.structs.replace(prepare, sections=[packed.data[small.sha256]])
     accepted = to_screen(client, "prepare", with_small)
     assert accepted.status == "accepted", accepted
+    stored = body.migration.records.sections.path(big.sha256)
+    assert hashlib.sha256(stored.read_bytes()).hexdigest() == big.sha256
     assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
     assert body.inhabitant == "s" and body.migration.section("big") == "b" * (INLINE + 10)
+
+
+def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing(
+        screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
+    # A chunk's answer says the section arrived whole and right; its fsync runs beside the prepare's
+    # way, and the prepare records incoming only once it is durable: a sync that fails refuses it.
+    body, client = screen
+    packed = Identity("s", 1, {"big": "b" * (INLINE + 10)}).pack_sections()
+    big = next(r for r in packed.refs if r.component == "big")
+    prepare = Holder("s", "robot").prepare("screen", packed.manifest, "a1")
+    assert to_screen(client, "have", have(prepare)).status == "accepted"
+
+    def full(self: IncomingSection) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(IncomingSection, "settle", full)
+    answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen",
+                                                           [SectionChunk(big.sha256, 0, packed.data[big.sha256])]))
+    assert answer.status == "accepted" and answer.value == {"stored": [big.sha256]}
+    refused = to_screen(client, "prepare", prepare)
+    assert refused.status == "rejected" and "could not be stored: No space left on device" in refused.reason
+    assert body.migration is not None and body.migration.records.get("s") is None
+    assert body.migration.uploads.staged("a1", "robot") is None, "the upload ended: its sections are sent again"
 
 
 def test_a_stranger_cannot_fill_the_disk_with_sections(screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:

@@ -61,6 +61,39 @@ def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, me
         close(robot, screen)
 
 
+def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                          client: MeshClient) -> None:
+    # The target's token while it receives the companion is no claim, and the one after the commit
+    # is backed by the link the source signed: asking for them (a chain request, a signature and its
+    # check on both sides) in the middle of every migration cost both daemons time for nothing.
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    asked: list[tuple[str, str]] = []
+    try:
+        for embodiment in (robot, screen):
+            assert embodiment.migration is not None
+            claims = embodiment.migration.claims
+            answer = claims.on_chain
+            claims.on_chain = lambda request, msg, answer=answer, me=embodiment.name: (  # type: ignore[method-assign]
+                asked.append((me, request.requester)), answer(request, msg))
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        wait_for(lambda: screen.migration is not None and screen.migration.claims.backed("spirit") != [], 5,
+                 "the screen checked the robot's claim (a stranger's: asked)")
+        asked.clear()
+        client.migrate("spirit", "screen", timeout=20)
+        assert robot.migration is not None and screen.migration is not None
+        wait_for(lambda: [c.holder for c in robot.migration.claims.backed("spirit")] == ["screen"], 5,  # type: ignore[union-attr]
+                 "the robot backs the screen's claim")
+        backed = robot.migration.claims.backed("spirit")[0]
+        assert list(backed.chain) == Records(tmp_path / "screen").get("spirit").chain  # what the screen holds, link for link
+        assert client.migrate("spirit", "robot", timeout=20)["source"] == "screen"
+        wait_for(lambda: [c.holder for c in screen.migration.claims.backed("spirit")] == ["robot"], 5,  # type: ignore[union-attr]
+                 "the screen backs the robot's claim")
+        assert asked == [], f"chain requests between the two ends of a migration: {asked}"
+    finally:
+        close(robot, screen)
+
+
 class Badge(Component):
     """A component that gives its section straight from the ``MigrationStarting`` handler."""
 
@@ -92,6 +125,53 @@ def test_a_section_contributed_from_the_starting_handler_travels(network: Memory
         client.migrate("spirit", "screen", timeout=20)
         wait_for(lambda: screen_badge.received, 5, "the badge's section at the screen")
         assert screen_badge.received == [{"visits": 1}]
+    finally:
+        close(robot, screen)
+
+
+class Photo(Component):
+    """Gives a large section, new at every migration (an image taken just before leaving)."""
+
+    def __init__(self) -> None:
+        super().__init__("photo")
+        self.taken = 0
+
+    def attach(self, sim: Simulation) -> None:
+        sim.on_event(self._on_migration, component="migration", event="MigrationStarting")
+
+    def _on_migration(self, event: Event) -> None:
+        migration = self.sim.component("migration")
+        assert isinstance(migration, MigrationManager)
+        self.taken += 1
+        migration.contribute(self.name, str(self.taken) * 300_000)
+
+
+def test_a_new_large_section_follows_the_have_without_waiting_for_its_answer(
+        network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
+    # No target can hold a section new at the source: it goes right behind the have, before its
+    # answer is waited for (a round trip less).
+    robot = Embodiment("robot", mesh=mesh, transport=MemoryTransport(network, "robot"), state_dir=tmp_path / "robot",
+                       companion="spirit", components=[Photo()]).start()
+    screen = Embodiment("screen", mesh=mesh, transport=MemoryTransport(network, "screen"), state_dir=tmp_path / "screen",
+                        components=[Photo()]).start()
+    order: list[str] = []
+    try:
+        assert robot.migration is not None and screen.migration is not None
+        uploads = screen.migration.uploads
+        on_sections = uploads.on_sections
+        uploads.on_sections = lambda request, msg: (order.append("screen takes sections"),  # type: ignore[method-assign]
+                                                    on_sections(request, msg))
+        ask_later = robot.migration.ask_later
+
+        def asked(peer: str, op: str, message: Any) -> Any:
+            answer = ask_later(peer, op, message)
+            return lambda: (order.append(f"robot waits for the {op} answer"), answer())[1]
+
+        robot.migration.ask_later = asked  # type: ignore[method-assign]
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        client.migrate("spirit", "screen", timeout=20)
+        assert order == ["screen takes sections", "robot waits for the have answer"], order
+        assert screen.migration.section("photo") == "1" * 300_000
     finally:
         close(robot, screen)
 

@@ -28,6 +28,7 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
     "subscribe_batches": lambda t, k: t.subscribe_batches(k, lambda batch: None),
     "declare_queryable": lambda t, k: t.declare_queryable(k, lambda query: query.finish()),
     "get": lambda t, k: t.get(k, timeout=0.2),
+    "get_first": lambda t, k: t.get_first(k, timeout=0.2),
     "get_values": lambda t, k: t.get_values(k, timeout=0.2),
     "declare_token": lambda t, k: t.declare_token(k),
     "alive": lambda t, k: t.alive(k, timeout=0.2),
@@ -36,8 +37,8 @@ CALLS: dict[str, Callable[[Transport, str], object]] = {
 }
 #: The operations zenoh checks the key expression of (it lets a publication or delete on a
 #: wildcard through).
-CHECKED = ["subscribe", "subscribe_batches", "declare_queryable", "get", "get_values", "declare_token", "alive", "watch_liveliness",
-           "publish (drop)"]
+CHECKED = ["subscribe", "subscribe_batches", "declare_queryable", "get", "get_first", "get_values", "declare_token", "alive",
+           "watch_liveliness", "publish (drop)"]
 
 
 @pytest.fixture
@@ -141,3 +142,28 @@ def test_get_values_gives_the_ok_replies_by_key(any_transport: Transport) -> Non
     with any_transport.declare_queryable("cmion/t/values/**", answer):
         values = any_transport.get_values("cmion/t/values/**", timeout=5.0)
     assert values == {"cmion/t/values/a": b"later", "cmion/t/values/b": b"b"}
+
+
+def test_get_first_returns_the_first_reply_without_waiting_for_the_query_to_end(
+        zenoh_transport: ZenohTransport) -> None:
+    # A request has one replier: its answer is all the caller needs, and zenoh's final message (the
+    # query's end) follows the reply late enough to cost a migration about a millisecond per step.
+    release = threading.Event()
+    finished = threading.Event()
+
+    def answer(query: IncomingQuery) -> None:
+        query.reply("cmion/t/first", b"first")
+        release.wait(10.0)  # bounded: the test sets it once get_first has returned
+        query.reply("cmion/t/first", b"second")
+        query.finish()
+        finished.set()
+
+    with zenoh_transport.declare_queryable("cmion/t/first", answer):
+        try:
+            reply = zenoh_transport.get_first("cmion/t/first", b"q", timeout=10.0)
+            assert reply is not None and reply.ok and reply.payload == b"first"
+            assert not finished.is_set(), "get_first waited for the query's end"
+        finally:
+            release.set()
+        assert finished.wait(10.0)
+        assert zenoh_transport.get_first("cmion/t/nobody", timeout=0.5) is None

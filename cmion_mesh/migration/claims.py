@@ -20,7 +20,11 @@ Threads:
   custody and a signature by its head's key over a fresh nonce, verifies them, keeps the claims so
   backed (under ``_lock``) and posts what it found to the loop;
 * the loop answers ``chain`` requests (``on_chain``) and reads the claims (``backed``,
-  ``pending``, ``is_alive``: any thread may).
+  ``pending``, ``is_alive``: any thread may);
+* a source's handshake thread tells what it knows without asking (``receiving``, ``vouch``,
+  ``forget``): the tokens of the target it hands the companion to, at the epoch it receives it
+  (no claim) and the next (backed by the link this side signed), are not checked; asking cost a
+  chain request, a signature and its check on both sides in the middle of every migration.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from cmion_mesh.errors import OutcomeUnknown
 from cmion_mesh.messages import Code, MigrateChain
 from cmion_mesh.migration import custody, signing
 from cmion_mesh.migration.bounds import TokenBucket
+from cmion_mesh.migration.custody import Link
 from cmion_mesh.migration.handshake import Claim
 from cmion_mesh.migration.host import Host
 from cmion_mesh.migration.ledger import HOSTING
@@ -58,6 +63,8 @@ MAX_CLAIMS = 256
 #: answer a few times.
 CLAIM_TRIES = 4
 CLAIM_RETRY = 0.25
+#: Claims known without asking (``Claims.vouch``, ``receiving``) kept at most: two per handshake.
+MAX_KNOWN = 64
 
 ClaimKey = tuple[str, str, int]  # claimant, companion, epoch
 
@@ -170,6 +177,9 @@ class Claims:
         self._tokens: dict[str, set[tuple[str, int]]] = {}  # companion -> {(holder, epoch)}: hints (transport worker)
         self._backed: dict[str, dict[tuple[str, int], Claim]] = {}  # companion -> claims backed (claim checker)
         self._stood_down: set[ClaimKey] = set()  # claims of branch holders an operator retired: ignored
+        #: Claims known here without asking: of the target this embodiment hands a companion to (a
+        #: Claim, the chain it extended itself), or None while that target receives it (no claim).
+        self._known: dict[ClaimKey, Claim | None] = {}
         self._checker: ClaimChecker | None = None
         self._chain_buckets: dict[str, TokenBucket] = {}  # asker -> chain requests budget (loop)
         self._watches: list[Closeable] = []
@@ -218,6 +228,47 @@ class Claims:
             trusted = signing.decode_public(record.public_key)
         return trusted
 
+    # --- what this embodiment knows without asking (a handshake thread) -------------------------------
+
+    def receiving(self, holder: str, companion: str, epoch: int) -> None:
+        """``holder`` is about to receive ``companion`` from here at ``epoch``: its token at that epoch
+        is no claim (asked, it would answer "incoming"), so it is not checked."""
+        self._know((holder, companion, epoch), None)
+
+    def vouch(self, holder: str, companion: str, epoch: int, chain: list[Link]) -> None:
+        """This embodiment handed ``companion`` to ``holder`` (``chain`` ends with the link it signed):
+        ``holder``'s claim at ``epoch`` is backed by what this side did, not by asking it."""
+        self._know((holder, companion, epoch), Claim(holder, chain))
+
+    def forget(self, holder: str, companion: str) -> None:
+        """The handshake with ``holder`` ended without a commit: its claims on ``companion`` are
+        checked as anyone's again (a token already there is checked now)."""
+        with self._lock:
+            keys_ = [key for key in self._known if key[0] == holder and key[1] == companion]
+            for key in keys_:
+                del self._known[key]
+                self._backed.get(companion, {}).pop((holder, key[2]), None)
+            present = [key for key in keys_ if (holder, key[2]) in self._tokens.get(companion, ())]
+        checker = self._checker
+        for key in present:
+            if checker is not None:
+                checker.submit(key)
+
+    def _know(self, key: ClaimKey, claim: Claim | None) -> None:
+        holder, companion, epoch = key
+        with self._lock:
+            if len(self._known) >= MAX_KNOWN:
+                self._known.pop(next(iter(self._known)))  # bounded: the oldest handshake's go first
+            self._known[key] = claim
+            present = (holder, epoch) in self._tokens.get(companion, ())
+            if present and claim is not None:
+                self._backed.setdefault(companion, {})[(holder, epoch)] = claim
+        checker = self._checker
+        if present and checker is not None:
+            checker.withdraw(key)  # known now: no need to ask
+        if present and claim is not None:
+            self.host.post(self._on_backed)
+
     def retire(self, companion: str, holders: Iterable[str]) -> None:
         """Ignore the claims on ``companion`` of ``holders`` from now on: an operator retired their
         branches (their tokens may linger a moment)."""
@@ -247,14 +298,22 @@ class Claims:
                 logs.event(log, f"ignored custody token {key}: not <holder>/<companion>/<epoch>", level=logging.WARNING,
                            keyexpr=key)
             return
+        unknown = True
+        known: Claim | None = None
         with self._lock:
             tokens = self._tokens.setdefault(companion, set())
             if alive:
                 tokens.add((holder, epoch))
+                if (holder, companion, epoch) in self._known:
+                    unknown = False
+                    known = self._known[(holder, companion, epoch)]
+                    if known is not None:
+                        self._backed.setdefault(companion, {})[(holder, epoch)] = known
             else:
                 tokens.discard((holder, epoch))
                 self._backed.get(companion, {}).pop((holder, epoch), None)  # the token went: its claim goes
                 self._stood_down.discard((holder, companion, epoch))
+                self._known.pop((holder, companion, epoch), None)
                 if not tokens:
                     del self._tokens[companion]
                     self._backed.pop(companion, None)
@@ -263,6 +322,10 @@ class Claims:
             # A claim retried while its token was on its way out (a target that moved on to the next
             # epoch refuses to back the one before) would keep offers on this companion waiting.
             checker.withdraw((holder, companion, epoch))
+        if alive and not unknown:
+            if known is not None:
+                self.host.post(self._on_backed)
+            return
         if alive and holder != self.host.sim.embodiment and checker is not None and not checker.submit((holder, companion, epoch)):
             self._ignore(holder, companion, epoch, "too many claims are waiting to be checked")
 

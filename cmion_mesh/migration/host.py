@@ -64,12 +64,16 @@ class Host(Protocol):
     def post(self, fn: Callable[..., None], *args: Any) -> None:
         """Run ``fn(*args)`` on the loop (from any thread); dropped once the simulation closes."""
 
-    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> None:
-        """Run ``fn(*args)`` on a handshake thread of its own, joined at ``detach``."""
+    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> bool:
+        """Run ``fn(*args)`` on a handshake thread (``workers.Workers``), joined at ``detach``;
+        False (nothing runs) once the host is stopping."""
 
     def ask(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
         """Send the handshake request ``op`` to ``peer``'s migration component and wait for its
         answer (a handshake thread; ``OutcomeUnknown`` when none comes)."""
+
+    def ask_later(self, peer: str, op: str, message: Any) -> Callable[[], Outcome]:
+        """``ask`` in two steps: sent when this returns, answered by the function returned (once)."""
 
     def step(self, record: Record) -> None:
         """Raise ``MigrationStep`` for a durable record of a handshake (loop)."""

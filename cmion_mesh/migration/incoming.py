@@ -24,8 +24,9 @@ Threads:
 
 * the loop runs every request handler, the offers' wait for claims, activation, and the timer that
   drops an attempt at its bound (``_expire``);
-* one handshake thread per undecided attempt asks its source (``resolve_incoming``); it only reads
-  the records and posts what it learnt to the loop (``_settle``).
+* a handshake thread asks the source of an attempt left undecided (``resolve_incoming``: after a
+  restart, or once a timer on the loop finds it overdue); it only reads the records and posts what
+  it learnt to the loop (``_settle``).
 
 Log lines at info, one per step (fields ``companion``, ``peer`` (the source), ``epoch``,
 ``attempt``, ``step``): ``incoming`` (the prepare recorded), ``active`` (the companion arrived:
@@ -159,6 +160,11 @@ class Incoming:
             request.answer(decision.outcome)
             return
         assert decision.key is not None and decision.identity is not None and decision.manifest is not None
+        unsynced = self.uploads.settled(msg.attempt, msg.source)  # its sections durable before incoming names them
+        if unsynced:
+            self.uploads.end(msg.source, msg.attempt)
+            request.reject(f"{me!r} cannot take {msg.companion!r}: {unsynced}", Code.INVALID)
+            return
         # The sections it carried were sent because they are missing here, or damaged: written anew.
         incoming = host.records.put(msgspec.structs.replace(decision.record, since=time.time()), document=decision.document,
                                     sections=carried, key=decision.key, replace=True)
@@ -177,9 +183,16 @@ class Incoming:
                 host.memo.remember(ref.component, decision.sections[ref.sha256], ref.sha256,
                                    decision.identity.sections.get(ref.component))
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
-        # abort may be lost for good: once overdue, ask the source, as after a restart.
-        host.spawn(f"resolve-{msg.companion}", self.resolve_incoming, incoming, host.retry[1])
+        # abort may be lost for good: once overdue, ask the source, as after a restart. A timer on
+        # the loop rather than a thread waiting: nothing starts on the way to the commit.
+        host.sim.call_later(host.retry[1], functools.partial(self._overdue, incoming))
         self.expire_later(incoming)
+
+    def _overdue(self, record: Record) -> None:
+        """Loop: the attempt of ``record`` is still undecided a while after its prepare: ask its source."""
+        current = self.host.records.get(record.companion)
+        if current is not None and current.state == "incoming" and current.attempt == record.attempt:
+            self.host.spawn(f"resolve-{record.companion}", self.resolve_incoming, record)
 
     def _take_token(self, source: str) -> bool:
         bucket = self._buckets.setdefault(source, TokenBucket())
@@ -247,26 +260,29 @@ class Incoming:
         host = self.host
         before = host.records.get(active.companion)
         since = before.since or before.updated if before is not None and before.state == "incoming" else 0.0
-        active = host.records.put(active)
-        crash_point("target:active")
-        host.step(active)
-        log_step(f"companion {active.companion} arrived from {active.peer}", "active", active, active.peer,
-                 duration_s=round(max(0.0, time.time() - since), 4) if since else None)
         self.forks.clear()  # a frozen holder accepts no prepare: any evidence here was of a copy long gone
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
             identity = host.records.identity(active.companion, host.memo) or Identity(active.companion, active.epoch, {})
         identity.epoch = active.epoch
+        # The companion lives here from the commit on (the source's ``handed`` is the commit point):
+        # it wakes, and ``MigrationOccurred`` goes, before ``active`` is durable. A crash before it
+        # is leaves this side ``incoming``, which asks the source and hears "committed" (see
+        # ``handshake``); the commit is answered only once ``active`` is durable (in this update).
         host.inhabit(identity, "MigrationOccurred", f"arrived from {active.peer}")
+        active = host.records.put(active)
+        crash_point("target:active")
+        self.forks.check_conflict()  # inhabit's own look saw the record still incoming
+        host.step(active)
+        log_step(f"companion {active.companion} arrived from {active.peer}", "active", active, active.peer,
+                 duration_s=round(max(0.0, time.time() - since), 4) if since else None)
 
     # --- an attempt left undecided -------------------------------------------------------------------
 
-    def resolve_incoming(self, record: Record, overdue: float = 0.0) -> None:
+    def resolve_incoming(self, record: Record) -> None:
         """Handshake thread: ask the source until it says committed or aborted: after a restart in
-        ``incoming``, and ``overdue`` seconds after a prepare if neither a commit nor an abort has come."""
+        ``incoming``, and a while after a prepare if neither a commit nor an abort has come."""
         host = self.host
-        if overdue and host.stopping.wait(overdue):
-            return
         delay = host.retry[0]
         status = MigrateStatus(record.companion, record.attempt, record.epoch, "source")
         while not host.stopping.is_set():

@@ -275,8 +275,10 @@ class Records:
                     "fsyncs": FSYNCS.snapshot()}
 
     def get(self, companion: str) -> Record | None:
-        with self._lock:
-            return self._cache.get(companion)
+        # Without the lock: a handshake thread holds it through its append's fdatasync, and the loop
+        # reads records at every step (one dict read is atomic; a record is in the cache only once
+        # its entry is durable).
+        return self._cache.get(companion)
 
     def put(self, record: Record, document: bytes | None = None, sections: Mapping[str, Bytes] | None = None,
             key: bytes | None = None, *, replace: bool = False) -> Record:
@@ -349,13 +351,11 @@ class Records:
             self._replay(entry)
 
     def all(self) -> list[Record]:
-        with self._lock:
-            return list(self._cache.values())
+        return list(self._cache.copy().values())  # a copy is one atomic step: no lock (as ``get``)
 
     def hosting(self) -> Record | None:
         """The companion this embodiment holds (active, or in a handshake), if any."""
-        with self._lock:
-            held = [r for r in self._cache.values() if r.state in HOSTING]
+        held = [r for r in self._cache.copy().values() if r.state in HOSTING]
         return held[0] if held else None
 
     def document(self, companion: str) -> bytes | None:
@@ -452,8 +452,7 @@ class Records:
 
     def key(self, companion: str) -> bytes | None:
         """This embodiment's custody private key for ``companion`` (held while it hosts it)."""
-        with self._lock:
-            return self._keys.get(companion)
+        return self._keys.get(companion)  # no lock, as ``get``
 
 
 class Contents(msgspec.Struct, frozen=True):

@@ -94,8 +94,9 @@ from cmion_mesh.migration.incoming import INCOMING_TIMEOUT_ENV, Incoming, sent_b
 from cmion_mesh.migration.ledger import HOSTING, Record, Records
 from cmion_mesh.migration.outgoing import SECTION_DEADLINE, Outgoing, WaitToken
 from cmion_mesh.migration.uploads import MAX_UPLOAD, MAX_UPLOAD_ENV, UPLOAD_IDLE, UPLOAD_IDLE_ENV, Uploads
+from cmion_mesh.migration.workers import Workers
 from cmion_mesh.mind import Mind
-from cmion_mesh.requests import IncomingRequest, send_request
+from cmion_mesh.requests import IncomingRequest, send_request, send_request_later
 from cmion_mesh.storage import Store
 from cmion_mesh.transport.base import Closeable
 
@@ -143,8 +144,7 @@ class MigrationManager(Component):
         self.stopping = threading.Event()
         self.quiet = Quiet()
         self._token: Closeable | None = None  # this embodiment's custody claim (loop)
-        self._threads_lock = threading.Lock()
-        self._threads: list[threading.Thread] = []
+        self.workers = Workers("migration")
         # The parts; the claims tell the verdicts and the waiting offers what they found (on the loop).
         self.claims = Claims(self, on_backed=self._claim_backed, on_checked=self._claim_checked)
         self.forks = Forks(self, self.claims)
@@ -293,10 +293,7 @@ class MigrationManager(Component):
         self.claims.close()
         self.incoming.close()
         self.uploads.close()
-        with self._threads_lock:
-            threads, self._threads = self._threads, []
-        for thread in threads:
-            thread.join(10.0)
+        self.workers.close(10.0)
         self.withdraw_claim()
         identity = self.identity
         record = self.records.get(identity.companion) if identity is not None else None
@@ -318,12 +315,8 @@ class MigrationManager(Component):
 
     # --- what the parts share (``host.Host``) ------------------------------------------------------
 
-    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> None:
-        thread = threading.Thread(target=fn, args=args, name=f"migration-{name}", daemon=True)
-        with self._threads_lock:
-            self._threads = [t for t in self._threads if t.is_alive()]
-            self._threads.append(thread)
-        thread.start()
+    def spawn(self, name: str, fn: Callable[..., None], *args: Any) -> bool:
+        return self.workers.spawn(name, fn, *args)
 
     def post(self, fn: Callable[..., None], *args: Any) -> None:
         try:
@@ -334,6 +327,10 @@ class MigrationManager(Component):
     def ask(self, peer: str, op: str, message: Any, timeout: float | None = None) -> Outcome:
         key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
         return send_request(self.sim.transport, key, message, timeout=self.request_timeout if timeout is None else timeout)
+
+    def ask_later(self, peer: str, op: str, message: Any) -> Callable[[], Outcome]:
+        key = keys.request_key(self.sim.mesh, peer, "migration", op, self.sim.embodiment)
+        return send_request_later(self.sim.transport, key, message, timeout=self.request_timeout)
 
     def step(self, record: Record) -> None:
         # Loop thread. Each durable record of a handshake is one step a watcher (``cmion-mesh view``)

@@ -25,13 +25,13 @@ Threads:
 * the loop runs ``begin`` (the checks), ``contribute``/``wait``/``resolve``/``refuse``, the packing
   and every step that touches the inhabitant or raises an event (``_abandon``, ``_handed``,
   ``_released``, ``_taken_back``); ``departure`` is the loop's;
-* one handshake thread per attempt runs ``_send`` and then ``commit_until_acked`` (also after a
-  restart in ``handed``), and one per abort sent (``send_abort_later``): they touch only the
-  records (locked) and hand everything else to the loop (``Host.post``);
-* for a large identity, ``_send`` has one short-lived thread write this side's copy of the
-  sections, then the ``prepared`` record that names them, beside the ``have``, the chunks (two
-  send them) and the prepare itself; it is joined before the prepare's answer is acted on
-  (``handed`` comes after ``prepared``, always). A small one is recorded before the prepare.
+* a handshake thread (``Host.spawn``: reused workers) per attempt runs ``_send`` and then
+  ``commit_until_acked`` (also after a restart in ``handed``), and one per abort sent
+  (``send_abort_later``): they touch only the records (locked) and hand everything else to the
+  loop (``Host.post``);
+* ``_send`` has another write this side's copy of the sections, then the ``prepared`` record that
+  names them, beside the ``have``, the chunks (two send them) and the prepare itself; it is waited
+  for before the prepare's answer is acted on (``handed`` comes after ``prepared``, always).
 
 ``start``, ``contribute``, ``resolve`` and ``refuse`` may be called from any thread.
 
@@ -274,6 +274,7 @@ class Outgoing:
 
     def _abandon(self, out: Departure, reason: str) -> None:
         self.departure = None
+        self.claims.forget(out.target, out.companion)
         log_step(f"migration of {out.companion} to {out.target} aborted: {reason}", "aborted", out.companion, out.target,
                  out.epoch, out.attempt, reason=reason)
         self.host.raise_event("MigrationFailed", {"companion": out.companion, "target": out.target, "attempt": out.attempt,
@@ -301,6 +302,7 @@ class Outgoing:
     def _send(self, out: Departure, identity: Identity) -> None:
         """Handshake thread: pack, send what the target lacks, prepare, then (once handed) commit."""
         host = self.host
+        known = set(host.memo.held())  # sections packed or received here before: a target may hold them
         try:
             packed = identity.pack_sections(host.memo)
         except (MeshError, ValueError) as exc:
@@ -317,45 +319,47 @@ class Outgoing:
         out.transfer = {"sent": 0, "total": packed.size, "sections": len(refs), "sections_sent": 0}
         stored: list[BaseException] = []
         written: list[Record] = []
+        done = threading.Event()
 
         def store() -> None:
             # This side's copy, written while the target receives its own; then, once the sections
             # are on disk, the prepared record that names them, still while the chunks (or the
             # prepare itself) travel: a crash from here on is the crash at source:prepared (never
-            # handed: the source resumes). It is joined before anything acts on the prepare's answer.
+            # handed: the source resumes). It is waited for before anything acts on the prepare's answer.
             try:
-                written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
-            except OSError as exc:
-                stored.append(exc)
-                return
-            crash_point("source:prepared")
-            host.post(host.step, written[0])
-            log_prepared(written[0])
+                try:
+                    written.append(host.records.put(prepared, document=packed.manifest, sections=packed.data))
+                except OSError as exc:
+                    stored.append(exc)
+                    return
+                crash_point("source:prepared")
+                host.post(host.step, written[0])  # before handed's, which waits for this
+                log_prepared(written[0])
+            finally:
+                done.set()
 
-        bulk_transfer = sum(ref.size for ref in refs) > INLINE
-        writer = threading.Thread(target=store, name=f"migration-store-{out.companion}", daemon=True)
-        if bulk_transfer:
-            writer.start()  # from now on, beside have, the chunks and the prepare
-        else:
-            # Nothing to overlap but the prepare's round trip: one append (the sections inside it)
-            # costs less than the writer thread holding the GIL while zenoh hands the prepare over.
-            writer.run()
+        # On a worker of its own from now on, beside have, the chunks and the prepare (for a small
+        # identity, beside the prepare's round trip): the append's fdatasync is off the critical path.
+        if not host.spawn(f"store-{out.companion}", store):
+            store()  # stopping: no worker takes jobs any more
+        self.claims.receiving(out.target, out.companion, out.epoch)
         try:
             inline = refs
-            if bulk_transfer:
-                inline, bulk = self._ask_have(out, message, refs)
+            if sum(ref.size for ref in refs) > INLINE:
+                # A large section new here since the last packing is at no target: it follows the
+                # have at once rather than after its answer (a round trip less).
+                early = [ref for ref in refs if ref.sha256 not in known and ref.size > INLINE]
+                inline, bulk = self._ask_have(out, message, refs, packed, early)
                 self._send_bulk(out, message, packed, bulk)
         except (_Refused, OutcomeUnknown) as exc:
-            if bulk_transfer:
-                writer.join()
+            done.wait()
             why = f"{out.target} refused: {exc}" if isinstance(exc, _Refused) else f"outcome unknown ({exc})"
             if written:  # active again; the prepare was never sent, so the target holds nothing of this attempt
                 host.records.put(handshake.resume(written[0]))
             host.post(self._abandon, out, f"{why}; the companion stays here")
             return
         reply, unknown = self._prepare(out, message, packed, inline)
-        if bulk_transfer:
-            writer.join()  # prepared is durable before anything acts on the answer (handed comes after it)
+        done.wait()  # prepared is durable before anything acts on the answer (handed comes after it)
         if stored or not written:
             # Nothing here names the attempt (this side stays active): the target may hold it
             # incoming, so it is told; asked, this side would answer "aborted" anyway.
@@ -376,6 +380,8 @@ class Outgoing:
             return
         handed = host.records.put(after)
         crash_point("source:handed")
+        assert handed.link is not None
+        self.claims.vouch(handed.peer, handed.companion, handed.link.epoch, [*handed.chain, handed.link])
         host.post(host.step, handed)
         log_step(f"companion {handed.companion} handed to {handed.peer}", "handed", handed.companion, handed.peer,
                  handed.epoch, handed.attempt)
@@ -413,22 +419,34 @@ class Outgoing:
             inline = wanted
             if sum(ref.size for ref in wanted) > INLINE:
                 try:
-                    inline, bulk = self._ask_have(out, message, wanted)
+                    inline, bulk = self._ask_have(out, message, wanted, packed)
                     self._send_bulk(out, message, packed, bulk)
                 except (_Refused, OutcomeUnknown) as exc:
                     unknown = str(exc)
                     break
         return reply, unknown
 
-    def _ask_have(self, out: Departure, message: MigratePrepare,
-                  refs: list[SectionRef]) -> tuple[list[SectionRef], list[SectionRef]]:
+    def _ask_have(self, out: Departure, message: MigratePrepare, refs: list[SectionRef], packed: Packed,
+                  early: list[SectionRef] | None = None) -> tuple[list[SectionRef], list[SectionRef]]:
         """``have``: of the sections the target lacks, the small ones (at most ``INLINE`` bytes
-        together), for the prepare to carry, and the others, to send apart (``_send_bulk``)."""
-        reply = self.host.ask(out.target, "have", handshake.have(message))
+        together), for the prepare to carry, and the others, to send apart (``_send_bulk``).
+        ``early``: sections sent right behind the have, before its answer (the target takes chunks
+        in order after it); those it took are not among the others."""
+        answer = self.host.ask_later(out.target, "have", handshake.have(message))
+        taken: set[str] = set()
+        if early:
+            try:
+                self._send_bulk(out, message, packed, early)
+                taken = {ref.sha256 for ref in early}
+            except (_Refused, OutcomeUnknown) as exc:
+                # The have waited (claims on the companion being checked), or was refused: they
+                # go again once it is answered, or the refusal below says why.
+                log.debug("sections sent behind the have of %s not taken yet: %s", out.attempt, exc)
+        reply = answer()
         if reply.status != "accepted":
             raise _Refused(reply.reason)
         value = reply.value if isinstance(reply.value, dict) else {}
-        held = set(value.get("have") or [])
+        held = set(value.get("have") or []) | taken
         missing = sorted((ref for ref in refs if ref.sha256 not in held), key=lambda r: r.size)
         inline: list[SectionRef] = []
         budget = INLINE
@@ -450,7 +468,6 @@ class Outgoing:
                     size = 0
                 batches[-1].append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
                 size += len(piece)
-            out.transfer["sections_sent"] += 1
         batches = [b for b in batches if b]
         if len(batches) > 1:
             # Two requests in flight: the target checks and writes one while the next is on its way.
@@ -460,6 +477,7 @@ class Outgoing:
         elif batches:
             self._send_chunks(out, message, batches[0])
         out.transfer["sent"] += sum(len(c.data) for batch in batches for c in batch)
+        out.transfer["sections_sent"] += len(missing)
 
     def _send_chunks(self, out: Departure, message: MigratePrepare, chunks: list[SectionChunk]) -> None:
         request = MigrateSections(message.companion, message.attempt, message.source, message.target, chunks)
@@ -543,6 +561,7 @@ class Outgoing:
     def _taken_back(self, record: Record, handed: Record, why: str) -> None:
         out = self.departure
         self.departure = None
+        self.claims.forget(handed.peer, record.companion)
         reason = f"migration of {record.companion!r} to {why}; the companion resumes here"
         log_step(f"migration of {record.companion} to {handed.peer} aborted: {why}", "aborted", record.companion,
                  handed.peer, handed.epoch, handed.attempt, reason=why)

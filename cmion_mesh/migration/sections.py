@@ -389,7 +389,9 @@ class IncomingSection:
     do. ``add`` does not wait for the write: the caller (the loop) takes the next chunk, or other
     requests, meanwhile; a write that failed is said at the next ``add`` or at ``finish``.
     ``finish`` waits for the writes, checks the hash, fsyncs and gives the file its name; the bytes
-    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and thread)."""
+    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and thread); a caller
+    that makes it durable later (on a thread of its own) finishes with ``settle=False`` and then
+    calls ``settle``."""
 
     def __init__(self, store: SectionStore, ref: SectionRef) -> None:
         self.store = store
@@ -453,9 +455,10 @@ class IncomingSection:
         except (AttributeError, OSError):
             pass
 
-    def finish(self) -> str:
-        """Once complete: "" with the section stored under its name (fsync; the folder is the
-        caller's to fsync), or why not (its bytes hash to something else: nothing is kept)."""
+    def finish(self, *, settle: bool = True) -> str:
+        """Once complete: "" with the bytes checked and at hand (``data``) and, unless ``settle`` is
+        False, the section stored under its name (``settle``: fsync; the folder is the caller's to
+        fsync); or why not (its bytes hash to something else: nothing is kept)."""
         digest = self._hasher.hexdigest()
         if digest != self.ref.sha256:
             self.abandon()
@@ -468,23 +471,34 @@ class IncomingSection:
         except OSError:
             self.abandon()
             raise
+        chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
+        self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
+        self._chunks.clear()
+        if settle:
+            self.settle()
+        return ""
+
+    def settle(self) -> None:
+        """After ``finish(settle=False)``, on any thread: fsync the section and give it its name (the
+        folder is the caller's to fsync). ``OSError`` if it cannot: nothing of it is kept."""
         assert self._fd is not None
         fd, self._fd = self._fd, None
         try:
             fsync_file(fd)
+            try:
+                replaced = self._path.stat().st_size
+            except FileNotFoundError:
+                replaced = 0
+            os.replace(self._tmp, self._path)
+        except OSError:
+            self._tmp.unlink(missing_ok=True)
+            written, self._written = self._written, 0
+            self.store._added(0, receiving=-written)
+            raise
         finally:
             os.close(fd)
-        try:
-            replaced = self._path.stat().st_size
-        except FileNotFoundError:
-            replaced = 0
-        os.replace(self._tmp, self._path)
         written, self._written = self._written, 0
         self.store._added(self.ref.size - replaced, receiving=-written)
-        chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
-        self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
-        self._chunks.clear()
-        return ""
 
     def _stop_writer(self) -> None:
         writer, self._writer = self._writer, None

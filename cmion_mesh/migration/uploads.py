@@ -5,8 +5,11 @@ For a large identity the source first sends ``have`` (its custody checked as for
 ``incoming``); the target answers which sections of the manifest it holds already (each read and
 checked against its hash: a damaged one is missing, and fetched again), and the others arrive as
 raw bytes in ``migrate_sections`` chunks. The target answers each chunk once what it completed is
-checked and on its disk. The prepare then finds its sections inside it, in its sender's upload or
-on this disk (``sections_for``).
+checked against its hash; the fsync that makes a completed section durable runs on a handshake
+thread meanwhile (``settled`` waits for it: the prepare records ``incoming`` only after it), so
+that syncing a large section overlaps the prepare's way here and its checks rather than coming
+before them. The prepare then finds its sections inside it, in its sender's upload or on this
+disk (``sections_for``).
 
 A target holds one upload (``have`` and its sections) per sender, at most ``MAX_UPLOADS``. Every
 byte received counts, before it is written, against what one sender may upload ahead of its
@@ -16,7 +19,8 @@ never becomes a prepare is deleted when its sender's next ``have`` replaces it, 
 refused or aborted, and once idle for ``UPLOAD_IDLE`` seconds.
 
 Threads: all of it runs on the loop (request handlers and the timer that expires idle uploads);
-each section being received writes its chunks on a thread of its own (``sections.IncomingSection``).
+each section being received writes its chunks on a thread of its own (``sections.IncomingSection``),
+and completed sections are synced on a handshake thread (``Host.spawn``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 from cmion_mesh.messages import Code, MigrateHave, MigratePrepare, MigrateSections
@@ -63,6 +68,8 @@ class Upload:
     partial: dict[str, IncomingSection] = field(default_factory=dict)
     stored: set[str] = field(default_factory=set)  # sections this upload wrote: deleted if no prepare names them
     received: int = 0  # bytes of this upload written to disk (partial sections included)
+    settling: list[Future[None]] = field(default_factory=list)  # completed sections being synced
+    unsynced: list[str] = field(default_factory=list)  # why some of them could not be (a prepare is refused)
     last: float = field(default_factory=time.monotonic)  # when it last took a chunk (or began)
 
     def abandon(self) -> None:
@@ -100,6 +107,8 @@ class Uploads:
         host = self.host
         upload = Upload(msg.attempt, msg.source, {ref.sha256: ref for ref in manifest.refs})
         store = host.records.sections
+        for staged in self._uploads.values():
+            _wait(staged)  # what they completed has its name before this one looks for what is here
         found, errors = store.read_many((ref for ref in upload.refs.values() if store.holds(ref)), host.memo.held())
         for error in errors.values():
             log.warning("%s; fetching it again from %s", error, msg.source)
@@ -136,6 +145,7 @@ class Uploads:
                            "sections are sent after it", Code.NOT_FOUND)
             return
         complete: list[str] = []
+        settle: list[IncomingSection] = []
         problems: list[str] = []
         refusals: list[str] = []
         store = self.host.records.sections
@@ -159,22 +169,51 @@ class Uploads:
             problem = incoming.add(chunk.offset, chunk.data, room)
             if not problem and incoming.complete:
                 del upload.partial[chunk.sha256]
-                problem = incoming.finish()  # replaces a damaged file of that name, if any
+                problem = incoming.finish(settle=False)  # synced below, beside what follows
                 if not problem:
                     upload.data[chunk.sha256] = incoming.data
                     upload.stored.add(chunk.sha256)
                     complete.append(chunk.sha256)
+                    settle.append(incoming)
             if problem:
                 problems.append(problem if refusals else f"section {ref.component!r} of {msg.companion!r}: {problem}")
                 break
-        if complete:
-            store.sync()
+        if settle:
+            upload.settling.append(self._settle(settle))
         if problems:
             request.reject("; ".join(problems), Code.BUSY if refusals and refusals[-1].startswith("busy") else Code.INVALID)
         else:
             upload.last = time.monotonic()  # only chunks it takes keep an upload alive
             request.accept({"stored": sorted(complete)})
         log.debug("sections of attempt %s: %d stored", msg.attempt, len(complete))
+
+    def _settle(self, sections: list[IncomingSection]) -> Future[None]:
+        """Sync ``sections`` (each given its name replaces a damaged file of that name, if any) and
+        then the folder, on a handshake thread; the future says when they are durable."""
+        done: Future[None] = Future()
+        store = self.host.records.sections
+
+        def settle() -> None:
+            try:
+                for incoming in sections:
+                    incoming.settle()
+                store.sync()
+            except BaseException as exc:  # said by ``settled``, to the prepare that needs them
+                done.set_exception(exc)
+            else:
+                done.set_result(None)
+
+        if not self.host.spawn("settle-sections", settle):
+            settle()  # stopping: no worker takes jobs any more
+        return done
+
+    def settled(self, attempt: str, source: str) -> str:
+        """Wait until the sections ``source``'s upload of ``attempt`` completed are durable: "" once
+        they are (or there is no such upload), else why not."""
+        upload = self.staged(attempt, source)
+        if upload is None:
+            return ""
+        return _wait(upload)
 
     def sections_for(self, msg: MigratePrepare, carried: dict[str, Bytes]) -> handshake.SectionSource:
         """Where a prepare's sections are: inside it (those used are put in ``carried``), staged since
@@ -221,6 +260,7 @@ class Uploads:
 
     def _end(self, upload: Upload, *, prepared: bool = False) -> None:
         upload.abandon()
+        _wait(upload)  # a section still being named would come back after its deletion
         records = self.host.records
         store = records.sections
         if self._uploads.get(upload.source) is None:
@@ -258,3 +298,14 @@ class Uploads:
                     f"from {upload.source!r} are refused; try again later")
         upload.received += size
         return ""
+
+
+def _wait(upload: Upload) -> str:
+    """Wait for the syncs of ``upload``'s completed sections: "" once all are durable, else why not."""
+    settling, upload.settling = upload.settling, []
+    for done in settling:
+        try:
+            done.result()
+        except OSError as exc:
+            upload.unsynced.append(f"a section received could not be stored: {exc.strerror or exc}")
+    return "; ".join(upload.unsynced)

@@ -204,6 +204,17 @@ class Transport(Protocol):
         unknown, not success. Blocks until every replier finished, ``timeout`` or ``cancel``; a
         caller that must stay responsive meanwhile runs it on a thread of its own."""
 
+    def get_first(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Reply | None:
+        """Query meant for one replier (a request to one component): the first reply, as soon as it
+        comes, without waiting for the query's end (zenoh's final message follows a reply by about
+        half a millisecond); None when nobody answered within ``timeout``: outcome unknown."""
+
+    def get_first_later(self, selector: str, payload: bytes | None = None, *,
+                        timeout: float = 10.0) -> Callable[[], Reply | None]:
+        """``get_first`` in two steps: the query is sent when this returns (so that what the caller
+        sends next goes after it), and the function returned waits for its first reply (call it
+        once)."""
+
     def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
         """Query with no payload; the payloads of the ok replies by key (of two for one key, the later
         one), error replies left out. What a read of many keys takes: no record per reply (a read of

@@ -222,6 +222,19 @@ class MemoryTransport:
 
     def get(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0,
             attachment: bytes | None = None, cancel: QueryCancel | None = None) -> list[Reply]:
+        replies, dones = self._send_query(selector, payload, attachment)
+        if cancel is not None:
+            def finish_all() -> None:
+                for done in dones:
+                    done.set()
+
+            cancel.on_cancel(finish_all)
+        for done in dones:
+            done.wait(timeout)
+        return list(replies)
+
+    def _send_query(self, selector: str, payload: bytes | None,
+                    attachment: bytes | None = None) -> tuple[list[Reply], list[threading.Event]]:
         self._check()
         key = selector.split("?")[0]
         with self.net.lock:
@@ -232,15 +245,22 @@ class MemoryTransport:
             done = threading.Event()
             worker.queue.put(_MemQuery(selector, payload, replies, done, attachment))
             dones.append(done)
-        if cancel is not None:
-            def finish_all() -> None:
-                for done in dones:
-                    done.set()
+        return replies, dones
 
-            cancel.on_cancel(finish_all)
-        for done in dones:
-            done.wait(timeout)
-        return list(replies)
+    def get_first(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Reply | None:
+        replies = self.get(selector, payload, timeout=timeout)
+        return replies[0] if replies else None
+
+    def get_first_later(self, selector: str, payload: bytes | None = None, *,
+                        timeout: float = 10.0) -> Callable[[], Reply | None]:
+        replies, dones = self._send_query(selector, payload)
+
+        def first() -> Reply | None:
+            for done in dones:
+                done.wait(timeout)
+            return replies[0] if replies else None
+
+        return first
 
     def get_values(self, selector: str, *, timeout: float = 10.0) -> dict[str, bytes]:
         return {key: payload for key, payload, ok, _ in self.get(selector, timeout=timeout) if ok}

@@ -413,6 +413,33 @@ class ZenohTransport:
             raise _mapped(f"query {selector}", exc, self._closed) from None
         return out
 
+    def get_first(self, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Reply | None:
+        return self.get_first_later(selector, payload, timeout=timeout)()
+
+    def get_first_later(self, selector: str, payload: bytes | None = None, *,
+                        timeout: float = 10.0) -> Callable[[], Reply | None]:
+        if self._closed:
+            raise ClosedError(f"query {selector}: the transport is closed")
+        concrete = "*" not in selector and "$" not in selector and "?" not in selector
+        try:
+            replies = self._session.get(selector, payload=payload, timeout=timeout, target=_ALL, consolidation=_NONE)
+        except zenoh.ZError as exc:
+            raise _mapped(f"query {selector}", exc, self._closed) from None
+
+        def first() -> Reply | None:
+            try:
+                for reply in replies:
+                    ok = reply.ok
+                    if ok is not None:
+                        return Reply(selector if concrete else str(ok.key_expr), ok.payload.to_bytes(), True)
+                    err = reply.err
+                    return Reply(selector, err.payload.to_bytes() if err is not None else b"", False)
+            except zenoh.ZError as exc:
+                raise _mapped(f"query {selector}", exc, self._closed) from None
+            return None  # the handler's channel goes with it: later replies are dropped by zenoh
+
+        return first
+
     def _get_attached(self, selector: str, payload: bytes | None, timeout: float, attachment: bytes | None,
                       cancel: QueryCancel | None) -> list[Reply]:
         """``get`` with an attachment or a cancel, the replies' attachments kept (ROS 2 services:
