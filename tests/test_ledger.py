@@ -240,6 +240,7 @@ def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, m
     try:
         wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
         assert robot.migration is not None and screen.migration is not None
+        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
         appends = robot.migration.records.journal.appends, screen.migration.records.journal.appends
         client.migrate("spirit", "screen", timeout=20)
         wait_for(lambda: robot.migration is not None and robot.migration.records.get("spirit") is not None

@@ -80,6 +80,7 @@ def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork
         wait_for(lambda: screen.migration is not None and screen.migration.claims.backed("spirit") != [], 5,
                  "the screen checked the robot's claim (a stranger's: asked)")
         asked.clear()
+        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
         client.migrate("spirit", "screen", timeout=20)
         assert robot.migration is not None and screen.migration is not None
         wait_for(lambda: [c.holder for c in robot.migration.claims.backed("spirit")] == ["screen"], 5,  # type: ignore[union-attr]
@@ -169,6 +170,7 @@ def test_a_new_large_section_follows_the_have_without_waiting_for_its_answer(
 
         robot.migration.ask_later = asked  # type: ignore[method-assign]
         wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
         client.migrate("spirit", "screen", timeout=20)
         assert order == ["screen takes sections", "robot waits for the have answer"], order
         assert screen.migration.section("photo") == "1" * 300_000
