@@ -79,11 +79,9 @@ def request_of(key: str) -> str:
     return parts[-1]
 
 
-def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
-    """``ZenohTransport.get`` with the ``session.get()`` call and the wait for replies timed apart."""
+def _timed_session_get(self: Any, selector: str, payload: bytes | None, timeout: float) -> tuple[str, int, Any]:
+    """The ``session.get()`` call of a ``ZenohTransport`` query, timed: (what, when it returned, replies)."""
     import zenoh
-
-    from cmion_mesh.transport.base import Reply
 
     what = request_of(selector)
     t0 = time.perf_counter_ns()
@@ -91,42 +89,42 @@ def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeo
                                 consolidation=zenoh.ConsolidationMode.NONE)
     t1 = time.perf_counter_ns()
     _emit(f"zenoh:session.get() call:{what}", t0, t1 - t0)
-    out: list[Reply] = []
+    return what, t1, replies
+
+
+def _reply(selector: str, reply: Any) -> Any:
+    from cmion_mesh.transport.base import Reply
+
+    ok = reply.ok
+    if ok is not None:
+        return Reply(str(ok.key_expr), ok.payload.to_bytes(), True)
+    err = reply.err
+    return Reply(selector, err.payload.to_bytes() if err is not None else b"", False)
+
+
+def _traced_get(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
+    """``ZenohTransport.get`` with the ``session.get()`` call and the wait for replies timed apart."""
+    what, t1, replies = _timed_session_get(self, selector, payload, timeout)
+    out: list[Any] = []
     for reply in replies:
-        ok = reply.ok
         if not out:
-            t2 = time.perf_counter_ns()
-            _emit(f"zenoh:get -> first reply:{what}", t1, t2 - t1)
-        if ok is not None:
-            out.append(Reply(str(ok.key_expr), ok.payload.to_bytes(), True))
-        else:
-            err = reply.err
-            out.append(Reply(selector, err.payload.to_bytes() if err is not None else b"", False))
-    t3 = time.perf_counter_ns()
-    _emit(f"zenoh:get -> final:{what}", t1, t3 - t1)
+            _emit(f"zenoh:get -> first reply:{what}", t1, time.perf_counter_ns() - t1)
+        out.append(_reply(selector, reply))
+    _emit(f"zenoh:get -> final:{what}", t1, time.perf_counter_ns() - t1)
     return out
 
 
-def _traced_get_first(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
-    """``ZenohTransport.get_first`` with the ``session.get()`` call and the wait for the reply timed apart."""
-    import zenoh
+def _traced_get_first_later(self: Any, selector: str, payload: bytes | None = None, *, timeout: float = 10.0) -> Any:
+    """``ZenohTransport.get_first_later`` with the ``session.get()`` call and the wait for the reply timed apart."""
+    what, t1, replies = _timed_session_get(self, selector, payload, timeout)
 
-    from cmion_mesh.transport.base import Reply
+    def first() -> Any:
+        for reply in replies:
+            _emit(f"zenoh:get -> first reply:{what}", t1, time.perf_counter_ns() - t1)
+            return _reply(selector, reply)
+        return None
 
-    what = request_of(selector)
-    t0 = time.perf_counter_ns()
-    replies = self._session.get(selector, payload=payload, timeout=timeout, target=zenoh.QueryTarget.ALL,
-                                consolidation=zenoh.ConsolidationMode.NONE)
-    t1 = time.perf_counter_ns()
-    _emit(f"zenoh:session.get() call:{what}", t0, t1 - t0)
-    for reply in replies:
-        _emit(f"zenoh:get -> first reply:{what}", t1, time.perf_counter_ns() - t1)
-        ok = reply.ok
-        if ok is not None:
-            return Reply(selector, ok.payload.to_bytes(), True)
-        err = reply.err
-        return Reply(selector, err.payload.to_bytes() if err is not None else b"", False)
-    return None
+    return first
 
 
 def install() -> None:
@@ -166,7 +164,7 @@ def install() -> None:
     wrap(custody, "verify_chain", "verify custody chain")
     wrap(migration, "send_request", request_label)
     wrap(zenoh_transport.ZenohTransport, "alive", "liveliness_get(target alive?)")
-    zenoh_transport.ZenohTransport.get_first = _traced_get_first  # type: ignore[method-assign]
+    zenoh_transport.ZenohTransport.get_first_later = _traced_get_first_later  # type: ignore[method-assign]
     zenoh_transport.ZenohTransport.get = _traced_get  # type: ignore[method-assign]
     wrap(ion.Simulation, "_on_query",
          lambda _sim, component, query: f"on a worker:query {request_of(query.key)}")

@@ -420,28 +420,30 @@ def test_a_body_serving_no_page_loads_no_web_server() -> None:
 def test_a_daemon_starts_without_the_modules_of_paths_it_may_never_take() -> None:
     # Each is milliseconds of every start (hashlib: OpenSSL, 3.5 MiB): taken when a companion is
     # hashed, a settings file read, systemd notified, a line spoken, a page's key made.
-    probe = ("import sys\n"
-             "import cmion_mesh.cli.main as cli\n"
-             "cli.build_parser('up').parse_args(['up', 'robot'])\n"
-             "import cmion_mesh.cli.daemon, cmion_mesh.body.embodiment, cmion_mesh.migration.manager, cmion_mesh.ops.systemd, "
-             "cmion_mesh.web.competencies\n"
-             "print(sorted(m for m in ('hashlib', 'secrets', 'random', 'socket', 'tomllib', 'subprocess') if m in sys.modules))\n")
-    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
-    assert ast.literal_eval(result.stdout.strip()) == []
+    assert loaded_after("import cmion_mesh.cli.main as cli\n"
+                        "cli.build_parser('up').parse_args(['up', 'robot'])\n"
+                        "import cmion_mesh.cli.daemon, cmion_mesh.body.embodiment, cmion_mesh.migration.manager, "
+                        "cmion_mesh.ops.systemd, cmion_mesh.web.competencies\n",
+                        ("hashlib", "secrets", "random", "socket", "tomllib", "subprocess")) == []
 
 
 def test_a_companions_birth_loads_one_openssl_and_no_key_serialization() -> None:
     # Hashing and signing both go through cryptography, which carries its own OpenSSL: hashlib would
     # load the system's beside it (3.3 MiB resident), serialization 32 modules for raw key bytes.
-    probe = ("import sys\n"
-             "from cmion_mesh.migration import custody, signing\n"
-             "from cmion_mesh.migration.identity import Identity\n"
-             "packed = Identity('spirit', 1, {'mind': {'mood': 1}}).pack_sections()\n"
-             "link = custody.birth('spirit', 'robot', signing.new_key(), packed.manifest)\n"
-             "assert signing.valid(link.public_key, link.signed_bytes(), link.signature)\n"
-             "print(sorted(m for m in ('hashlib', 'cryptography.hazmat.primitives.serialization') if m in sys.modules))\n")
+    assert loaded_after("from cmion_mesh.migration import custody, signing\n"
+                        "from cmion_mesh.migration.identity import Identity\n"
+                        "packed = Identity('spirit', 1, {'mind': {'mood': 1}}).pack_sections()\n"
+                        "link = custody.birth('spirit', 'robot', signing.new_key(), packed.manifest)\n"
+                        "assert signing.valid(link.public_key, link.signed_bytes(), link.signature)\n",
+                        ("hashlib", "cryptography.hazmat.primitives.serialization")) == []
+
+
+def loaded_after(code: str, modules: tuple[str, ...]) -> list[str]:
+    """Which of ``modules`` a fresh interpreter has loaded once it ran ``code``."""
+    probe = f"import sys\n{code}print(sorted(m for m in {modules!r} if m in sys.modules))\n"
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
-    assert ast.literal_eval(result.stdout.strip()) == []
+    found: list[str] = ast.literal_eval(result.stdout.strip())
+    return found
 
 
 def test_one_set_of_exit_codes() -> None:
