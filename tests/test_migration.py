@@ -11,7 +11,7 @@ import pytest
 
 from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
-from cmion_mesh.errors import NotAlive, RequestRejected
+from cmion_mesh.errors import MeshError, NotAlive, RequestRejected
 from cmion_mesh.ion import Component, Simulation
 from cmion_mesh.messages import Event, MigrateAbort, MigrateCommit, MigratePrepare, MigrateStatus, MindMessage, Outcome, SetPolicy
 from cmion_mesh.migration import custody, signing
@@ -91,6 +91,36 @@ def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork
         wait_for(lambda: [c.holder for c in screen.migration.claims.backed("spirit")] == ["robot"], 5,  # type: ignore[union-attr]
                  "the screen backs the robot's claim")
         assert asked == [], f"chain requests between the two ends of a migration: {asked}"
+    finally:
+        close(robot, screen)
+
+
+def test_a_target_that_cannot_record_active_never_runs_the_companion(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                                     client: MeshClient) -> None:
+    # ``active`` is durable before the companion wakes at the target: woken first, a write that
+    # failed would leave it running there on a record still incoming, which the source then
+    # aborts, and resumes: two hosts.
+    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
+    screen = body(network, mesh, "screen", tmp_path).start()
+    try:
+        assert robot.migration is not None and screen.migration is not None
+        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
+        records = screen.migration.records
+        put = records.put
+
+        def full(record: Any, *args: Any, **kwargs: Any) -> Any:
+            if record.state == "active":
+                raise OSError(28, "No space left on device")
+            return put(record, *args, **kwargs)
+
+        records.put = full  # type: ignore[method-assign]
+        with pytest.raises(MeshError):
+            client.migrate("spirit", "screen", timeout=20)
+        wait_for(lambda: robot.inhabitant == "spirit", 20, "spirit back on the robot")
+        screen_mind = screen.minds[0]
+        assert screen.inhabitant is None and screen.migration.identity is None
+        assert not screen_mind.awake and screen_mind.arrivals == [], "the companion never ran on the screen"
     finally:
         close(robot, screen)
 

@@ -51,14 +51,12 @@ commit, arriving after the drop, is refused (T holds no incoming attempt), it as
 that commit nor a replayed prepare of the attempt ever revives it.
 
 **Durable points, and what may overlap them.** Each durable step is one entry appended to the
-ledger and synced (``ledger``, ``journal``): on the critical path in sequence are only T
-``incoming`` (after T has synced the sections and document it names) and S ``handed`` (the commit
-point). S's ``prepared`` is written beside the transfer (the ``have``, the sections and the
-prepare itself), not before it; S acts on the prepare's answer only once ``prepared`` is durable,
-so ``handed`` still comes after it. T's ``active`` is written after the companion woke there (and
-``MigrationOccurred`` went), before T answers the commit: it is no commit point (S's ``handed``
-is), so a T that dies before it is durable comes back ``incoming``, asks S and hears
-"committed" (S released nothing: T had not answered). A crash before ``prepared`` is durable leaves S ``active`` at the order
+ledger and synced (``ledger``, ``journal``): on the critical path in sequence are T ``incoming``
+(after T has synced the sections and document it names), S ``handed`` (the commit point) and T
+``active`` (before the companion wakes there: a T running it on a record still ``incoming`` could
+be told to drop it). S's ``prepared`` is written beside the transfer (the ``have``, the sections
+and the prepare itself), not before it; S acts on the prepare's answer only once ``prepared`` is
+durable, so ``handed`` still comes after it. A crash before ``prepared`` is durable leaves S ``active`` at the order
 before the attempt; S holds no record of the attempt, so asked about it (``on_status``) it answers
 ``aborted`` and T drops it, and S never signed a link for it. S's next attempt may then carry the
 same order as the one T dropped or still holds: T refuses it (not newer, or busy), S resumes and

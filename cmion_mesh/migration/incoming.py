@@ -260,22 +260,20 @@ class Incoming:
         host = self.host
         before = host.records.get(active.companion)
         since = before.since or before.updated if before is not None and before.state == "incoming" else 0.0
+        # ``active`` is durable before the companion wakes here: were it woken first, a write that
+        # failed (a full disk) would leave it running on a record still ``incoming``, which the
+        # source may then abort and resume (two hosts).
+        active = host.records.put(active)
+        crash_point("target:active")
+        host.step(active)
+        log_step(f"companion {active.companion} arrived from {active.peer}", "active", active, active.peer,
+                 duration_s=round(max(0.0, time.time() - since), 4) if since else None)
         self.forks.clear()  # a frozen holder accepts no prepare: any evidence here was of a copy long gone
         identity = self._prepared.pop(active.attempt, None)
         if identity is None:  # restarted since the prepare: the stored document is the truth
             identity = host.records.identity(active.companion, host.memo) or Identity(active.companion, active.epoch, {})
         identity.epoch = active.epoch
-        # The companion lives here from the commit on (the source's ``handed`` is the commit point):
-        # it wakes, and ``MigrationOccurred`` goes, before ``active`` is durable. A crash before it
-        # is leaves this side ``incoming``, which asks the source and hears "committed" (see
-        # ``handshake``); the commit is answered only once ``active`` is durable (in this update).
         host.inhabit(identity, "MigrationOccurred", f"arrived from {active.peer}")
-        active = host.records.put(active)
-        crash_point("target:active")
-        self.forks.check_conflict()  # inhabit's own look saw the record still incoming
-        host.step(active)
-        log_step(f"companion {active.companion} arrived from {active.peer}", "active", active, active.peer,
-                 duration_s=round(max(0.0, time.time() - since), 4) if since else None)
 
     # --- an attempt left undecided -------------------------------------------------------------------
 
