@@ -25,7 +25,7 @@ from cmion_mesh.migration.sections import FSYNCS
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
-from .helpers.memory_bodies import body, close
+from .helpers.memory_bodies import body, close, ready_to_migrate
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(120)
@@ -238,9 +238,8 @@ def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, m
     robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
     screen = body(network, mesh, "screen", tmp_path).start()
     try:
-        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
+        ready_to_migrate(robot, screen)
         assert robot.migration is not None and screen.migration is not None
-        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
         appends = robot.migration.records.journal.appends, screen.migration.records.journal.appends
         client.migrate("spirit", "screen", timeout=20)
         wait_for(lambda: robot.migration is not None and robot.migration.records.get("spirit") is not None

@@ -22,7 +22,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .helpers.custody_helpers import Holder
-from .helpers.memory_bodies import body, close
+from .helpers.memory_bodies import body, close, ready_to_migrate
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(60)
@@ -80,7 +80,7 @@ def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork
         wait_for(lambda: screen.migration is not None and screen.migration.claims.backed("spirit") != [], 5,
                  "the screen checked the robot's claim (a stranger's: asked)")
         asked.clear()
-        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
+        ready_to_migrate(robot, screen)
         client.migrate("spirit", "screen", timeout=20)
         assert robot.migration is not None and screen.migration is not None
         wait_for(lambda: [c.holder for c in robot.migration.claims.backed("spirit")] == ["screen"], 5,  # type: ignore[union-attr]
@@ -104,8 +104,7 @@ def test_a_target_that_cannot_record_active_never_runs_the_companion(network: Me
     screen = body(network, mesh, "screen", tmp_path).start()
     try:
         assert robot.migration is not None and screen.migration is not None
-        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
-        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
+        ready_to_migrate(robot, screen)
         records = screen.migration.records
         put = records.put
 
@@ -199,8 +198,7 @@ def test_a_new_large_section_follows_the_have_without_waiting_for_its_answer(
             return lambda: (order.append(f"robot waits for the {op} answer"), answer())[1]
 
         robot.migration.ask_later = asked  # type: ignore[method-assign]
-        wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
-        wait_for(lambda: robot.migration.claims.is_alive("screen"), 5, "the robot sees the screen")  # type: ignore[union-attr]
+        ready_to_migrate(robot, screen)
         client.migrate("spirit", "screen", timeout=20)
         assert order == ["screen takes sections", "robot waits for the have answer"], order
         assert screen.migration.section("photo") == "1" * 300_000

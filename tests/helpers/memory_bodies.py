@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from cmion_mesh.body.embodiment import Embodiment
+from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .remote_helpers import Diary
@@ -21,3 +22,13 @@ def close(*embodiments: Embodiment) -> None:
     for e in embodiments:
         e.close()
         e.transport.close()
+
+
+def ready_to_migrate(source: Embodiment, target: Embodiment, companion: str = "spirit") -> None:
+    """Wait until ``companion`` lives on ``source`` and ``source`` sees ``target`` alive: a migration
+    started before that is refused ("unknown target"), which under load is a race, not a verdict."""
+    migration = source.migration
+    assert migration is not None and target.migration is not None
+    wait_for(lambda: source.inhabitant == companion, 5, f"{companion} living on {source.sim.embodiment}")
+    wait_for(lambda: migration.claims.is_alive(target.sim.embodiment), 5,
+             f"{source.sim.embodiment} sees {target.sim.embodiment}")
