@@ -103,6 +103,7 @@ TIERS: dict[str, str] = {
     "test_bench_smoke": "system",
     "test_bench_targets": "mesh",
     "test_boundaries": "unit",
+    "test_bulkio": "unit",
     "test_cli": "mesh",
     "test_cli_habits": "mesh",
     "test_cli_help": "unit",

@@ -281,6 +281,49 @@ def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing
     assert body.migration.uploads.staged("a1", "robot") is None, "the upload ended: its sections are sent again"
 
 
+def test_a_section_received_in_chunks_is_decoded_beside_its_sync_not_by_the_prepare(
+        screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
+    # Megabytes decoded on the loop held the prepare's answer: the upload decodes what it completed
+    # on a handshake thread, and the prepare takes the value. Bytes that hash right but are not plain
+    # data are still refused by the prepare, naming the section.
+    body, client = screen
+    decoded_by_the_prepare: list[str] = []
+    decode = identity.decode_section
+
+    def counted(ref: SectionRef, data: Any, *, name: str = "<identity>") -> Any:
+        decoded_by_the_prepare.append(ref.component)
+        return decode(ref, data, name=name)
+
+    monkeypatch.setattr(identity, "decode_section", counted)
+    value = "b" * (INLINE + 10)
+    packed = Identity("s", 1, {"big": value}).pack_sections()
+    big = packed.refs[0]
+    bad = b"\xc1" * big.size  # never valid MessagePack
+    digest = hashlib.sha256(bad).hexdigest()
+    manifest = Identity("t", 1, {"big": value}).pack_sections().manifest.replace(big.sha256.encode(), digest.encode())
+    other = Holder("t", "robot")
+    offer = other.prepare("screen", manifest, "b1")
+    asked = to_screen(client, "have", have(offer))
+    assert asked.status == "accepted", asked
+    taken = to_screen(client, "sections", MigrateSections("t", "b1", "robot", "screen", [SectionChunk(digest, 0, bad)]))
+    assert taken.status == "accepted", "whole and hashing right"
+    refused = to_screen(client, "prepare", offer)
+    assert refused.status == "rejected" and "section 'big': not plain msgpack data" in refused.reason
+    assert body.migration is not None and body.migration.records.get("t") is None
+    decoded_by_the_prepare.clear()
+
+    robot = Holder("s", "robot")
+    prepare = robot.prepare("screen", packed.manifest, "a1")
+    assert to_screen(client, "have", have(prepare)).status == "accepted"
+    chunk = SectionChunk(big.sha256, 0, packed.data[big.sha256])
+    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk])).status == "accepted"
+    accepted = to_screen(client, "prepare", prepare)
+    assert accepted.status == "accepted", accepted
+    assert decoded_by_the_prepare == []
+    assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
+    assert body.inhabitant == "s" and body.migration is not None and body.migration.section("big") == value
+
+
 def test_a_stranger_cannot_fill_the_disk_with_sections(screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
     body, client = screen
     assert body.migration is not None

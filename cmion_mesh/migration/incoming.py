@@ -151,7 +151,8 @@ class Incoming:
         carried: dict[str, Bytes] = {}
         decision = handshake.on_prepare(msg, record, me=me, held=host.records.hosting(), admit=host.admit,
                                         claims=self.claims.backed(msg.companion),
-                                        sections=self.uploads.sections_for(msg, carried), values=host.memo.values())
+                                        sections=self.uploads.sections_for(msg, carried),
+                                        values={**host.memo.values(), **self.uploads.values(msg.attempt, msg.source)})
         if decision.fork is not None:
             self.forks.seen_fork(decision.fork, msg.source)
         if decision.record is None:

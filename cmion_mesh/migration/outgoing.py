@@ -466,7 +466,7 @@ class Outgoing:
                 if batches[-1] and size + len(piece) > CHUNK:
                     batches.append([])
                     size = 0
-                batches[-1].append(SectionChunk(ref.sha256, offset, piece))  # type: ignore[arg-type]  # encoded as bin, uncopied
+                batches[-1].append(SectionChunk(ref.sha256, offset, piece))
                 size += len(piece)
         batches = [b for b in batches if b]
         if len(batches) > 1:

@@ -12,7 +12,7 @@ received from a peer is written only if it fits (``SectionStore.make_room``), an
 from the first chunk on.
 
 Every durable write is: temp file, fsync, rename, fsync the folder (``FSYNCS`` counts them, by
-kind, for the benchmark). The folder is 0700 and every file 0600.
+kind, for the benchmark); the bytes of a large one go around the page cache (``bulkio``). The folder is 0700 and every file 0600.
 Every read checks the bytes against the name: a file altered at rest is refused with an error naming
 it, never used.
 
@@ -36,6 +36,7 @@ from typing import TypeVar
 from cmion_mesh.errors import ConfigError
 from cmion_mesh.migration import signing
 from cmion_mesh.migration.bounds import env_limit
+from cmion_mesh.migration.bulkio import DIRECT_MIN, BulkFile
 from cmion_mesh.migration.identity import Bytes, SectionRef, sha256_hex
 from cmion_mesh.statedir import left_by_a_crash
 
@@ -121,15 +122,12 @@ def write_files(files: Sequence[tuple[Path, Bytes]], last: tuple[Path, Bytes] | 
     tmps = [path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp") for path, _ in entries]
 
     def write(i: int) -> None:
-        fd = os.open(tmps[i], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            view = memoryview(entries[i][1])
-            while view:
-                view = view[os.write(fd, view):]
+        data = entries[i][1]
+        with BulkFile(tmps[i], direct=len(data) >= DIRECT_MIN) as file:  # a large section around the page cache
+            file.write(0, data)
             if durable:
-                fsync_file(fd)
-        finally:
-            os.close(fd)
+                assert file.fd is not None
+                fsync_file(file.fd)
 
     try:
         if durable:
@@ -384,7 +382,8 @@ class SectionStore:
 
 class IncomingSection:
     """A section received in chunks, in any order: each is written at its offset of a temporary
-    file (on a thread of its own, while the bytes are hashed as far as they are contiguous), and
+    file (on a thread of its own, while the bytes are hashed and put together as far as they are
+    contiguous: once complete, the section is at hand without one more copy of it), and
     the kernel is asked to start writing it out, so that the fsync at the end has little left to
     do. ``add`` does not wait for the write: the caller (the loop) takes the next chunk, or other
     requests, meanwhile; a write that failed is said at the next ``add`` or at ``finish``.
@@ -397,13 +396,13 @@ class IncomingSection:
         self.store = store
         self.ref = ref
         self.data: Bytes = b""  # the whole section, once finished
-        self._chunks: dict[int, Bytes] = {}  # offset -> chunk
+        self._whole = bytearray()  # the contiguous prefix received, hashed: ``data`` once complete
         self._hasher = signing.Sha256()
         self._hashed = 0
         self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
         self._path = store.path(ref.sha256)
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
-        self._fd: int | None = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._file: BulkFile | None = BulkFile(self._tmp)
         self._writer: ThreadPoolExecutor | None = None
         self._writes: list[Future[None]] = []  # chunk writes under way, waited for by ``finish``
         self._written = 0  # bytes in the temporary file, counted in the store's size
@@ -430,8 +429,8 @@ class IncomingSection:
         refused = room(len(data)) if room is not None else ""
         if refused:
             return refused
-        fd = self._fd
-        assert fd is not None
+        file = self._file
+        assert file is not None
         self._written += len(data)
         self.store._added(0, receiving=len(data))
         if self._writer is None:
@@ -439,19 +438,20 @@ class IncomingSection:
         failed = next((w for w in self._writes if w.done() and w.exception() is not None), None)
         if failed is not None:
             failed.result()  # a chunk before this one could not be written: say so now
-        self._writes.append(self._writer.submit(self._write_out, fd, offset, data))
-        self._chunks[offset] = data
+        self._writes.append(self._writer.submit(self._write_out, file, offset, data))
         self._ahead[offset] = data
         while self._hashed in self._ahead:
             chunk = self._ahead.pop(self._hashed)
             self._hasher.update(chunk)
+            self._whole += chunk
             self._hashed += len(chunk)
         return ""
 
-    def _write_out(self, fd: int, offset: int, data: Bytes) -> None:
-        os.pwrite(fd, data, offset)
-        try:
-            os.posix_fadvise(fd, offset, len(data), os.POSIX_FADV_DONTNEED)  # start writing it out now
+    def _write_out(self, file: BulkFile, offset: int, data: Bytes) -> None:
+        file.write(offset, data)
+        assert file.fd is not None
+        try:  # what went through the page cache: start writing it out now
+            os.posix_fadvise(file.fd, offset, len(data), os.POSIX_FADV_DONTNEED)
         except (AttributeError, OSError):
             pass
 
@@ -471,9 +471,7 @@ class IncomingSection:
         except OSError:
             self.abandon()
             raise
-        chunks = [self._chunks[offset] for offset in sorted(self._chunks)]
-        self.data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
-        self._chunks.clear()
+        self.data, self._whole = self._whole, bytearray()
         if settle:
             self.settle()
         return ""
@@ -481,10 +479,10 @@ class IncomingSection:
     def settle(self) -> None:
         """After ``finish(settle=False)``, on any thread: fsync the section and give it its name (the
         folder is the caller's to fsync). ``OSError`` if it cannot: nothing of it is kept."""
-        assert self._fd is not None
-        fd, self._fd = self._fd, None
+        file, self._file = self._file, None
+        assert file is not None and file.fd is not None
         try:
-            fsync_file(fd)
+            fsync_file(file.fd)
             try:
                 replaced = self._path.stat().st_size
             except FileNotFoundError:
@@ -496,7 +494,7 @@ class IncomingSection:
             self.store._added(0, receiving=-written)
             raise
         finally:
-            os.close(fd)
+            file.close()
         written, self._written = self._written, 0
         self.store._added(self.ref.size - replaced, receiving=-written)
 
@@ -508,9 +506,11 @@ class IncomingSection:
     def abandon(self) -> None:
         self._stop_writer()
         self._writes = []  # nothing of it is kept: a write that failed changes nothing
-        fd, self._fd = self._fd, None
-        if fd is not None:
-            os.close(fd)
+        self._whole = bytearray()
+        self._ahead.clear()
+        file, self._file = self._file, None
+        if file is not None:
+            file.close()
             self._tmp.unlink(missing_ok=True)
         written, self._written = self._written, 0
         self.store._added(0, receiving=-written)

@@ -8,8 +8,9 @@ raw bytes in ``migrate_sections`` chunks. The target answers each chunk once wha
 checked against its hash; the fsync that makes a completed section durable runs on a handshake
 thread meanwhile (``settled`` waits for it: the prepare records ``incoming`` only after it), so
 that syncing a large section overlaps the prepare's way here and its checks rather than coming
-before them. The prepare then finds its sections inside it, in its sender's upload or on this
-disk (``sections_for``).
+before them; its decoding runs on another one (``values``), for the prepare to find done. The
+prepare then finds its sections inside it, in its sender's upload or on this disk
+(``sections_for``).
 
 A target holds one upload (``have`` and its sections) per sender, at most ``MAX_UPLOADS``. Every
 byte received counts, before it is written, against what one sender may upload ahead of its
@@ -20,7 +21,7 @@ refused or aborted, and once idle for ``UPLOAD_IDLE`` seconds.
 
 Threads: all of it runs on the loop (request handlers and the timer that expires idle uploads);
 each section being received writes its chunks on a thread of its own (``sections.IncomingSection``),
-and completed sections are synced on a handshake thread (``Host.spawn``).
+and completed sections are synced on a handshake thread and decoded on another (``Host.spawn``).
 """
 
 from __future__ import annotations
@@ -30,11 +31,13 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
+from cmion_mesh.errors import ConfigError
 from cmion_mesh.messages import Code, MigrateHave, MigratePrepare, MigrateSections
 from cmion_mesh.migration import handshake
 from cmion_mesh.migration.host import Host
-from cmion_mesh.migration.identity import Bytes, Manifest, SectionRef, sha256_hex
+from cmion_mesh.migration.identity import Bytes, Manifest, SectionRef, decode_section, sha256_hex
 from cmion_mesh.migration.sections import MAX_CACHE_ENV, IncomingSection
 from cmion_mesh.requests import IncomingRequest
 from cmion_mesh.timers import Timer
@@ -69,6 +72,8 @@ class Upload:
     stored: set[str] = field(default_factory=set)  # sections this upload wrote: deleted if no prepare names them
     received: int = 0  # bytes of this upload written to disk (partial sections included)
     settling: list[Future[None]] = field(default_factory=list)  # completed sections being synced
+    decoding: list[Future[None]] = field(default_factory=list)  # completed sections being decoded
+    decoded: dict[str, Any] = field(default_factory=dict)  # sha256 -> value, decoded ahead of the prepare
     unsynced: list[str] = field(default_factory=list)  # why some of them could not be (a prepare is refused)
     last: float = field(default_factory=time.monotonic)  # when it last took a chunk (or began)
 
@@ -180,6 +185,7 @@ class Uploads:
                 break
         if settle:
             upload.settling.append(self._settle(settle))
+            upload.decoding.append(self._decode(upload, settle))
         if problems:
             request.reject("; ".join(problems), Code.BUSY if refusals and refusals[-1].startswith("busy") else Code.INVALID)
         else:
@@ -206,6 +212,37 @@ class Uploads:
         if not self.host.spawn("settle-sections", settle):
             settle()  # stopping: no worker takes jobs any more
         return done
+
+    def _decode(self, upload: Upload, sections: list[IncomingSection]) -> Future[None]:
+        """Decode ``sections`` on a handshake thread, beside their fsync and while the prepare is on
+        its way: it finds their values (``values``) instead of decoding megabytes on the loop. One
+        that is not plain data is left to the prepare, which refuses it saying why."""
+        done: Future[None] = Future()
+
+        def decode() -> None:
+            try:
+                for incoming in sections:
+                    try:
+                        upload.decoded[incoming.ref.sha256] = decode_section(incoming.ref, incoming.data)
+                    except ConfigError:
+                        pass
+            finally:
+                done.set_result(None)
+
+        if not self.host.spawn("decode-sections", decode):
+            decode()  # stopping: no worker takes jobs any more
+        return done
+
+    def values(self, attempt: str, source: str) -> dict[str, Any]:
+        """The values of the sections ``source``'s upload of ``attempt`` completed, by SHA-256 (hex),
+        once decoded (waited for)."""
+        upload = self.staged(attempt, source)
+        if upload is None:
+            return {}
+        decoding, upload.decoding = upload.decoding, []
+        for done in decoding:
+            done.result()
+        return dict(upload.decoded)
 
     def settled(self, attempt: str, source: str) -> str:
         """Wait until the sections ``source``'s upload of ``attempt`` completed are durable: "" once
