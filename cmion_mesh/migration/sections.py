@@ -18,8 +18,8 @@ it, never used.
 
 Threads: one store serves the loop (a target checking and receiving sections) and the handshake
 threads (a source writing its own copy): its byte counts and pins are under a lock. An
-``IncomingSection`` belongs to the thread that receives it (the loop); it writes each chunk on a
-thread of its own, joined before ``add`` returns.
+``IncomingSection`` belongs to the thread that receives it (the loop); it writes its chunks on a
+thread of its own and hashes them on another, both joined by ``finish`` (or ``abandon``).
 """
 
 from __future__ import annotations
@@ -382,13 +382,13 @@ class SectionStore:
 
 class IncomingSection:
     """A section received in chunks, in any order: each is written at its offset of a temporary
-    file (on a thread of its own, while the bytes are hashed and put together as far as they are
-    contiguous: once complete, the section is at hand without one more copy of it), and
+    file (on a thread of its own, while another hashes and puts together the bytes as far as they
+    are contiguous: once complete, the section is at hand without one more copy of it), and
     the kernel is asked to start writing it out, so that the fsync at the end has little left to
-    do. ``add`` does not wait for the write: the caller (the loop) takes the next chunk, or other
-    requests, meanwhile; a write that failed is said at the next ``add`` or at ``finish``.
-    ``finish`` waits for the writes, checks the hash, fsyncs and gives the file its name; the bytes
-    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and thread); a caller
+    do. ``add`` waits for neither: the caller (the loop) takes the next chunk, or other requests,
+    meanwhile; a write that failed is said at the next ``add`` or at ``finish``. ``finish`` waits
+    for the hashing and the writes, checks the hash, fsyncs and gives the file its name; the bytes
+    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and threads); a caller
     that makes it durable later (on a thread of its own) finishes with ``settle=False`` and then
     calls ``settle``."""
 
@@ -398,8 +398,10 @@ class IncomingSection:
         self.data: Bytes = b""  # the whole section, once finished
         self._whole = bytearray()  # the contiguous prefix received, hashed: ``data`` once complete
         self._hasher = signing.Sha256()
-        self._hashed = 0
-        self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond the hashed prefix
+        self._received = 0  # bytes received as a contiguous prefix (handed to the hashing thread)
+        self._ahead: dict[int, Bytes] = {}  # offset -> chunk received beyond that prefix
+        self._hashing: ThreadPoolExecutor | None = None  # hashes and puts together the prefix, in order
+        self._hashes: list[Future[None]] = []
         self._path = store.path(ref.sha256)
         self._tmp = self._path.with_name(f".{ref.sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._file: BulkFile | None = BulkFile(self._tmp)
@@ -413,7 +415,7 @@ class IncomingSection:
 
     @property
     def complete(self) -> bool:
-        return self._hashed == self.ref.size
+        return self._received == self.ref.size
 
     def add(self, offset: int, data: Bytes, room: Callable[[int], str] | None = None) -> str:
         """Take a chunk; "" or why it does not fit. A chunk received before (sent again when its
@@ -422,9 +424,9 @@ class IncomingSection:
         end = offset + len(data)
         if end > self.ref.size:
             return f"chunk of {len(data)} bytes at offset {offset} runs past the section's {self.ref.size} bytes"
-        if not data or end <= self._hashed or (offset in self._ahead and len(self._ahead[offset]) == len(data)):
+        if not data or end <= self._received or (offset in self._ahead and len(self._ahead[offset]) == len(data)):
             return ""
-        if offset < self._hashed or any(offset < o + len(c) and o < end for o, c in self._ahead.items()):
+        if offset < self._received or any(offset < o + len(c) and o < end for o, c in self._ahead.items()):
             return f"chunk at offset {offset} ({len(data)} bytes) overlaps bytes received before"
         refused = room(len(data)) if room is not None else ""
         if refused:
@@ -440,12 +442,19 @@ class IncomingSection:
             failed.result()  # a chunk before this one could not be written: say so now
         self._writes.append(self._writer.submit(self._write_out, file, offset, data))
         self._ahead[offset] = data
-        while self._hashed in self._ahead:
-            chunk = self._ahead.pop(self._hashed)
-            self._hasher.update(chunk)
-            self._whole += chunk
-            self._hashed += len(chunk)
+        while self._received in self._ahead:
+            chunk = self._ahead.pop(self._received)
+            if self._hashing is None:
+                self._hashing = ThreadPoolExecutor(1, thread_name_prefix="section-hash")
+            # Megabytes hashed and copied off the caller's thread: the loop answers this chunk (and
+            # takes the next) meanwhile; ``finish`` waits for it.
+            self._hashes.append(self._hashing.submit(self._take, chunk))
+            self._received += len(chunk)
         return ""
+
+    def _take(self, chunk: Bytes) -> None:
+        self._hasher.update(chunk)
+        self._whole += chunk
 
     def _write_out(self, file: BulkFile, offset: int, data: Bytes) -> None:
         file.write(offset, data)
@@ -459,6 +468,10 @@ class IncomingSection:
         """Once complete: "" with the bytes checked and at hand (``data``) and, unless ``settle`` is
         False, the section stored under its name (``settle``: fsync; the folder is the caller's to
         fsync); or why not (its bytes hash to something else: nothing is kept)."""
+        self._stop_hashing()
+        hashes, self._hashes = self._hashes, []
+        for taken in hashes:
+            taken.result()
         digest = self._hasher.hexdigest()
         if digest != self.ref.sha256:
             self.abandon()
@@ -498,12 +511,19 @@ class IncomingSection:
         written, self._written = self._written, 0
         self.store._added(self.ref.size - replaced, receiving=-written)
 
+    def _stop_hashing(self) -> None:
+        hashing, self._hashing = self._hashing, None
+        if hashing is not None:
+            hashing.shutdown(wait=True)
+
     def _stop_writer(self) -> None:
         writer, self._writer = self._writer, None
         if writer is not None:
             writer.shutdown(wait=True)
 
     def abandon(self) -> None:
+        self._stop_hashing()
+        self._hashes = []
         self._stop_writer()
         self._writes = []  # nothing of it is kept: a write that failed changes nothing
         self._whole = bytearray()
