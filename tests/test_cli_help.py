@@ -188,8 +188,15 @@ def test_each_part_of_a_split_recording_says_who_inhabited_what_when_it_started(
             robot.close()
             screen = bodies.declare_token(keys.custody_key("m", "screen", "spirit", 2))
             wait_for(lambda: recorder.stats.samples == 4, 10, "the custody moving")
-            t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": 1}, 1, 2.0)))
-            wait_for(lambda: len(recorder.stats.files) == 2, 10, "the second part")
+            # A part is full once a flush (every 10 ms) has seen its messages: a tick starts a part
+            # of its own, after the migration, at the latest once one has been flushed with it.
+            moved = len(recorder.stats.files)
+            for i in range(1, 200):
+                t.publish("cmion/m/robot/ev/c/Tick", encode(Event("robot", "c", "Tick", {"i": i}, i, 1.0 + i)))
+                wait_for(lambda i=i: recorder.stats.samples == 4 + i, 10, f"tick {i}")
+                if len(recorder.stats.files) > moved:
+                    break
+            assert len(recorder.stats.files) > moved, "a part begun after the migration"
         # The screen's token goes only once the recorder has stopped: with a part per sample, its
         # going would start a part of its own (nobody inhabited) after the one this test reads.
         screen.close()
