@@ -28,7 +28,7 @@ from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.migration.ledger import Record, Records, read_ledger
 from cmion_mesh.migration.outgoing import INLINE
-from cmion_mesh.migration.sections import IncomingSection, SectionStore
+from cmion_mesh.migration.sections import SectionStore
 from cmion_mesh.procs import free_port
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.base import TransportConfig
@@ -268,10 +268,14 @@ def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing
     prepare = Holder("s", "robot").prepare("screen", packed.manifest, "a1")
     assert to_screen(client, "have", have(prepare)).status == "accepted"
 
-    def full(self: IncomingSection) -> None:
-        raise OSError(28, "No space left on device")
+    fsync_file = sections.fsync_file
 
-    monkeypatch.setattr(IncomingSection, "settle", full)
+    def full(fd: int, kind: str = "file") -> None:  # the section's own fsync fails; folders sync
+        if kind == "file":
+            raise OSError(28, "No space left on device")
+        fsync_file(fd, kind)
+
+    monkeypatch.setattr(sections, "fsync_file", full)
     answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen",
                                                            [SectionChunk(big.sha256, 0, packed.data[big.sha256])]))
     assert answer.status == "accepted" and answer.value == {"stored": [big.sha256]}
@@ -373,6 +377,36 @@ def test_a_chunk_received_is_hashed_while_its_write_goes_on_and_is_synced_before
     gate.set()
     assert incoming.finish() == ""
     assert store.path(ref.sha256).read_bytes() == data and incoming.data == data
+
+
+def test_a_section_is_checked_without_waiting_for_its_writes_and_settled_after_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The last chunk's answer says the bytes are whole and hash right; the device may still be
+    # writing them. Settling (on a handshake thread, before the prepare records incoming) waits for
+    # those writes, then syncs and names the file.
+    store = SectionStore(tmp_path / "sections")
+    data = bytes(range(256)) * 64
+    ref = SectionRef("blob", hashlib.sha256(data).hexdigest(), len(data))
+    incoming = store.receive(ref)
+    gate = threading.Event()
+    pwrite = os.pwrite
+
+    def held(fd: int, chunk: Any, offset: int) -> int:
+        gate.wait(10.0)
+        return pwrite(fd, chunk, offset)
+
+    monkeypatch.setattr(os, "pwrite", held)
+    assert incoming.add(0, data) == ""
+    assert incoming.finish(settle=False) == "" and incoming.data == data, "checked while the write waits"
+    assert not store.path(ref.sha256).exists()
+    settled = threading.Thread(target=incoming.settle)
+    settled.start()
+    try:
+        assert not store.path(ref.sha256).exists(), "not named before its bytes are written"
+    finally:
+        gate.set()
+        settled.join(10.0)
+    assert store.path(ref.sha256).read_bytes() == data
 
 
 def test_a_chunk_that_cannot_be_written_fails_the_section_and_leaves_nothing(tmp_path: Path,

@@ -386,9 +386,9 @@ class IncomingSection:
     are contiguous: once complete, the section is at hand without one more copy of it), and
     the kernel is asked to start writing it out, so that the fsync at the end has little left to
     do. ``add`` waits for neither: the caller (the loop) takes the next chunk, or other requests,
-    meanwhile; a write that failed is said at the next ``add`` or at ``finish``. ``finish`` waits
-    for the hashing and the writes, checks the hash, fsyncs and gives the file its name; the bytes
-    stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and threads); a caller
+    meanwhile; a write that failed is said at the next ``add`` or when the section is settled.
+    ``finish`` waits for the hashing and checks the hash; ``settle`` waits for the writes, fsyncs
+    and gives the file its name; the bytes stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and threads); a caller
     that makes it durable later (on a thread of its own) finishes with ``settle=False`` and then
     calls ``settle``."""
 
@@ -466,8 +466,8 @@ class IncomingSection:
 
     def finish(self, *, settle: bool = True) -> str:
         """Once complete: "" with the bytes checked and at hand (``data``) and, unless ``settle`` is
-        False, the section stored under its name (``settle``: fsync; the folder is the caller's to
-        fsync); or why not (its bytes hash to something else: nothing is kept)."""
+        False, the section stored under its name (``settle``: the writes, fsync; the folder is the
+        caller's to fsync); or why not (its bytes hash to something else: nothing is kept)."""
         self._stop_hashing()
         hashes, self._hashes = self._hashes, []
         for taken in hashes:
@@ -476,25 +476,23 @@ class IncomingSection:
         if digest != self.ref.sha256:
             self.abandon()
             return f"the {self.ref.size} bytes received hash to {digest}, not {self.ref.sha256}"
-        self._stop_writer()
-        writes, self._writes = self._writes, []
-        try:
-            for write in writes:
-                write.result()  # every chunk on its way to the disk before the fsync that makes it durable
-        except OSError:
-            self.abandon()
-            raise
         self.data, self._whole = self._whole, bytearray()
         if settle:
             self.settle()
         return ""
 
     def settle(self) -> None:
-        """After ``finish(settle=False)``, on any thread: fsync the section and give it its name (the
-        folder is the caller's to fsync). ``OSError`` if it cannot: nothing of it is kept."""
+        """After ``finish(settle=False)``, on any thread: wait for the writes still going to the
+        device (a caller that settles elsewhere answers without waiting for them), fsync the
+        section and give it its name (the folder is the caller's to fsync). ``OSError`` if it
+        cannot: nothing of it is kept."""
         file, self._file = self._file, None
         assert file is not None and file.fd is not None
         try:
+            self._stop_writer()
+            writes, self._writes = self._writes, []
+            for write in writes:
+                write.result()  # every chunk on its way to the disk before the fsync that makes it durable
             fsync_file(file.fd)
             try:
                 replaced = self._path.stat().st_size
