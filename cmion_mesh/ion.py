@@ -51,7 +51,7 @@ from typing import Any
 from cmion_mesh import keys
 from cmion_mesh.errors import ClosedError, InvalidName, MeshError, OutcomeUnknown, ProtocolError
 from cmion_mesh.messages import Code, Event, Message, Outcome, check_value, decode, decoder, encode, tag
-from cmion_mesh.requests import DEFAULT_REQUEST_TIMEOUT, Answers, send_request
+from cmion_mesh.requests import DEFAULT_REQUEST_TIMEOUT, Answers, addressed, covered, send_request, unknown_request
 from cmion_mesh.requests import IncomingRequest as IncomingRequest  # named by components written before it moved
 from cmion_mesh.timers import Timer as Timer  # call_later's, named by components written before it moved
 from cmion_mesh.timers import Timers
@@ -167,8 +167,15 @@ _SCALARS = frozenset({str, float, bool, type(None)})
 class Simulation:
     """The update loop of one embodiment in one process. A context manager; ``close`` is idempotent."""
 
-    def __init__(self, transport: Transport, *, mesh: str = keys.DEFAULT_MESH, embodiment: str) -> None:
+    def __init__(self, transport: Transport, *, mesh: str = keys.DEFAULT_MESH, embodiment: str,
+                 one_queryable: bool = False) -> None:
+        """``one_queryable``: one zenoh queryable (``.../rq/**``) answers the requests of every
+        component, rather than one per component: for the process that is the embodiment (a
+        daemon), whose dozen declarations are work on every peer of the mesh. A process serving a
+        few components of an embodiment that runs elsewhere (a remote mind) keeps one per component,
+        so that it is not handed the requests of all the others."""
         self.transport = transport
+        self._one_queryable = one_queryable
         self.mesh = keys.check_name(mesh, "mesh")
         self.embodiment = keys.check_name(embodiment, "embodiment")
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -189,7 +196,8 @@ class Simulation:
         self._stepper: threading.Thread | None = None  # the owner's thread, when run_once drives it
         self._loop_ident: int | None = None  # thread id of whichever of the two runs updates (on_loop, fast)
         # length of ".../<embodiment>/rq/", which every request key of this embodiment starts with
-        self._rq_prefix_len = len(keys.embodiment_prefix(self.mesh, self.embodiment)) + len(keys.REQUESTS) + 2
+        self._rq_prefix = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/"
+        self._rq_prefix_len = len(self._rq_prefix)
         self._closed = False
         self._stopped = threading.Event()
         self.updates = 0
@@ -250,11 +258,13 @@ class Simulation:
         component._sim = self
         if component.requests:
             self._answers.follow_listeners()
-            tail = "**" if component.sender_requests else "*"
-            selector = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}/{component.name}/{tail}"
-            self._queryables[component.name] = self.transport.declare_queryable(
-                selector, functools.partial(self._on_query, component)
-            )
+            prefix = f"{keys.embodiment_prefix(self.mesh, self.embodiment)}/{keys.REQUESTS}"
+            if not self._one_queryable:
+                tail = "**" if component.sender_requests else "*"
+                self._queryables[component.name] = self.transport.declare_queryable(
+                    f"{prefix}/{component.name}/{tail}", functools.partial(self._on_query, component))
+            elif not self._queryables:
+                self._queryables[""] = self.transport.declare_queryable(f"{prefix}/**", self._on_any_query)
         self.call(lambda: component.attach(self))
         return component
 
@@ -318,6 +328,27 @@ class Simulation:
             self.call(lambda: self._timers.arm(timer))
         return timer
 
+    def _on_any_query(self, query: IncomingQuery) -> None:
+        """``one_queryable``'s handler: a request reaches the component whose own queryable it
+        would have reached; a key none of them would have is left unanswered (another process of
+        the embodiment may serve it: a remote mind). A key expression over many components' keys
+        (``.../rq/**``: what do you answer?) is answered by each, with its catalogue, as before."""
+        key = query.key
+        if "*" not in key and "$" not in key:
+            component = addressed(key, self._rq_prefix, self._components)
+            if component is not None:
+                self._on_query(component, query)
+            else:
+                query.finish()
+            return
+        try:
+            for component in covered(key, self._rq_prefix, list(self._components.values())):
+                outcome = unknown_request(component, "")
+                query.reply(key, encode(outcome))
+                self._answers.given(component.name, "", "", outcome)
+        finally:
+            query.finish()
+
     def _on_query(self, component: Component, query: IncomingQuery) -> None:
         # Runs on the transport's worker: decode, then hand to the loop. Refusals that need no
         # component state are answered here so a bad request never costs an update.
@@ -338,9 +369,7 @@ class Simulation:
             return
         kind = component.requests.get(name)
         if kind is None:
-            known = ", ".join(sorted(component.requests)) or "none"
-            reason = f"component {component.name!r} has no request {name!r} (known: {known})"
-            answer(Outcome("rejected", reason, component.request_catalogue(), Code.UNKNOWN_REQUEST))
+            answer(unknown_request(component, name))
             return
         if (name in component.sender_requests) != bool(sender) or "/" in sender:
             form = f"{name}/<sender>" if name in component.sender_requests else name

@@ -242,7 +242,24 @@ def matches_chunks(pattern: Sequence[str], chunks: Sequence[str]) -> bool:
     return _match(list(pattern), list(chunks))
 
 
+def intersects_below(pattern: str, prefix: str, *, one_chunk: bool) -> bool:
+    """Whether key expression ``pattern`` intersects ``prefix/*`` (``one_chunk``) or ``prefix/**``
+    (``prefix`` concrete): whether some key both match. What a queryable declared on one of those
+    would have been reached by (``ion``: one queryable for many components' requests)."""
+    pat = pattern.split("/")
+    states = _states(pat, prefix.split("/"))
+    if not one_chunk:
+        return bool(states)  # whatever is left of the pattern, some chunks match it
+    # One chunk more must end it: at most one chunk of the rest that is not ``**`` (which may match none).
+    return any(sum(chunk != "**" for chunk in pat[i:]) == 1 or (pat[i:] and all(c == "**" for c in pat[i:]))
+               for i in states)
+
+
 def _match(pat: list[str], chunks: list[str], verbatim: bool = False) -> bool:
+    return len(pat) in _states(pat, chunks, verbatim)
+
+
+def _states(pat: list[str], chunks: list[str], verbatim: bool = False) -> set[int]:
     # The set of pattern positions reachable after each chunk: O(len(pat) * len(chunks)) whatever the
     # number of ``**`` (a selector comes from the network: backtracking would be exponential).
     def closure(states: set[int]) -> set[int]:
@@ -265,6 +282,6 @@ def _match(pat: list[str], chunks: list[str], verbatim: bool = False) -> bool:
                 elif (pat[i] == "*" and wild) or pat[i] == chunk:
                     following.add(i + 1)
         if not following:
-            return False
+            return set()
         states = closure(following)
-    return len(pat) in states
+    return states

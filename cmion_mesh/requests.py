@@ -20,8 +20,8 @@ import functools
 import logging
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, Protocol, TypeVar
 
 from cmion_mesh import keys
 from cmion_mesh.errors import MeshError, NotReached, OutcomeUnknown, ProtocolError, RequestRejected
@@ -29,6 +29,7 @@ from cmion_mesh.messages import Code, Message, Outcome, RequestAnswered, check_v
 from cmion_mesh.transport.base import Matching, Reply, Transport
 
 log = logging.getLogger(__name__)
+A = TypeVar("A", bound="Addressee")
 
 DEFAULT_REQUEST_TIMEOUT = 10.0
 #: Bound of the cache of ``@outcome`` keys (cleared when full: request names are not ours to bound).
@@ -174,6 +175,46 @@ class Answers:
         if self._listeners is not None:
             self._listeners.close()
         self._refused.flush()  # the counts of the last window: the embodiment stops
+
+
+class Addressee(Protocol):
+    """What routing a request needs of a component (``ion.Component``)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def requests(self) -> Mapping[str, Any]: ...
+    @property
+    def sender_requests(self) -> frozenset[str]: ...
+    def request_catalogue(self) -> dict[str, Any]: ...
+
+
+def addressed(key: str, prefix: str, components: Mapping[str, A]) -> A | None:
+    """The component a request on the concrete ``key`` reaches (``prefix``: ``.../<embodiment>/rq/``):
+    the one whose own queryable would take it, on ``prefix<name>/*`` (``/**`` if it has requests
+    naming their sender); None when none would."""
+    if not key.startswith(prefix):
+        return None
+    name, _, tail = key[len(prefix):].partition("/")
+    component = components.get(name)
+    if component is None or not component.requests:
+        return None
+    if not component.sender_requests and (not tail or "/" in tail):
+        return None
+    return component
+
+
+def covered(selector: str, prefix: str, components: Iterable[A]) -> list[A]:
+    """The components whose own queryable (as in ``addressed``) the key expression ``selector`` reaches."""
+    return [c for c in components if c.requests and keys.intersects_below(selector, f"{prefix}{c.name}",
+                                                                          one_chunk=not c.sender_requests)]
+
+
+def unknown_request(component: Addressee, name: str) -> Outcome:
+    """The refusal of a request ``component`` does not have, its catalogue as value."""
+    known = ", ".join(sorted(component.requests)) or "none"
+    reason = f"component {component.name!r} has no request {name!r} (known: {known})"
+    return Outcome("rejected", reason, component.request_catalogue(), Code.UNKNOWN_REQUEST)
 
 
 def send_request(transport: Transport, key: str, payload: Message, *, timeout: float = DEFAULT_REQUEST_TIMEOUT) -> Outcome:

@@ -176,6 +176,7 @@ TIERS: dict[str, str] = {
     "test_custody": "unit",
     "test_target_bounds": "mesh",
     "test_outbox": "unit",
+    "test_shared_declarations": "unit",
     "test_slow_subscriber": "mesh",
     "test_tiers": "unit",
     "test_transport": "mesh",

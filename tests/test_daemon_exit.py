@@ -40,3 +40,31 @@ def test_start_up_removes_what_an_interrupted_write_left(tmp_path: Path) -> None
     Records(state)
     assert sorted(p.name for p in state.iterdir()) == [f".spirit.record.json.{os.getpid()}.789.tmp", "notes.txt"]
     assert oct(state.stat().st_mode & 0o777) == "0o700"
+
+
+#: Runs ``cmion-mesh`` as its own process (``main()`` reading ``sys.argv``), saying how the cyclic
+#: collector stands when the daemon, up, settles into its wait for a signal.
+_COLLECTOR_PROBE = """
+import gc, sys
+from cmion_mesh import signals
+wait = signals.Stopper.wait
+def reporting(self, *args, **kwargs):
+    print(f"collector enabled={gc.isenabled()} frozen={gc.get_freeze_count()}", flush=True)
+    return wait(self, *args, **kwargs)
+signals.Stopper.wait = reporting
+from cmion_mesh.cli.main import main
+sys.exit(main())
+"""
+
+
+def test_a_daemon_runs_with_the_collector_on_and_its_start_up_frozen(tmp_path: Path, mesh: str) -> None:
+    """Start-up runs with the cyclic collector paused; once up, the daemon collects again, and what
+    start-up loaded is out of the collector's way (frozen): a daemon never runs without it."""
+    argv = [sys.executable, "-c", _COLLECTOR_PROBE, "up", "robot", "--mesh", mesh, "--no-multicast",
+            "--listen", f"tcp/127.0.0.1:{free_port()}", "--state-dir", str(tmp_path / "robot")]
+    with Daemon(argv, name="robot") as daemon:
+        line = daemon.wait_line("collector enabled=", 30)
+        daemon.wait_line("up in mesh", 30)
+    enabled, frozen = (part.partition("=")[2] for part in line.split()[1:])
+    assert enabled == "True"
+    assert int(frozen) > 10_000, "start-up's objects are frozen"

@@ -12,7 +12,7 @@ import pytest
 
 from cmion_mesh.errors import ClosedError, MeshError, RequestRejected
 from cmion_mesh.ion import Component, Simulation
-from cmion_mesh.messages import Code, Event, Message, MindMessage, MindState, Outcome, decode
+from cmion_mesh.messages import Code, Event, Message, MindMessage, MindState, Outcome, decode, encode
 from cmion_mesh.mind import Mind
 from cmion_mesh.requests import IncomingRequest, send_request
 from cmion_mesh.testing.wait import wait_for
@@ -143,6 +143,54 @@ def test_remote_unknown_and_malformed_requests_are_rejected_with_reason(sim: Sim
             (reply,) = remote.get(f"cmion/{sim.mesh}/robot/rq/arbiter/claim", untyped)
             outcome = decode(reply.payload, Outcome)
             assert outcome.status == "rejected" and outcome.code == Code.MALFORMED, untyped
+
+
+class PerSender(Component):
+    """Takes claims on keys naming their sender (``.../rq/<name>/claim/<sender>``)."""
+
+    requests = {"claim": Claim}
+    sender_requests = frozenset({"claim"})
+
+    def handle_requests(self, batch: list[IncomingRequest]) -> None:
+        for r in batch:
+            r.accept({"from": r.requester})
+
+
+def test_one_queryable_answers_for_each_component_and_leaves_other_keys_to_others(network: MemoryNetwork, mesh: str) -> None:
+    """A daemon's simulation declares one request queryable for all its components: each request
+    reaches the component its key names, on the keys its own queryable took; a key none of them
+    takes stays unanswered (not reached), and a component of the embodiment served by another
+    process (a remote mind) is still answered by that process alone."""
+    with MemoryTransport(network, "robot") as t, MemoryTransport(network, "elsewhere") as t2, \
+            MemoryTransport(network, "asker") as asker, \
+            Simulation(t, mesh=mesh, embodiment="robot", one_queryable=True) as sim, \
+            Simulation(t2, mesh=mesh, embodiment="robot") as elsewhere:
+        sim.add(Recorder())
+        sim.add(PerSender("desk"))
+        elsewhere.add(Recorder("far"))
+        rq = f"cmion/{mesh}/robot/rq"
+        with network.lock:
+            declared = sorted(sel for sel, _, owner in network.queryables.values() if owner is t)
+        assert declared == [f"{rq}/**"], "one declaration for the two components"
+
+        def ask(key: str, payload: bytes) -> list[Outcome]:
+            return [decode(reply.payload, Outcome) for reply in asker.get(key, payload, timeout=5)]
+
+        claim = encode(Claim(1, "ann"))
+        assert [o.value for o in ask(f"{rq}/arbiter/claim", claim)] == [{"slot": 1}]
+        assert [o.value for o in ask(f"{rq}/desk/claim/ann", claim)] == [{"from": "ann"}]
+        assert [o.value for o in ask(f"{rq}/far/claim", claim)] == [{"slot": 1}], "the other process alone answers"
+        (wrong,) = ask(f"{rq}/desk/claim", claim)
+        assert wrong.code == Code.WRONG_KEY, "a sender request without its sender is refused, as before"
+        assert ask(f"{rq}/nobody/claim", claim) == [], "no component of that name: not reached"
+        assert ask(f"{rq}/arbiter/claim/ann", claim) == [], "a key arbiter's own queryable would not have taken"
+        assert ask(f"{rq}/arbiter", claim) == []
+        listed = ask(f"{rq}/**", b"")  # what do you answer? each component, its catalogue, as before
+        assert sorted(o.value["component"] for o in listed) == ["arbiter", "desk", "far"]
+        assert {o.code for o in listed} == {Code.UNKNOWN_REQUEST}
+        sim.remove("arbiter")
+        assert ask(f"{rq}/arbiter/claim", claim) == [], "removed: not reached any more"
+        assert [o.value for o in ask(f"{rq}/desk/claim/bob", claim)] == [{"from": "bob"}]
 
 
 class Chain(Component):

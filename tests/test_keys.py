@@ -51,3 +51,24 @@ def test_parse_round_trips() -> None:
 )
 def test_matches(pattern: str, key: str, expected: bool) -> None:
     assert keys.matches(pattern, key) is expected
+
+
+@pytest.mark.parametrize(("pattern", "one_chunk", "expected"), [
+    ("m/e/rq/**", True, True),
+    ("m/e/rq/**", False, True),
+    ("m/*/rq/c/x", True, True),
+    ("m/e/rq/c/x/y", True, False),  # two chunks below: only ``c/**`` takes it
+    ("m/e/rq/c/x/y", False, True),
+    ("m/e/rq/c", True, False),  # the prefix itself: ``c/*`` needs one chunk more, ``c/**`` none
+    ("m/e/rq/c", False, True),
+    ("m/e/rq/*/x", True, True),
+    ("m/e/rq/d/*", True, False),  # another component
+    ("m/e/rq/c/**/x", True, True),
+    ("m/e/rq/c/*/*", True, False),
+    ("m/e/rq/c/*/**", True, True),
+    ("**", True, True),
+])
+def test_intersects_below(pattern: str, one_chunk: bool, expected: bool) -> None:
+    """Whether a queryable on ``m/e/rq/c/*`` (one chunk) or ``m/e/rq/c/**`` would be reached by a
+    query on ``pattern``."""
+    assert keys.intersects_below(pattern, "m/e/rq/c", one_chunk=one_chunk) is expected

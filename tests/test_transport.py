@@ -1,17 +1,21 @@
 """The transport's error contract, on the zenoh adapter and on the in-memory double alike.
 
 Every call raises ``ClosedError`` once the transport is closed and ``TransportError`` naming the
-key when the session refuses it; ``zenoh.ZError`` never escapes the adapter.
+key when the session refuses it; ``zenoh.ZError`` never escapes the adapter. Handlers of one
+selector share one zenoh declaration, against tokens of a peer in another process (run as a child:
+``python -m tests.test_transport tokens ENDPOINT``, commands on stdin).
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Callable, Iterator
 
 import pytest
 
 from cmion_mesh.errors import ClosedError, TransportError
+from cmion_mesh.procs import Daemon, free_port
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.base import MAX_BATCH, IncomingQuery, Sample, Transport, TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
@@ -167,3 +171,92 @@ def test_get_first_returns_the_first_reply_without_waiting_for_the_query_to_end(
             release.set()
         assert finished.wait(10.0)
         assert zenoh_transport.get_first("cmion/t/nobody", timeout=0.5) is None
+
+
+# --- handlers sharing a declaration, against a peer in another process ------------------------------
+
+
+def tokens(endpoint: str) -> int:
+    """The child: a peer listening on ``endpoint`` that declares (``up KEY``) and undeclares
+    (``down KEY``) liveliness tokens and publishes (``pub KEY``: the payload ``KEY``) as told on
+    stdin, each acknowledged on stdout (``pub`` once a subscriber of the key is known)."""
+    held: dict[str, object] = {}
+    with ZenohTransport(TransportConfig(listen=(endpoint,), multicast=False)) as transport:
+        print("ready", flush=True)
+        for line in sys.stdin:
+            command, _, key = line.strip().partition(" ")
+            if command == "up":
+                held[key] = transport.declare_token(key)
+            elif command == "down":
+                held.pop(key).close()  # type: ignore[attr-defined]
+            elif command == "pub":
+                if not transport.wait_subscribers(key, 20):
+                    print(f"nobody subscribes to {key}", flush=True)
+                    continue
+                transport.publish(key, key.encode())
+            else:
+                break
+            print(f"{command} {key}", flush=True)
+    return 0
+
+
+def test_liveliness_watches_of_one_selector_share_a_declaration(mesh: str) -> None:
+    """A second watch of the same selector joins the first one's liveliness subscriber: it is given
+    the peer's token (as the history its own declaration would have brought), then every change;
+    closing the first leaves the second watching; the last one closed undeclares."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    alive = f"cmion/{mesh}/@alive"
+    with Daemon([sys.executable, "-m", "tests.test_transport", "tokens", endpoint], name="tokens", stdin=True) as peer, \
+            ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False,
+                                           overrides=(("listen/endpoints", "[]"),))) as transport:
+        peer.wait_line("ready", 30)
+        peer.send(f"up {alive}/a")
+        first: list[tuple[str, bool]] = []
+        second: list[tuple[str, bool]] = []
+        declared = transport.declarations
+        watch = transport.watch_liveliness(f"{alive}/*", lambda key, up: first.append((key, up)))
+        wait_for(lambda: first == [(f"{alive}/a", True)], 20, "the first watch sees the peer's token")
+        later = transport.watch_liveliness(f"{alive}/*", lambda key, up: second.append((key, up)))
+        assert transport.declarations == declared + 1, "one zenoh declaration for the two watches"
+        wait_for(lambda: second == [(f"{alive}/a", True)], 10, "the later watch is given the token alive")
+        watch.close()
+        peer.send(f"up {alive}/b")
+        peer.send(f"down {alive}/a")
+        wait_for(lambda: second[1:] == [(f"{alive}/b", True), (f"{alive}/a", False)], 20,
+                 "the later watch goes on after the first closed")
+        assert first == [(f"{alive}/a", True)], "a closed watch hears nothing more"
+        later.close()
+        assert transport.declarations == declared, "the last one closed undeclares"
+        again: list[tuple[str, bool]] = []
+        with transport.watch_liveliness(f"{alive}/*", lambda key, up: again.append((key, up))):
+            wait_for(lambda: again == [(f"{alive}/b", True)], 20, "declared afresh, with zenoh's history")
+        peer.send("quit")
+
+
+def test_subscribers_of_one_selector_share_a_declaration(mesh: str) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    key = f"cmion/{mesh}/shared/ev"
+    with Daemon([sys.executable, "-m", "tests.test_transport", "tokens", endpoint], name="publisher", stdin=True) as peer, \
+            ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False,
+                                           overrides=(("listen/endpoints", "[]"),))) as transport:
+        peer.wait_line("ready", 30)
+        one: list[str] = []
+        two: list[str] = []
+        declared = transport.declarations
+        first = transport.subscribe(f"{key}/*", lambda sample: one.append(sample.key), remote_only=True)
+        second = transport.subscribe_batches(f"{key}/*", lambda batch: two.extend(s.key for s in batch), remote_only=True)
+        assert transport.declarations == declared + 1, "one zenoh declaration for the two handlers"
+        peer.send(f"pub {key}/1")
+        wait_for(lambda: one == [f"{key}/1"] and two == [f"{key}/1"], 20, "both handlers")
+        first.close()
+        peer.send(f"pub {key}/2")
+        wait_for(lambda: two == [f"{key}/1", f"{key}/2"], 20, "the other handler goes on")
+        assert one == [f"{key}/1"], "a closed handler hears nothing more"
+        assert transport.declarations == declared + 1
+        second.close()
+        assert transport.declarations == declared
+        peer.send("quit")
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["tokens"]:
+        sys.exit(tokens(sys.argv[2]))

@@ -114,7 +114,7 @@ class Embodiment:
 
             transport = ZenohTransport(transport_config)
         self.transport: Transport = transport
-        self.sim = Simulation(self.transport, mesh=self.mesh, embodiment=self.name)
+        self.sim = Simulation(self.transport, mesh=self.mesh, embodiment=self.name, one_queryable=True)
         try:
             if state_dir is not None:
                 self._state_lock = StateLock(state_dir)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import gc
 import logging
 import os
 import signal
@@ -127,9 +128,15 @@ def _existing(path: str | None, option: str) -> str | None:
 
 def cmd_up(args: argparse.Namespace) -> int:
     logs.configure(args.log_level, args.log_format, args.log_file)
+    # Starting makes objects that live as long as the daemon, and no garbage: the cyclic collector
+    # waits until the embodiment is up, then skips them (``_up``; as ``main`` does for loading).
+    collecting = gc.isenabled()
+    gc.disable()
     try:
-        return _up(args)  # a clean stop leaves the process from within (os._exit)
+        return _up(args, collecting)  # a clean stop leaves the process from within (os._exit)
     finally:
+        if collecting:
+            gc.enable()
         # Refused or failed: the lines written, and the process's logging as it was (main may be
         # called in a process that goes on, as the tests do).
         logs.shutdown()
@@ -137,7 +144,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         logs.unconfigure()
 
 
-def _up(args: argparse.Namespace) -> int:
+def _up(args: argparse.Namespace, collecting: bool) -> int:
     metrics_server: MetricsServer | None = None
     if args.metrics:
         # Only with --metrics: prometheus_client is no other daemon's start-up cost.
@@ -222,6 +229,9 @@ def _up(args: argparse.Namespace) -> int:
                 # READY=1 said (under systemd): joined, the name held, the loop turning. Leaving says STOPPING=1.
                 if metrics_server is not None:
                     metrics_server.attach(metrics.Metrics(embodiment, heartbeat=service.heartbeat))
+                if collecting:
+                    gc.freeze()
+                    gc.enable()
                 _run_daemon(args, embodiment, table, companion, state, stop, web, metrics_server)
     # The log's writer thread stopped (its lines written): the lines below are written at once.
     logs.shutdown()

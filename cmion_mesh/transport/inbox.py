@@ -76,8 +76,12 @@ class Sink:
 
     def close(self) -> None:
         self.closed = True
+        self.wait_idle()
+
+    def wait_idle(self) -> None:
+        """Wait for a delivery running now to end (at once on the dispatch thread: it is the caller)."""
         if threading.current_thread() is not self.dispatch.thread:
-            with self._running:  # a handler running now ends before close returns
+            with self._running:
                 pass
 
 

@@ -6,7 +6,9 @@ session runs the handlers (``inbox.Dispatch``), so zenoh's own threads never run
 slow handler cannot stall the session's receive path (a full queue makes zenoh wait: back-pressure,
 not loss). An idle session's thread sleeps in one ``queue.get``: nothing polls. A subscriber's
 handler gets everything queued for it when the thread looks (``subscribe_batches``): under load,
-the handler and the hop that follows it run once per batch rather than once per sample.
+the handler and the hop that follows it run once per batch rather than once per sample. Handlers
+of one selector (and options) share one zenoh declaration (``shared``): each declared is work on
+every peer of the mesh.
 
 Blocking publications and deletes go the other way through one thread of their own (an
 ``outbox.Outbox``): zenoh makes a blocking put wait while any subscriber's link is full, and the
@@ -28,7 +30,7 @@ import json
 import logging
 import re
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +51,7 @@ from cmion_mesh.transport.base import (
 )
 from cmion_mesh.transport.inbox import Dispatch, Sink
 from cmion_mesh.transport.outbox import Outbox
+from cmion_mesh.transport.shared import Declarations, Shared, SharedLiveliness, SharedSamples
 
 log = logging.getLogger(__name__)
 
@@ -199,6 +202,10 @@ class _Entity(Handle):
         self._lock = threading.Lock()
         self._closed = False
 
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -246,6 +253,14 @@ def _sample_of(key: str) -> Callable[[zenoh.Sample], Sample]:
     return convert
 
 
+_PUT = zenoh.SampleKind.PUT
+
+
+def _change(sample: zenoh.Sample) -> tuple[str, bool]:
+    """A liveliness sample as (key, alive)."""
+    return str(sample.key_expr), sample.kind == _PUT
+
+
 class _Matching:
     """``Transport.matching``: ``matching`` as zenoh's matching listener last said."""
 
@@ -279,6 +294,9 @@ class ZenohTransport:
         self._checked: set[str] = set()  # keys zenoh took: checked once, not per publication
         self._outbox = Outbox(self._send, name="publisher")
         self._dispatch = Dispatch()
+        # The subscribers and liveliness watches of this session, by what they were declared with:
+        # a handler asking for the same again joins the declaration there is (``shared``).
+        self._declarations = Declarations()
 
     @property
     def id(self) -> str:
@@ -351,6 +369,14 @@ class ZenohTransport:
     def dropped_publications(self) -> int:
         return self._outbox.dropped
 
+    @property
+    def declarations(self) -> int:
+        """Subscribers, queryables, liveliness subscribers and tokens, and matching listeners this
+        session has declared and not undeclared (handlers sharing one count once): each is work on
+        every peer of the mesh."""
+        with self._lock:
+            return sum(not entity.closed for entity in self._entities)
+
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
                   attachments: bool = False) -> Closeable:
         def each(batch: list[Sample]) -> None:
@@ -368,14 +394,29 @@ class ZenohTransport:
         concrete = "*" not in selector and "$" not in selector
         convert = _sample_attached if attachments else _sample_of(selector) if concrete else None
 
-        def deliver(items: list[zenoh.Sample]) -> None:
+        def samples(items: list[zenoh.Sample]) -> list[Sample]:
             make = convert or _sample  # looked up here, not at declaration: bench.breakdown wraps _sample
-            handler([make(item) for item in items])
+            return [make(item) for item in items]
 
-        sink = self._dispatch.sink(f"sub:{selector}", deliver)
-        with self._errors(f"subscribe {selector}"):
-            sub = self._session.declare_subscriber(selector, _callback(sink), allowed_origin=origin)
-        return self._track(_Entity(sub.undeclare, sink))
+        def declare(sink: Sink) -> Callable[[], None]:
+            return self._session.declare_subscriber(selector, _callback(sink), allowed_origin=origin).undeclare
+
+        return self._join(("sub", selector, remote_only, attachments), handler, f"subscribe {selector}",
+                          lambda on_empty: SharedSamples(self._dispatch, f"sub:{selector}", samples, on_empty), declare)
+
+    def _join(self, key: Hashable, handler: Callable[..., None], what: str,
+              make: Callable[[Callable[[Shared], None]], Shared], declare: Callable[[Sink], Callable[[], None]]) -> Closeable:
+        """``Declarations.join``, the zenoh entity declared (``declare``) and tracked here."""
+        if self._closed:
+            raise ClosedError(f"{what}: the transport is closed")
+
+        def entity(shared: Shared) -> _Entity:
+            with self._errors(what):
+                undeclare = declare(shared.sink)
+            return self._track(_Entity(undeclare, shared.sink))
+
+        return self._declarations.join(key, handler, make, entity)
+
 
     def declare_queryable(self, selector: str, handler: QueryHandler, *, complete: bool = False) -> Closeable:
         def deliver(queries: list[zenoh.Query]) -> None:
@@ -485,17 +526,15 @@ class ZenohTransport:
                     if reply.ok is not None]
 
     def watch_liveliness(self, selector: str, handler: LivelinessHandler) -> Closeable:
-        def deliver(samples: list[zenoh.Sample]) -> None:
-            for sample in samples:
-                try:
-                    handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-                except Exception:
-                    log.exception("handler of liveliness %s failed", selector)
+        """One liveliness subscriber with history per selector: each declared is a liveliness query
+        to every peer. A handler that joins it later is given the keys alive first (``shared``)."""
 
-        sink = self._dispatch.sink(f"live:{selector}", deliver)
-        with self._errors(f"watch liveliness {selector}"):
-            sub = self._session.liveliness().declare_subscriber(selector, _callback(sink), history=True)
-        return self._track(_Entity(sub.undeclare, sink))
+        def declare(sink: Sink) -> Callable[[], None]:
+            return self._session.liveliness().declare_subscriber(selector, _callback(sink), history=True).undeclare
+
+        return self._join(("live", selector), handler, f"watch liveliness {selector}",
+                          lambda on_empty: SharedLiveliness(self._dispatch, f"liveliness {selector}", _change, on_empty),
+                          declare)
 
     def matching(self, selector: str) -> _Matching:
         with self._errors(f"matching subscribers of {selector}"):
@@ -549,6 +588,7 @@ class ZenohTransport:
                 return
             self._closed = True
             entities, self._entities = self._entities, []
+        self._declarations.clear()
         # What is queued goes out first (a tool that publishes, then closes, loses nothing), while
         # the session is still open; a link that takes nothing more is given up by zenoh meanwhile.
         self._outbox.close()
