@@ -23,7 +23,7 @@ from cmion_mesh.body.embodiment import Embodiment
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import ConfigError, RequestRejected
 from cmion_mesh.messages import Code, MigrateAbort, MigrateSections, MindMessage, MindState, Outcome, SectionChunk
-from cmion_mesh.migration import identity, sections
+from cmion_mesh.migration import identity, sections, uploads
 from cmion_mesh.migration.handshake import have
 from cmion_mesh.migration.identity import Identity, SectionMemo, SectionRef, max_section, read_manifest
 from cmion_mesh.migration.ledger import Record, Records, read_ledger
@@ -326,6 +326,35 @@ def test_a_section_received_in_chunks_is_decoded_beside_its_sync_not_by_the_prep
     assert decoded_by_the_prepare == []
     assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
     assert body.inhabitant == "s" and body.migration is not None and body.migration.section("big") == value
+
+
+def test_past_its_bound_an_upload_leaves_the_decoding_to_the_prepare(
+        screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
+    # Values decoded ahead are held beside their bytes until the prepare: a sender that never
+    # prepares would cost twice what it sent. Past DECODE_AHEAD, the prepare decodes.
+    body, client = screen
+    monkeypatch.setattr(uploads, "DECODE_AHEAD", INLINE)
+    decoded_by_the_prepare: list[str] = []
+    decode = identity.decode_section
+
+    def counted(ref: SectionRef, data: Any, *, name: str = "<identity>") -> Any:
+        decoded_by_the_prepare.append(ref.component)
+        return decode(ref, data, name=name)
+
+    monkeypatch.setattr(identity, "decode_section", counted)
+    value = "b" * (INLINE + 10)
+    packed = Identity("s", 1, {"big": value}).pack_sections()
+    big = packed.refs[0]
+    robot = Holder("s", "robot")
+    prepare = robot.prepare("screen", packed.manifest, "a1")
+    assert to_screen(client, "have", have(prepare)).status == "accepted"
+    chunk = SectionChunk(big.sha256, 0, packed.data[big.sha256])
+    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk])).status == "accepted"
+    accepted = to_screen(client, "prepare", prepare)
+    assert accepted.status == "accepted", accepted
+    assert decoded_by_the_prepare == ["big"]
+    assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
+    assert body.migration is not None and body.migration.section("big") == value
 
 
 def test_a_stranger_cannot_fill_the_disk_with_sections(screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:

@@ -53,6 +53,10 @@ MAX_UPLOAD_ENV = "CMION_MESH_MAX_UPLOAD"
 #: deleted); ``CMION_MESH_UPLOAD_IDLE`` changes it.
 UPLOAD_IDLE = 60.0
 UPLOAD_IDLE_ENV = "CMION_MESH_UPLOAD_IDLE"
+#: Bytes of one upload's sections decoded ahead of its prepare, at most: their values are held
+#: beside their bytes until it comes, so a sender that never prepares costs twice the memory of
+#: what it sent only up to here (the prepare decodes the rest itself).
+DECODE_AHEAD = 64 * 1024 * 1024
 #: Uploads held at once (one per sender); a ``have`` beyond them is refused busy.
 MAX_UPLOADS = 8
 #: Pins of the section store held by the uploads staged here (one owner per sender).
@@ -74,6 +78,7 @@ class Upload:
     settling: list[Future[None]] = field(default_factory=list)  # completed sections being synced
     decoding: list[Future[None]] = field(default_factory=list)  # completed sections being decoded
     decoded: dict[str, Any] = field(default_factory=dict)  # sha256 -> value, decoded ahead of the prepare
+    ahead: int = 0  # bytes of sections given to be decoded ahead (at most ``DECODE_AHEAD``)
     unsynced: list[str] = field(default_factory=list)  # why some of them could not be (a prepare is refused)
     last: float = field(default_factory=time.monotonic)  # when it last took a chunk (or began)
 
@@ -185,7 +190,13 @@ class Uploads:
                 break
         if settle:
             upload.settling.append(self._settle(settle))
-            upload.decoding.append(self._decode(upload, settle))
+            ahead = []
+            for incoming in settle:
+                if upload.ahead + incoming.ref.size <= DECODE_AHEAD:
+                    upload.ahead += incoming.ref.size
+                    ahead.append(incoming)
+            if ahead:
+                upload.decoding.append(self._decode(upload, ahead))
         if problems:
             request.reject("; ".join(problems), Code.BUSY if refusals and refusals[-1].startswith("busy") else Code.INVALID)
         else:
