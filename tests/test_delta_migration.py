@@ -285,28 +285,46 @@ def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing
     assert body.migration.uploads.staged("a1", "robot") is None, "the upload ended: its sections are sent again"
 
 
+def decodes_by_the_prepare(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The components whose sections the prepare decodes itself, from now on."""
+    decoded: list[str] = []
+    decode = identity.decode_section
+
+    def counted(ref: SectionRef, data: Any, *, name: str = "<identity>") -> Any:
+        decoded.append(ref.component)
+        return decode(ref, data, name=name)
+
+    monkeypatch.setattr(identity, "decode_section", counted)
+    return decoded
+
+
+def upload_and_commit(client: MeshClient, value: str) -> None:
+    """Companion ``s`` with one section ``big`` (``value``) from robot: have, one chunk, prepare, commit."""
+    packed = Identity("s", 1, {"big": value}).pack_sections()
+    big = packed.refs[0]
+    robot = Holder("s", "robot")
+    prepare = robot.prepare("screen", packed.manifest, "a1")
+    assert to_screen(client, "have", have(prepare)).status == "accepted"
+    chunk = SectionChunk(big.sha256, 0, packed.data[big.sha256])
+    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk])).status == "accepted"
+    accepted = to_screen(client, "prepare", prepare)
+    assert accepted.status == "accepted", accepted
+    assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
+
+
 def test_a_section_received_in_chunks_is_decoded_beside_its_sync_not_by_the_prepare(
         screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
     # Megabytes decoded on the loop held the prepare's answer: the upload decodes what it completed
     # on a handshake thread, and the prepare takes the value. Bytes that hash right but are not plain
     # data are still refused by the prepare, naming the section.
     body, client = screen
-    decoded_by_the_prepare: list[str] = []
-    decode = identity.decode_section
-
-    def counted(ref: SectionRef, data: Any, *, name: str = "<identity>") -> Any:
-        decoded_by_the_prepare.append(ref.component)
-        return decode(ref, data, name=name)
-
-    monkeypatch.setattr(identity, "decode_section", counted)
+    decoded_by_the_prepare = decodes_by_the_prepare(monkeypatch)
     value = "b" * (INLINE + 10)
-    packed = Identity("s", 1, {"big": value}).pack_sections()
-    big = packed.refs[0]
+    big = Identity("s", 1, {"big": value}).pack_sections().refs[0]
     bad = b"\xc1" * big.size  # never valid MessagePack
     digest = hashlib.sha256(bad).hexdigest()
     manifest = Identity("t", 1, {"big": value}).pack_sections().manifest.replace(big.sha256.encode(), digest.encode())
-    other = Holder("t", "robot")
-    offer = other.prepare("screen", manifest, "b1")
+    offer = Holder("t", "robot").prepare("screen", manifest, "b1")
     asked = to_screen(client, "have", have(offer))
     assert asked.status == "accepted", asked
     taken = to_screen(client, "sections", MigrateSections("t", "b1", "robot", "screen", [SectionChunk(digest, 0, bad)]))
@@ -316,16 +334,9 @@ def test_a_section_received_in_chunks_is_decoded_beside_its_sync_not_by_the_prep
     assert body.migration is not None and body.migration.records.get("t") is None
     decoded_by_the_prepare.clear()
 
-    robot = Holder("s", "robot")
-    prepare = robot.prepare("screen", packed.manifest, "a1")
-    assert to_screen(client, "have", have(prepare)).status == "accepted"
-    chunk = SectionChunk(big.sha256, 0, packed.data[big.sha256])
-    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk])).status == "accepted"
-    accepted = to_screen(client, "prepare", prepare)
-    assert accepted.status == "accepted", accepted
+    upload_and_commit(client, value)
     assert decoded_by_the_prepare == []
-    assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
-    assert body.inhabitant == "s" and body.migration is not None and body.migration.section("big") == value
+    assert body.inhabitant == "s" and body.migration.section("big") == value
 
 
 def test_past_its_bound_an_upload_leaves_the_decoding_to_the_prepare(
@@ -334,26 +345,10 @@ def test_past_its_bound_an_upload_leaves_the_decoding_to_the_prepare(
     # prepares would cost twice what it sent. Past DECODE_AHEAD, the prepare decodes.
     body, client = screen
     monkeypatch.setattr(uploads, "DECODE_AHEAD", INLINE)
-    decoded_by_the_prepare: list[str] = []
-    decode = identity.decode_section
-
-    def counted(ref: SectionRef, data: Any, *, name: str = "<identity>") -> Any:
-        decoded_by_the_prepare.append(ref.component)
-        return decode(ref, data, name=name)
-
-    monkeypatch.setattr(identity, "decode_section", counted)
+    decoded_by_the_prepare = decodes_by_the_prepare(monkeypatch)
     value = "b" * (INLINE + 10)
-    packed = Identity("s", 1, {"big": value}).pack_sections()
-    big = packed.refs[0]
-    robot = Holder("s", "robot")
-    prepare = robot.prepare("screen", packed.manifest, "a1")
-    assert to_screen(client, "have", have(prepare)).status == "accepted"
-    chunk = SectionChunk(big.sha256, 0, packed.data[big.sha256])
-    assert to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", [chunk])).status == "accepted"
-    accepted = to_screen(client, "prepare", prepare)
-    assert accepted.status == "accepted", accepted
+    upload_and_commit(client, value)
     assert decoded_by_the_prepare == ["big"]
-    assert to_screen(client, "commit", robot.commit(prepare, accepted)).status == "accepted"
     assert body.migration is not None and body.migration.section("big") == value
 
 
@@ -384,8 +379,10 @@ def test_a_stranger_cannot_fill_the_disk_with_sections(screen: tuple[Embodiment,
 
 def test_a_chunk_received_is_hashed_while_its_write_goes_on_and_is_synced_before_it_is_named(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # The loop takes the next chunk (or another request) while a chunk is written: ``add`` does not
-    # wait for the disk; ``finish`` does, before the fsync and the name.
+    # The loop takes the next chunk (or another request) while a chunk is written: ``add`` waits
+    # for neither the hash nor the disk. The last chunk's answer says the bytes are whole and hash
+    # right (``finish``) while the device may still be writing them; settling (on a handshake
+    # thread, before the prepare records incoming) waits for those writes, then syncs and names it.
     store = SectionStore(tmp_path / "sections")
     data = bytes(range(256)) * 64
     ref = SectionRef("blob", hashlib.sha256(data).hexdigest(), len(data))
@@ -394,7 +391,7 @@ def test_a_chunk_received_is_hashed_while_its_write_goes_on_and_is_synced_before
     pwrite = os.pwrite
 
     def held(fd: int, chunk: Any, offset: int) -> int:
-        gate.wait(2.0)
+        gate.wait(10.0)
         done = pwrite(fd, chunk, offset)
         written.set()
         return done
@@ -402,32 +399,8 @@ def test_a_chunk_received_is_hashed_while_its_write_goes_on_and_is_synced_before
     monkeypatch.setattr(os, "pwrite", held)
     half = len(data) // 2
     assert incoming.add(half, data[half:]) == "" and incoming.add(0, data[:half]) == ""
-    assert not written.is_set() and incoming.complete, "both chunks taken and hashed, neither written yet"
-    gate.set()
-    assert incoming.finish() == ""
-    assert store.path(ref.sha256).read_bytes() == data and incoming.data == data
-
-
-def test_a_section_is_checked_without_waiting_for_its_writes_and_settled_after_them(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # The last chunk's answer says the bytes are whole and hash right; the device may still be
-    # writing them. Settling (on a handshake thread, before the prepare records incoming) waits for
-    # those writes, then syncs and names the file.
-    store = SectionStore(tmp_path / "sections")
-    data = bytes(range(256)) * 64
-    ref = SectionRef("blob", hashlib.sha256(data).hexdigest(), len(data))
-    incoming = store.receive(ref)
-    gate = threading.Event()
-    pwrite = os.pwrite
-
-    def held(fd: int, chunk: Any, offset: int) -> int:
-        gate.wait(10.0)
-        return pwrite(fd, chunk, offset)
-
-    monkeypatch.setattr(os, "pwrite", held)
-    assert incoming.add(0, data) == ""
-    assert incoming.finish(settle=False) == "" and incoming.data == data, "checked while the write waits"
-    assert not store.path(ref.sha256).exists()
+    assert not written.is_set() and incoming.complete, "both chunks taken, neither written yet"
+    assert incoming.finish(settle=False) == "" and incoming.data == data, "checked while the writes wait"
     settled = threading.Thread(target=incoming.settle)
     settled.start()
     try:

@@ -8,6 +8,7 @@ selector share one zenoh declaration, against tokens of a peer in another proces
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 from collections.abc import Callable, Iterator
@@ -200,16 +201,23 @@ def tokens(endpoint: str) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def peer_and_transport(name: str) -> Iterator[tuple[Daemon, ZenohTransport]]:
+    """This module's ``tokens`` peer in a process of its own (ready), and a transport connected to it."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Daemon([sys.executable, "-m", "tests.test_transport", "tokens", endpoint], name=name, stdin=True) as peer, \
+            ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False,
+                                           overrides=(("listen/endpoints", "[]"),))) as transport:
+        peer.wait_line("ready", 30)
+        yield peer, transport
+
+
 def test_liveliness_watches_of_one_selector_share_a_declaration(mesh: str) -> None:
     """A second watch of the same selector joins the first one's liveliness subscriber: it is given
     the peer's token (as the history its own declaration would have brought), then every change;
     closing the first leaves the second watching; the last one closed undeclares."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     alive = f"cmion/{mesh}/@alive"
-    with Daemon([sys.executable, "-m", "tests.test_transport", "tokens", endpoint], name="tokens", stdin=True) as peer, \
-            ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False,
-                                           overrides=(("listen/endpoints", "[]"),))) as transport:
-        peer.wait_line("ready", 30)
+    with peer_and_transport("tokens") as (peer, transport):
         peer.send(f"up {alive}/a")
         first: list[tuple[str, bool]] = []
         second: list[tuple[str, bool]] = []
@@ -234,12 +242,8 @@ def test_liveliness_watches_of_one_selector_share_a_declaration(mesh: str) -> No
 
 
 def test_subscribers_of_one_selector_share_a_declaration(mesh: str) -> None:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     key = f"cmion/{mesh}/shared/ev"
-    with Daemon([sys.executable, "-m", "tests.test_transport", "tokens", endpoint], name="publisher", stdin=True) as peer, \
-            ZenohTransport(TransportConfig(connect=(endpoint,), multicast=False,
-                                           overrides=(("listen/endpoints", "[]"),))) as transport:
-        peer.wait_line("ready", 30)
+    with peer_and_transport("publisher") as (peer, transport):
         one: list[str] = []
         two: list[str] = []
         declared = transport.declarations
