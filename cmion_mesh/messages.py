@@ -376,8 +376,8 @@ class SectionChunk(msgspec.Struct, frozen=True):
 class MigrateSections(Message, frozen=True, tag="migrate_sections"):
     """Source -> target, after ``have``: bytes of sections the target lacks, as raw MessagePack
     bytes in chunks (``.../rq/migration/sections/<source>``), each section's chunks in order. The
-    target answers once every section completed by these chunks is checked against its hash and
-    on its disk: ``{"stored": [sha256 hex]}``."""
+    target answers once every section completed by these chunks is whole and checked against its
+    hash (its write and fsync go on beside; the prepare waits for them): ``{"stored": [sha256 hex]}``."""
 
     companion: str
     attempt: str
