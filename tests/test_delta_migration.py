@@ -262,9 +262,10 @@ def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing
         screen: tuple[Embodiment, MeshClient], monkeypatch: pytest.MonkeyPatch) -> None:
     # A chunk's answer says the section arrived whole and right; its fsync runs beside the prepare's
     # way, and the prepare records incoming only once it is durable: a sync that fails refuses it.
+    # Two sections complete in one request: the first failing, the second is still settled (its
+    # file and writer thread ended: a thread left running fails the test).
     body, client = screen
-    packed = Identity("s", 1, {"big": "b" * (INLINE + 10)}).pack_sections()
-    big = next(r for r in packed.refs if r.component == "big")
+    packed = Identity("s", 1, {"big": "b" * (INLINE + 10), "also": "a" * (INLINE + 10)}).pack_sections()
     prepare = Holder("s", "robot").prepare("screen", packed.manifest, "a1")
     assert to_screen(client, "have", have(prepare)).status == "accepted"
 
@@ -276,9 +277,9 @@ def test_a_section_that_cannot_be_synced_refuses_the_prepare_and_records_nothing
         fsync_file(fd, kind)
 
     monkeypatch.setattr(sections, "fsync_file", full)
-    answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen",
-                                                           [SectionChunk(big.sha256, 0, packed.data[big.sha256])]))
-    assert answer.status == "accepted" and answer.value == {"stored": [big.sha256]}
+    chunks = [SectionChunk(ref.sha256, 0, packed.data[ref.sha256]) for ref in packed.refs]
+    answer = to_screen(client, "sections", MigrateSections("s", "a1", "robot", "screen", chunks))
+    assert answer.status == "accepted" and answer.value == {"stored": sorted(ref.sha256 for ref in packed.refs)}
     refused = to_screen(client, "prepare", prepare)
     assert refused.status == "rejected" and "could not be stored: No space left on device" in refused.reason
     assert body.migration is not None and body.migration.records.get("s") is None

@@ -12,14 +12,16 @@ received from a peer is written only if it fits (``SectionStore.make_room``), an
 from the first chunk on.
 
 Every durable write is: temp file, fsync, rename, fsync the folder (``FSYNCS`` counts them, by
-kind, for the benchmark); the bytes of a large one go around the page cache (``bulkio``). The folder is 0700 and every file 0600.
+kind, for the benchmark); the bytes of a large one go around the page cache (``bulkio``). The
+folder is 0700 and every file 0600.
 Every read checks the bytes against the name: a file altered at rest is refused with an error naming
 it, never used.
 
 Threads: one store serves the loop (a target checking and receiving sections) and the handshake
 threads (a source writing its own copy): its byte counts and pins are under a lock. An
 ``IncomingSection`` belongs to the thread that receives it (the loop); it writes its chunks on a
-thread of its own and hashes them on another, both joined by ``finish`` (or ``abandon``).
+thread of its own and hashes them on another: ``finish`` joins the hashing, ``settle`` the
+writing, ``abandon`` both.
 """
 
 from __future__ import annotations
@@ -388,9 +390,9 @@ class IncomingSection:
     do. ``add`` waits for neither: the caller (the loop) takes the next chunk, or other requests,
     meanwhile; a write that failed is said at the next ``add`` or when the section is settled.
     ``finish`` waits for the hashing and checks the hash; ``settle`` waits for the writes, fsyncs
-    and gives the file its name; the bytes stay at hand in ``data``. ``finish`` or ``abandon`` ends it (its file and threads); a caller
-    that makes it durable later (on a thread of its own) finishes with ``settle=False`` and then
-    calls ``settle``."""
+    and gives the file its name; the bytes stay at hand in ``data``. ``finish`` or ``abandon`` ends
+    it (its file and threads); a caller that makes it durable later (on a thread of its own)
+    finishes with ``settle=False`` and then calls ``settle``, always."""
 
     def __init__(self, store: SectionStore, ref: SectionRef) -> None:
         self.store = store
@@ -470,8 +472,12 @@ class IncomingSection:
         caller's to fsync); or why not (its bytes hash to something else: nothing is kept)."""
         self._stop_hashing()
         hashes, self._hashes = self._hashes, []
-        for taken in hashes:
-            taken.result()
+        try:
+            for taken in hashes:
+                taken.result()
+        except BaseException:
+            self.abandon()  # its file and writer go with it
+            raise
         digest = self._hasher.hexdigest()
         if digest != self.ref.sha256:
             self.abandon()

@@ -211,12 +211,19 @@ class Uploads:
         store = self.host.records.sections
 
         def settle() -> None:
-            try:
-                for incoming in sections:
+            failed: BaseException | None = None
+            for incoming in sections:  # each of them, whatever the others do: settling ends its file and writer
+                try:
                     incoming.settle()
-                store.sync()
-            except BaseException as exc:  # said by ``settled``, to the prepare that needs them
-                done.set_exception(exc)
+                except BaseException as exc:
+                    failed = failed or exc
+            try:
+                if failed is None:
+                    store.sync()
+            except BaseException as exc:
+                failed = exc
+            if failed is not None:  # said by ``settled``, to the prepare that needs them
+                done.set_exception(failed)
             else:
                 done.set_result(None)
 
