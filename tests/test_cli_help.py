@@ -71,12 +71,18 @@ VERBS = [*([verb] for verb in cli.COMMANDS), *([verb, word] for verb, word in cl
 
 @pytest.mark.parametrize("verb", VERBS, ids=" ".join)
 def test_every_verb_has_a_description_and_an_example_in_its_help(verb: list[str]) -> None:
+    described_with_an_example(verb, f"  cmion-mesh {verb[0]} ")
+
+
+def described_with_an_example(verb: list[str], example: str) -> None:
+    """``verb --help`` exits 0 with its usage, a description of four words or more, and an example
+    (after a line starting "example") that contains ``example``."""
     code, out, _ = run(*verb, "--help")
     assert code == 0
     usage, _, rest = out.partition("\n\n")
     description = rest.split("\n\n", 1)[0]
     assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
-    assert "\nexample" in out and f"  cmion-mesh {verb[0]} " in out.rsplit("\nexample", 1)[1], out
+    assert "\nexample" in out and example in out.rsplit("\nexample", 1)[1], out
 
 
 def nested_verbs(parser: argparse.ArgumentParser, words: tuple[str, ...] = ()) -> list[list[str]]:
@@ -100,12 +106,7 @@ def test_the_nested_verbs_are_all_found() -> None:
 
 @pytest.mark.parametrize("verb", NESTED, ids=" ".join)
 def test_every_nested_verb_has_a_description_and_an_example_in_its_help(verb: list[str]) -> None:
-    code, out, _ = run(*verb, "--help")
-    assert code == 0
-    usage, _, rest = out.partition("\n\n")
-    description = rest.split("\n\n", 1)[0]
-    assert usage.startswith(f"usage: cmion-mesh {' '.join(verb)}") and len(description.split()) >= 4, out
-    assert "\nexample" in out and f"cmion-mesh {' '.join(verb)} " in out.rsplit("\nexample", 1)[1], out
+    described_with_an_example(verb, f"cmion-mesh {' '.join(verb)} ")
 
 
 def test_timeout_waits_for_the_outcome_and_join_for_the_peers_everywhere() -> None:

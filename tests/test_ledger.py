@@ -25,7 +25,7 @@ from cmion_mesh.migration.sections import FSYNCS
 from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
-from .helpers.memory_bodies import body, close, ready_to_migrate
+from .helpers.memory_bodies import body, close, ready_to_migrate, robot_and_screen
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(120)
@@ -235,9 +235,7 @@ def test_compaction_under_running_migrations_loses_nothing(network: MemoryNetwor
 
 def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, mesh: str, tmp_path: Path,
                                                       client: MeshClient) -> None:
-    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
-    screen = body(network, mesh, "screen", tmp_path).start()
-    try:
+    with robot_and_screen(network, mesh, tmp_path) as (robot, screen):
         ready_to_migrate(robot, screen)
         assert robot.migration is not None and screen.migration is not None
         appends = robot.migration.records.journal.appends, screen.migration.records.journal.appends
@@ -246,8 +244,6 @@ def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, m
                  and robot.migration.records.get("spirit").state == "released", 5, "released")  # type: ignore[union-attr]
         assert robot.migration.records.journal.appends - appends[0] == 3, "prepared, handed, released"
         assert screen.migration.records.journal.appends - appends[1] == 2, "incoming, active"
-    finally:
-        close(robot, screen)
 
 
 @pytest.fixture

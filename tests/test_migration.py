@@ -22,7 +22,7 @@ from cmion_mesh.testing.wait import wait_for
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 
 from .helpers.custody_helpers import Holder
-from .helpers.memory_bodies import body, close, ready_to_migrate
+from .helpers.memory_bodies import body, close, ready_to_migrate, robot_and_screen
 from .helpers.remote_helpers import Diary
 
 pytestmark = pytest.mark.timeout(60)
@@ -35,9 +35,7 @@ def client(network: MemoryNetwork, mesh: str) -> Iterator[MeshClient]:
 
 
 def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, mesh: str, tmp_path: Path, client: MeshClient) -> None:
-    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
-    screen = body(network, mesh, "screen", tmp_path).start()
-    try:
+    with robot_and_screen(network, mesh, tmp_path) as (robot, screen):
         wait_for(lambda: robot.inhabitant == "spirit", 5, "spirit born on the robot")
         assert screen.inhabitant is None
         robot_mind, screen_mind = robot.minds[0], screen.minds[0]
@@ -57,8 +55,6 @@ def test_companion_moves_with_its_memory_and_sections(network: MemoryNetwork, me
         assert report.status == "succeeded", report
         wait_for(lambda: robot.inhabitant == "spirit", 5, "back on the robot")
         assert robot_mind.entries == ["met Ada", "at the entrance"] and robot_mind.awake
-    finally:
-        close(robot, screen)
 
 
 def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork, mesh: str, tmp_path: Path,
@@ -66,10 +62,8 @@ def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork
     # The target's token while it receives the companion is no claim, and the one after the commit
     # is backed by the link the source signed: asking for them (a chain request, a signature and its
     # check on both sides) in the middle of every migration cost both daemons time for nothing.
-    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
-    screen = body(network, mesh, "screen", tmp_path).start()
     asked: list[tuple[str, str]] = []
-    try:
+    with robot_and_screen(network, mesh, tmp_path) as (robot, screen):
         for embodiment in (robot, screen):
             assert embodiment.migration is not None
             claims = embodiment.migration.claims
@@ -91,8 +85,6 @@ def test_a_source_knows_its_targets_claims_without_asking(network: MemoryNetwork
         wait_for(lambda: [c.holder for c in screen.migration.claims.backed("spirit")] == ["robot"], 5,  # type: ignore[union-attr]
                  "the screen backs the robot's claim")
         assert asked == [], f"chain requests between the two ends of a migration: {asked}"
-    finally:
-        close(robot, screen)
 
 
 def test_a_target_that_cannot_record_active_never_runs_the_companion(network: MemoryNetwork, mesh: str, tmp_path: Path,
@@ -100,9 +92,7 @@ def test_a_target_that_cannot_record_active_never_runs_the_companion(network: Me
     # ``active`` is durable before the companion wakes at the target: woken first, a write that
     # failed would leave it running there on a record still incoming, which the source then
     # aborts, and resumes: two hosts.
-    robot = body(network, mesh, "robot", tmp_path, companion="spirit").start()
-    screen = body(network, mesh, "screen", tmp_path).start()
-    try:
+    with robot_and_screen(network, mesh, tmp_path) as (robot, screen):
         assert robot.migration is not None and screen.migration is not None
         ready_to_migrate(robot, screen)
         records = screen.migration.records
@@ -120,8 +110,6 @@ def test_a_target_that_cannot_record_active_never_runs_the_companion(network: Me
         screen_mind = screen.minds[0]
         assert screen.inhabitant is None and screen.migration.identity is None
         assert not screen_mind.awake and screen_mind.arrivals == [], "the companion never ran on the screen"
-    finally:
-        close(robot, screen)
 
 
 class Badge(Component):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 from cmion_mesh.body.embodiment import Embodiment
@@ -22,6 +24,17 @@ def close(*embodiments: Embodiment) -> None:
     for e in embodiments:
         e.close()
         e.transport.close()
+
+
+@contextlib.contextmanager
+def robot_and_screen(network: MemoryNetwork, mesh: str, state: Path, companion: str = "spirit") -> Iterator[tuple[Embodiment, Embodiment]]:
+    """The robot (where ``companion`` is born) and the screen, started; both closed at the end."""
+    robot = body(network, mesh, "robot", state, companion=companion).start()
+    screen = body(network, mesh, "screen", state).start()
+    try:
+        yield robot, screen
+    finally:
+        close(robot, screen)
 
 
 def ready_to_migrate(source: Embodiment, target: Embodiment, companion: str = "spirit") -> None:
