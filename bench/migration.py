@@ -17,6 +17,11 @@ migrations, every round measures:
   process that replies 64 bytes (three per round);
 * ``fsync``: writing that many bytes to a new file in a temporary folder and ``os.fsync`` (three
   per round); ``raw + fsync`` pairs them (the baseline);
+* ``floor``: the same hop between two bare peers (``bench.floor``: plain Python, zenoh and the
+  disk, doing only the messages and durable points any such handshake needs); the migration's
+  ratio to it (``migration_<size>_vs_floor``) is what safety and the component model cost, and
+  the floor's own ratio to ``raw + fsync`` (``migration_floor_<size>``) is the least any
+  handshake of this shape can show on this machine;
 * ``migration``: the ``migrate`` request to the embodiment holding the companion -> the
   ``MigrationOccurred`` event of the target (the companion restored and its minds awake there),
   as seen by the measuring process; the companion then goes back the other way next round.
@@ -50,6 +55,7 @@ import zenoh
 
 from bench.core import open_session, raw_keys
 from bench.daemons import Node, client_config, stop_and_report
+from bench.floor import Floor
 from bench.harness import loopback_config, loopback_endpoint, start_child, stop_child
 from bench.registry import Options, Row
 from bench.stats import summarize
@@ -235,6 +241,9 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         stack.callback(mig.close)
         raw = RawTransfer(session, mesh)
         raw.once(b"x")  # first contact
+        (tmp / "floor").mkdir()
+        floor = Floor(f"{mesh}-floor", tmp / "floor")
+        stack.callback(floor.close)
         log(f"daemons up after {time.monotonic() - started:.2f} s (mesh {mesh})")
         scratch = tmp / "fsync"
         scratch.mkdir()
@@ -246,7 +255,9 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 mig.once()
                 raw.once(payload)
                 fsync_once(scratch, payload, 0)
-            samples: dict[str, list[float]] = {"raw": [], "fsync": [], "occurred": [], "released": []}
+                floor.make(size)
+                floor.once()
+            samples: dict[str, list[float]] = {"raw": [], "fsync": [], "floor": [], "occurred": [], "released": []}
             sent: list[float] = []
             fsyncs: dict[str, list[float]] = {"source": [], "target": []}
             kinds: dict[str, dict[str, int]] = {}
@@ -254,6 +265,8 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 for j in range(3):
                     samples["raw"].append(raw.once(payload))
                     samples["fsync"].append(fsync_once(scratch, payload, i * 3 + j))
+                floor.make(size)
+                samples["floor"].append(floor.once())
                 mig.tell_mind({"size": max(0, size - OVERHEAD)})  # a fresh blob: nothing of it is at the target
                 occurred, released = mig.once()
                 samples["occurred"].append(occurred)
@@ -273,9 +286,13 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                      "x_label": "document KiB", "x": round(doc / KIB, 1)}
             base = Row(f"raw_fsync_{key}", f"raw transfer + fsync, {name} (baseline)", summarize(both),
                        extra={**curve, "series": "raw zenoh transfer + fsync"})
-            occurred_row = Row(f"migration_{key}", f"migration {name}: command -> awake at target", summarize(samples["occurred"]),
-                               baseline=base.metric, ratio=summarize(samples["occurred"]).median_ms / base.summary.median_ms,
+            awake, bare = summarize(samples["occurred"]), summarize(samples["floor"])
+            occurred_row = Row(f"migration_{key}", f"migration {name}: command -> awake at target", awake,
+                               baseline=base.metric, ratio=awake.median_ms / base.summary.median_ms,
                                extra={**extra, **curve, "series": "cmion migration"})
+            floor_row = Row(f"migration_floor_{key}", f"bare handshake {name} (bench.floor): command -> awake, the floor", bare,
+                            baseline=base.metric, ratio=bare.median_ms / base.summary.median_ms,
+                            extra={**curve, "series": "bare handshake (floor)"})
             if size == SIZES[0]:
                 occurred_row.limit, occurred_row.strict = SMALL_LIMIT_MS, True
             else:
@@ -284,7 +301,10 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 Row(f"raw_{key}", f"raw zenoh get carrying {name}, round trip", summarize(samples["raw"])),
                 Row(f"fsync_{key}", f"write + fsync {name} to a new file", summarize(samples["fsync"])),
                 base,
+                floor_row,
                 occurred_row,
+                Row(f"migration_{key}_vs_floor", f"migration {name} over the bare handshake", awake,
+                    baseline=floor_row.metric, ratio=awake.median_ms / bare.median_ms),
                 Row(f"migration_released_{key}", f"migration {name}: command -> source released", summarize(samples["released"]),
                     extra=dict(extra)),
                 *(Row(f"migration_fsyncs_{side}_{key}", f"migration {name}: fsync calls on the {side} (its ledger's counters)",
