@@ -9,8 +9,10 @@ selector share one zenoh declaration, against tokens of a peer in another proces
 from __future__ import annotations
 
 import contextlib
+import gc
 import sys
 import threading
+import weakref
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -18,7 +20,7 @@ import pytest
 from cmion_mesh.errors import ClosedError, TransportError
 from cmion_mesh.procs import Daemon, free_port
 from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.base import MAX_BATCH, IncomingQuery, Sample, Transport, TransportConfig
+from cmion_mesh.transport.base import MAX_BATCH, Declared, IncomingQuery, Sample, Transport, TransportConfig
 from cmion_mesh.transport.memory import MemoryNetwork, MemoryTransport
 from cmion_mesh.transport.zenoh import ZenohTransport
 
@@ -264,3 +266,42 @@ def test_subscribers_of_one_selector_share_a_declaration(mesh: str) -> None:
 if __name__ == "__main__":
     if sys.argv[1:2] == ["tokens"]:
         sys.exit(tokens(sys.argv[2]))
+
+
+def test_what_a_transport_closed_it_holds_no_more(any_transport: Transport) -> None:
+    """A daemon declares a custody token at every step of every migration: a transport that kept
+    each one it ever declared would grow for as long as the daemon runs. After thousands declared
+    and closed, it holds about what is open, and closing the transport still closes what is."""
+    kept = [any_transport.declare_token(f"cmion/decl/kept/{i}") for i in range(3)]
+    closed = []
+    for epoch in range(3000):
+        token = any_transport.declare_token(f"cmion/decl/custody/{epoch}")
+        token.close()
+        closed.append(weakref.ref(token))
+        del token
+    gc.collect()
+    held = sum(ref() is not None for ref in closed)
+    assert held <= 2 * Declared.MIN_PRUNE, f"the transport still holds {held} of the tokens it closed"
+    if isinstance(any_transport, ZenohTransport):
+        assert any_transport.declarations == 3
+    any_transport.close()
+    assert all(token.closed for token in kept)  # type: ignore[attr-defined]
+
+
+def test_declared_drops_closed_handles_as_it_grows() -> None:
+    class Item:
+        def __init__(self) -> None:
+            self.closed = False
+
+        def close(self) -> None:
+            self.closed = True
+
+    declared: Declared[Item] = Declared()
+    open_ones = [declared.add(Item()) for _ in range(100)]
+    for _ in range(10_000):
+        declared.add(Item()).close()
+        assert len(declared) <= 2 * max(Declared.MIN_PRUNE, 100) + 1
+    assert declared.open() == 100
+    taken = declared.take()
+    assert [item for item in taken if not item.closed] == open_ones
+    assert len(declared) == 0

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import NamedTuple, Protocol
+from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import msgspec
 
@@ -133,6 +133,60 @@ class Handle:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+
+class Closing(Protocol):
+    """A handle that says whether it is closed."""
+
+    @property
+    def closed(self) -> bool: ...
+
+    def close(self) -> None: ...
+
+
+H = TypeVar("H", bound=Closing)
+
+
+class Declared(Generic[H]):
+    """What a transport declared, for it to close what is left when it closes. Thread-safe.
+
+    A daemon declares a custody token at each step of each migration and closes it at the next:
+    kept for good, the closed ones would grow for as long as the daemon runs. So they are dropped
+    as more are added, once the list has doubled since it was last pruned (amortized O(1) an add;
+    about twice the open ones are held at most)."""
+
+    __slots__ = ("_items", "_lock", "_prune_at")
+
+    MIN_PRUNE = 64
+
+    def __init__(self) -> None:
+        self._items: list[H] = []
+        self._lock = threading.Lock()
+        self._prune_at = self.MIN_PRUNE
+
+    def add(self, item: H) -> H:
+        with self._lock:
+            if len(self._items) >= self._prune_at:
+                self._items = [held for held in self._items if not held.closed]
+                self._prune_at = max(self.MIN_PRUNE, 2 * len(self._items))
+            self._items.append(item)
+        return item
+
+    def open(self) -> int:
+        """How many are not closed."""
+        with self._lock:
+            return sum(not held.closed for held in self._items)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+    def take(self) -> list[H]:
+        """All of them (in the order declared), forgotten here: for closing."""
+        with self._lock:
+            items, self._items = self._items, []
+            self._prune_at = self.MIN_PRUNE
+        return items
 
 
 #: The zenoh link lease of a daemon by default (ms): zenoh's own. Each link carries four keep-alives

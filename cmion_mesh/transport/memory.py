@@ -18,6 +18,7 @@ from cmion_mesh.transport.base import (
     MAX_BATCH,
     BatchHandler,
     Closeable,
+    Declared,
     Handle,
     LivelinessHandler,
     QueryCancel,
@@ -114,6 +115,10 @@ class _Handle(Handle):
         self._close = close
         self._closed = False
 
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
     def close(self) -> None:
         if not self._closed:
             self._closed = True
@@ -143,7 +148,7 @@ class MemoryTransport:
     def __init__(self, network: MemoryNetwork, name: str = "mem") -> None:
         self.net = network
         self._id = f"{name}-{next(network.ids)}"
-        self._mine: list[_Handle] = []
+        self._mine: Declared[_Handle] = Declared()
         self._closed = False
         with network.lock:
             network.members.add(self._id)
@@ -322,9 +327,7 @@ class MemoryTransport:
             return sorted(self.net.members - {self._id})
 
     def _remember(self, close: Callable[[], Any]) -> Closeable:
-        handle = _Handle(close)
-        self._mine.append(handle)
-        return handle
+        return self._mine.add(_Handle(close))
 
     def close(self) -> None:
         if self._closed:
@@ -332,6 +335,5 @@ class MemoryTransport:
         self._closed = True
         with self.net.lock:
             self.net.members.discard(self._id)
-        for handle in reversed(self._mine):
+        for handle in reversed(self._mine.take()):
             handle.close()
-        self._mine.clear()

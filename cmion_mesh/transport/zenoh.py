@@ -40,6 +40,7 @@ from cmion_mesh.errors import ClosedError, ConfigError, TransportError
 from cmion_mesh.transport.base import (
     BatchHandler,
     Closeable,
+    Declared,
     Handle,
     LivelinessHandler,
     QueryCancel,
@@ -287,7 +288,7 @@ class ZenohTransport:
             self._session = zenoh.open(zc)
         except zenoh.ZError as exc:
             raise _open_error(exc) from None
-        self._entities: list[_Entity] = []
+        self._entities: Declared[_Entity] = Declared()
         self._lock = threading.Lock()
         self._closed = False
         self._publishers: dict[str, zenoh.Publisher] = {}  # the outbox's thread's own
@@ -317,8 +318,7 @@ class ZenohTransport:
 
     def _track(self, entity: _Entity) -> _Entity:
         with self._lock:
-            self._entities.append(entity)
-        return entity
+            return self._entities.add(entity)
 
     def publish(self, key: str, payload: bytes, *, block: bool = True, attachment: bytes | None = None) -> None:
         if block:
@@ -375,7 +375,7 @@ class ZenohTransport:
         session has declared and not undeclared (handlers sharing one count once): each is work on
         every peer of the mesh."""
         with self._lock:
-            return sum(not entity.closed for entity in self._entities)
+            return self._entities.open()
 
     def subscribe(self, selector: str, handler: SampleHandler, *, remote_only: bool = False,
                   attachments: bool = False) -> Closeable:
@@ -587,7 +587,7 @@ class ZenohTransport:
             if self._closed:
                 return
             self._closed = True
-            entities, self._entities = self._entities, []
+            entities = self._entities.take()
         self._declarations.clear()
         # What is queued goes out first (a tool that publishes, then closes, loses nothing), while
         # the session is still open; a link that takes nothing more is given up by zenoh meanwhile.
