@@ -212,6 +212,72 @@ def _prepare(chain: Chain, source_target: str, *, seq: int, target: str | None =
     return message
 
 
+# --- verifying a chain that grows ---------------------------------------------------------------------
+
+
+def _counting(monkeypatch: pytest.MonkeyPatch) -> list[bytes]:
+    """The signatures ``signing.valid`` is asked to check from now on (its cache emptied)."""
+    checked: list[bytes] = []
+    valid = signing.valid
+
+    def counted(public: bytes, data: bytes, signature: bytes) -> bool:
+        checked.append(signature)
+        return valid(public, data, signature)
+
+    valid.cache_clear()
+    monkeypatch.setattr(signing, "valid", counted)
+    return checked
+
+
+def test_a_chain_that_grows_is_checked_only_where_it_grew(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A companion's chain gains a link a migration and is checked at every prepare: the links
+    checked before are not checked again, so a migration does not cost more as the companion ages."""
+    custody.VERIFIED.clear()
+    chain = Chain("a")
+    for i in range(300):
+        chain.to("b" if i % 2 else "c")
+    checked = _counting(monkeypatch)
+    custody.verify_chain(chain.links, "spirit", identity=chain.identity)
+    assert len(checked) == 301
+    checked.clear()
+    custody.verify_chain(chain.links, "spirit", identity=chain.identity)
+    custody.verify_chain(chain.links[:120], "spirit")  # a former host's, shorter: known too
+    assert checked == []
+    chain.to("a")
+    custody.verify_chain(chain.links, "spirit", identity=chain.identity)
+    assert checked == [chain.links[-1].signature]
+    with pytest.raises(SignatureRefused, match="other than the one trusted"):  # trust is checked at every call
+        custody.verify_chain(chain.links, "spirit", identity=Chain("x").identity)
+
+
+def test_a_chain_that_differs_anywhere_from_the_one_known_is_checked_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only link-for-link sameness counts: a chain that shares the known chain's last link but not
+    an earlier one (a bad signature in the middle) is checked from its first link and refused."""
+    custody.VERIFIED.clear()
+    chain = Chain("a").to("b").to("c").to("d")
+    custody.verify_chain(chain.links, "spirit")
+    tampered = list(chain.links)
+    tampered[2] = msgspec.structs.replace(tampered[2], signature=bytes(64))
+    checked = _counting(monkeypatch)
+    with pytest.raises(SignatureRefused, match="custody link 2"):
+        custody.verify_chain(tampered, "spirit")
+    assert len(checked) == 3  # from the birth link to the bad one
+    true, forged = true_and_forged()  # a fork verified after the true chain is checked whole, and is valid
+    custody.verify_chain(true.links, "spirit")
+    checked.clear()
+    custody.verify_chain(forged.links, "spirit")
+    assert len(checked) == len(forged.links)
+
+
+def test_the_chains_kept_are_bounded() -> None:
+    custody.VERIFIED.clear()
+    for i in range(custody.VERIFIED.COMPANIONS + 10):
+        chain = Chain("a", companion=f"c{i}")
+        custody.verify_chain(chain.links, f"c{i}")
+    assert len(custody.VERIFIED) == custody.VERIFIED.COMPANIONS
+    assert "c0" not in custody.VERIFIED and f"c{custody.VERIFIED.COMPANIONS + 9}" in custody.VERIFIED
+
+
 # --- a record at rest --------------------------------------------------------------------------------
 
 

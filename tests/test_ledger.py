@@ -115,6 +115,61 @@ def test_each_step_is_one_append_and_one_fdatasync(tmp_path: Path) -> None:
     assert records.journal.appends == 3
 
 
+def aged(records: Records, links: int) -> tuple[Record, bytes]:
+    """A companion born in ``records`` whose chain of custody has ``links`` links (as after that
+    many migrations), active here: its record and the custody key of its last link."""
+    active, document, key = born(records)
+    chain = list(active.chain)
+    for epoch in range(2, links + 1):
+        following = signing.new_key()
+        chain.append(custody.hand_on(key, "spirit", epoch, "robot" if epoch % 2 else "screen", signing.public_of(following),
+                                     f"a{epoch}", custody.digest(document)))
+        key = following
+    record = records.put(msgspec.structs.replace(active, epoch=links, chain=chain), document=document, key=key)
+    return record, key
+
+
+def test_an_entry_keeps_the_chain_written_before_it_and_carries_only_its_new_links(tmp_path: Path) -> None:
+    """A chain gains a link a migration and is the same at most steps: an entry written whole at
+    every step grew with the companion's age (a 1000-link chain is about 170 KiB)."""
+    folder = tmp_path / "state"
+    records = Records(folder, bound=1 << 30)
+    active, key = aged(records, 600)
+    steps = [msgspec.structs.replace(active, state="prepared", seq=1, attempt="a601", peer="screen"),
+             msgspec.structs.replace(active, state="handed", seq=1, attempt="a601", peer="screen")]
+    link = custody.hand_on(key, "spirit", 601, "screen", signing.public_of(signing.new_key()), "a601", custody.digest(b"d"))
+    steps.append(msgspec.structs.replace(active, state="active", epoch=601, chain=[*active.chain, link]))
+    for step in steps:
+        size = (folder / LOG).stat().st_size
+        written = records.put(step)
+        assert (folder / LOG).stat().st_size - size < 1024, f"{step.state}: the entry carries the whole chain"
+    assert written.chain == [*active.chain, link]
+    records.close()
+    assert read_ledger(folder).records["spirit"].chain == written.chain, "tools read it whole too"
+    again = Records(folder, bound=1)  # the next step compacts: chains are written whole then
+    assert again.get("spirit") == written, "read at start, each entry's chain is whole again"
+    assert len(again.get("spirit").chain) == 601  # type: ignore[union-attr]
+    again.put(msgspec.structs.replace(written, peer="x"))
+    assert again.journal.compactions == 1
+    again.close()
+    assert Records(folder).get("spirit").chain == written.chain  # type: ignore[union-attr]
+
+
+def test_an_entry_that_keeps_links_the_entries_before_it_lack_is_refused_naming_the_file(tmp_path: Path) -> None:
+    folder = tmp_path / "state"
+    records = Records(folder, bound=1 << 30)
+    active, _key = aged(records, 5)
+    records.put(msgspec.structs.replace(active, state="prepared", seq=1, attempt="a6", peer="screen"))
+    records.close()
+    data = (folder / LOG).read_bytes()
+    first = HEADER.size + HEADER.unpack_from(data)[1]
+    second = first + HEADER.size + HEADER.unpack_from(data, first)[1]
+    (folder / LOG).write_bytes(data[:first] + data[second:])  # the entry of the aged chain taken out
+    with pytest.raises(ConfigError) as refused:
+        Records(folder)
+    assert str(folder / LOG) in str(refused.value) and "keeps 5 links" in str(refused.value)
+
+
 def test_compaction_keeps_the_state_and_bounds_the_log(tmp_path: Path) -> None:
     folder = tmp_path / "state"
     records = Records(folder, bound=4096)

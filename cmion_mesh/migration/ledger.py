@@ -4,7 +4,9 @@ A record says where this embodiment stands with a companion: its state in the ha
 attempt it is in, and the chain of custody it knows. Records live in the ledger of the state
 folder (``journal.Journal``, ``ledger.log``): every ``put`` is one entry appended and one
 ``fdatasync``, carrying the record and, when they change, the identity document it names (by
-its hash) and the custody private key of the epoch held here. Reading the log at start replays
+its hash) and the custody private key of the epoch held here. Of the record's chain of custody
+an entry carries only the links that the companion's entry before it lacks (``Entry.chain_kept``):
+so an entry's size, and a step's cost, do not grow with the companion's age. Reading the log at start replays
 its entries in order (one pass); a torn last entry is ignored. The log is compacted (the current
 entry of every companion rewritten once, atomically) when it grows past its bound, and at once
 when a custody key leaves the state (a companion released or dropped here): a former host's key
@@ -104,6 +106,35 @@ class Entry(msgspec.Struct, frozen=True, omit_defaults=True):
     #: small sections the document names (sha256 -> bytes), durable in this entry: their files are
     #: written without fsync, synced before a compaction drops them, rewritten at start if lost
     sections: dict[str, bytes] | None = None
+    #: the record's chain of custody is the first ``chain_kept`` links of the one in the companion's
+    #: entry before this one, then ``record.chain``. A chain gains a link a migration and is the
+    #: same at most steps: written whole at every step, each entry grew with the companion's age.
+    #: Compaction writes chains whole (0).
+    chain_kept: int = 0
+
+
+def whole(entry: Entry, before: Record | None, where: str) -> Entry:
+    """``entry`` as read from a log, its record's chain whole: the links it keeps of ``before``'s
+    (the companion's record as the entries before it left it), then its own. ``where`` names the
+    entry in the ``ConfigError`` of one that keeps more links than ``before`` has."""
+    if not entry.chain_kept or entry.record is None:
+        return entry
+    if before is None or len(before.chain) < entry.chain_kept:
+        raise ConfigError(f"the entry of {entry.companion!r} keeps {entry.chain_kept} links of a chain of custody the "
+                          f"entries before it do not hold ({len(before.chain) if before else 0} links)", path=where)
+    chain = [*before.chain[:entry.chain_kept], *entry.record.chain]
+    return msgspec.structs.replace(entry, record=msgspec.structs.replace(entry.record, chain=chain), chain_kept=0)
+
+
+def _kept(before: Record | None, chain: list[Link]) -> int:
+    """How many links at the start of ``chain`` an entry may keep of ``before``'s chain (written
+    before it): all of that chain when ``chain`` begins with it, link for link, else none."""
+    if before is None or not before.chain or len(before.chain) > len(chain):
+        return 0
+    if before.chain is chain:
+        return len(chain)
+    n = len(before.chain)
+    return n if chain[:n] == before.chain else 0
 
 
 class Records:
@@ -127,7 +158,7 @@ class Records:
         self.journal = Journal(self.dir, bound)
         self.path = self.journal.path
         for offset, payload in self.journal.entries:
-            self._replay(self._decode(payload, offset))
+            self._replay(self._whole(self._decode(payload, offset), offset))
         self.journal.entries = []
         self._restore_sections()
         legacy = sorted(self.dir.glob("*.record.json"))
@@ -153,9 +184,15 @@ class Records:
             raise ConfigError(f"the entry of {entry.companion!r} holds a record of {entry.record.companion!r}", path=where)
         if entry.record is not None and entry.record.epoch < 0:
             raise ConfigError(f"unusable migration record: negative epoch {entry.record.epoch}", path=where)
+        if entry.chain_kept < 0 or (entry.chain_kept and entry.record is None):
+            raise ConfigError(f"unusable migration ledger entry: it keeps {entry.chain_kept} links of a chain", path=where)
         return entry
 
+    def _whole(self, entry: Entry, offset: int) -> Entry:
+        return whole(entry, self._cache.get(entry.companion), f"{self.path} (entry at byte {offset})")
+
     def _replay(self, entry: Entry) -> None:
+        """``entry`` into the records here (its chain whole: ``_whole``)."""
         companion, record = entry.companion, entry.record
         if record is None:
             for held in (self._cache, self._documents, self._keys, self._unsynced):
@@ -305,7 +342,10 @@ class Records:
             secret_gone = record.state not in HOSTING and companion in self._keys
             carried = {path.name: bytes(data) for path, data in files} if files and inline else None
             entry = Entry(companion, record, document, key, carried)
-            self.journal.append(msgspec.msgpack.encode(entry), record.state)
+            kept = _kept(self._cache.get(companion), record.chain)
+            written = msgspec.structs.replace(entry, record=msgspec.structs.replace(record, chain=record.chain[kept:]),
+                                              chain_kept=kept) if kept else entry
+            self.journal.append(msgspec.msgpack.encode(written), record.state)
             if carried:
                 write_files(files, durable=False)  # durable in the entry; synced before a compaction drops it
             self._replay(entry)
@@ -472,8 +512,9 @@ def read_ledger(directory: str | os.PathLike[str]) -> Contents:
     except FileNotFoundError:
         data = b""
     contents = Contents({}, {}, {})
-    for _offset, payload in scan(data, path)[0]:
+    for offset, payload in scan(data, path)[0]:
         entry = msgspec.msgpack.decode(payload, type=Entry)
+        entry = whole(entry, contents.records.get(entry.companion), f"{path} (entry at byte {offset})")
         held = (contents.records, contents.documents, contents.keys)
         if entry.record is None or entry.record.state not in HOSTING:
             for kept in held[1:]:
