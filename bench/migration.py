@@ -27,6 +27,10 @@ migrations, every round measures:
   as seen by the measuring process; the companion then goes back the other way next round.
   ``-> released``: until the source's ``MigrationSucceeded`` (the commit acknowledged).
 
+At 10 KiB, each round also migrates a companion ``AGE`` (2000) migrations old between two daemons of
+its own (``old-a``, ``old-b``; its state, a chain of custody of that many links, made beforehand):
+``migration_10kib_aged``, with its ratio to the young companion's migration of the same round.
+
 Then the return trip of delta migration: a 10 MiB identity whose blob stays as it is while the
 mind's own section (10 KiB drawn afresh at every migration) changes; after a trip there and back
 (both sides then hold the blob), each round migrates it once more: ``migration_return_10mib_delta``
@@ -62,6 +66,9 @@ from bench.stats import summarize
 from cmion_mesh.client import MeshClient
 from cmion_mesh.errors import MeshError
 from cmion_mesh.messages import Event, Migrate, MindMessage
+from cmion_mesh.migration import custody, signing
+from cmion_mesh.migration.identity import Identity
+from cmion_mesh.migration.ledger import Record, Records
 from cmion_mesh.procs import unique_mesh
 from cmion_mesh.testing.wait import migrate_once_seen, wait_for
 from cmion_mesh.transport.zenoh import ZenohTransport
@@ -75,6 +82,8 @@ LARGE_TARGET = 3.0
 DELTA_LIMIT_MS = 20.0
 DELTA_SENT_LIMIT = 1.0  # % of the document
 DELTA_SCRATCH = 10 * KIB
+#: Links in the chain of custody of the aged companion (``aged``): that many migrations old.
+AGE = 2000
 #: bytes of the document that are not the blob (the manifest, the mind's section): subtracted from the blob
 OVERHEAD = 600
 
@@ -93,7 +102,8 @@ class Migrations:
     def __init__(self, client: MeshClient, nodes: dict[str, Node]) -> None:
         self.client = client
         self.nodes = nodes
-        self.home = A
+        self.pair = tuple(nodes)  # the embodiment it starts on, then the other
+        self.home = self.pair[0]
         self.events: queue.SimpleQueue[tuple[float, Event]] = queue.SimpleQueue()
         self.transfer: dict[str, int] = {}
         #: fsyncs of the last migration, from each side's ledger counters (``describe``'s ``ledger``)
@@ -108,7 +118,7 @@ class Migrations:
 
     @property
     def other(self) -> str:
-        return B if self.home == A else A
+        return self.pair[1] if self.home == self.pair[0] else self.pair[0]
 
     def tell_mind(self, args: dict[str, int]) -> None:
         outcome = self.client.request(self.home, "mind", "message", MindMessage(dict(args)), timeout=30.0)
@@ -241,6 +251,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         stack.callback(mig.close)
         raw = RawTransfer(session, mesh)
         raw.once(b"x")  # first contact
+        old = aged_pair(stack, mesh, tmp, warmups)
         (tmp / "floor").mkdir()
         floor = Floor(f"{mesh}-floor", tmp / "floor")
         stack.callback(floor.close)
@@ -257,7 +268,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 fsync_once(scratch, payload, 0)
                 floor.make(size)
                 floor.once()
-            samples: dict[str, list[float]] = {"raw": [], "fsync": [], "floor": [], "occurred": [], "released": []}
+            samples: dict[str, list[float]] = {"raw": [], "fsync": [], "floor": [], "occurred": [], "released": [], "aged": []}
             sent: list[float] = []
             fsyncs: dict[str, list[float]] = {"source": [], "target": []}
             kinds: dict[str, dict[str, int]] = {}
@@ -271,6 +282,9 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 occurred, released = mig.once()
                 samples["occurred"].append(occurred)
                 samples["released"].append(released)
+                if size == SIZES[0]:  # the same migration of a companion AGE migrations old, in its own pair
+                    old.tell_mind({"size": max(0, size - OVERHEAD)})
+                    samples["aged"].append(old.once()[0])
                 sent.append(mig.transfer.get("sent", 0) / max(1, mig.document_size()))
                 for side in fsyncs:
                     fsyncs[side].append(float(mig.fsyncs.get(side, {}).get("total", 0)))
@@ -305,6 +319,10 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
                 occurred_row,
                 Row(f"migration_{key}_vs_floor", f"migration {name} over the bare handshake", awake,
                     baseline=floor_row.metric, ratio=awake.median_ms / bare.median_ms),
+                *([Row(f"migration_{key}_aged", f"migration {name} of a companion {AGE} migrations old: command -> awake",
+                       summarize(samples["aged"]), baseline=occurred_row.metric,
+                       ratio=summarize(samples["aged"]).median_ms / awake.median_ms, extra={"links": AGE})]
+                  if samples["aged"] else []),
                 Row(f"migration_released_{key}", f"migration {name}: command -> source released", summarize(samples["released"]),
                     extra=dict(extra)),
                 *(Row(f"migration_fsyncs_{side}_{key}", f"migration {name}: fsync calls on the {side} (its ledger's counters)",
@@ -314,6 +332,50 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         rows += delta_return(mig, rounds[SIZES[-1]] * 2, warmups)
         log(f"measured in {time.monotonic() - started:.1f} s")
     return rows
+
+
+def aged_state(folder: Path, holder: str, other: str, links: int) -> None:
+    """``holder``'s state folder with the companion active there after ``links - 1`` migrations
+    between ``other`` and it: a chain of custody that long, signed link by link as handshakes sign."""
+    records = Records(folder)
+    packed = Identity(COMPANION, links, {}).pack_sections()
+    key = signing.new_key()
+    chain = [custody.birth(COMPANION, holder if links % 2 else other, key, packed.manifest)]
+    for epoch in range(2, links + 1):
+        following = signing.new_key()
+        chain.append(custody.hand_on(key, COMPANION, epoch, holder if (links - epoch) % 2 == 0 else other,
+                                     signing.public_of(following), f"aged-{epoch}", custody.digest(packed.manifest)))
+        key = following
+    records.put(Record(COMPANION, "active", links, chain=chain, public_key=signing.encode_public(chain[0].public_key)),
+                document=packed.manifest, sections=packed.data, key=key)
+    records.close()
+
+
+def aged_pair(stack: ExitStack, mesh: str, tmp: Path, warmups: int) -> Migrations:
+    """Two daemons of their own between which the companion, ``AGE`` migrations old (its state
+    made beforehand), migrates: warmed up there and back (the other side has verified its chain)."""
+    old_a, old_b = "old-a", "old-b"
+    aged_state(tmp / old_a / "state", old_a, old_b, AGE)
+    a = Node(old_a, mesh, tmp / old_a)
+    b = Node(old_b, mesh, tmp / old_b, connect=(a.listen,))
+    nodes = {old_a: a, old_b: b}
+    for node in nodes.values():
+        node.start()
+    stack.callback(stop_and_report, list(nodes.values()), log)
+    for node in nodes.values():
+        node.wait_up(60.0)
+    transport = ZenohTransport(client_config(a.listen, b.listen))
+    stack.callback(transport.close)
+    client = MeshClient(transport, mesh)
+    for name in nodes:
+        client.wait_for_embodiment(name, timeout=20.0)
+    wait_for(lambda: client.describe(old_a, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the aged companion resumed")
+    mig = Migrations(client, nodes)
+    stack.callback(mig.close)
+    for _ in range(max(2, warmups)):
+        mig.tell_mind({"size": max(0, SIZES[0] - OVERHEAD)})
+        mig.once()
+    return mig
 
 
 def delta_return(mig: Migrations, rounds: int, warmups: int) -> list[Row]:

@@ -41,7 +41,7 @@ def test_quick_benchmarks(tmp_path: Path, only: str) -> None:
         assert all(row["n"] > 0 and not row["failures"] for row in run["rows"]), name
     if "migration" in doc["benchmarks"]:  # the bare handshake ran beside it, in the same run
         metrics = {row["metric"] for row in doc["benchmarks"]["migration"]["rows"]}
-        assert {"migration_floor_10kib", "migration_10kib_vs_floor", "migration_floor_10mib"} <= metrics
+        assert {"migration_floor_10kib", "migration_10kib_vs_floor", "migration_floor_10mib", "migration_10kib_aged"} <= metrics
 
 
 @pytest.mark.timeout(240)
