@@ -7,6 +7,7 @@ Pure file work in one process, and migrations between two embodiments on the in-
 
 from __future__ import annotations
 
+import gc
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -286,6 +287,23 @@ def test_compaction_under_running_migrations_loses_nothing(network: MemoryNetwor
             assert isinstance(mind, Diary) and mind.entries == notes
         finally:
             close(robot, screen)
+
+
+def test_an_attempt_decided_is_held_by_none_of_its_deadlines(network: MemoryNetwork, mesh: str, tmp_path: Path,
+                                                             client: MeshClient) -> None:
+    """Each prepare arms the deadline of its attempt (a minute): were the timers to hold its record,
+    every attempt of the last minute would stay in memory with its chain of custody (hundreds of
+    them, each as long as the companion is old, when migrations follow one another)."""
+    with robot_and_screen(network, mesh, tmp_path) as (robot, screen):
+        home, other = robot, screen
+        for _ in range(8):
+            ready_to_migrate(home, other)
+            client.migrate("spirit", other.sim.embodiment, timeout=20)
+            home, other = other, home
+        wait_for(lambda: home.inhabitant == "spirit", 5, "the last migration over")
+        gc.collect()
+        incoming = [o for o in gc.get_objects() if isinstance(o, Record) and o.state == "incoming"]
+        assert len(incoming) <= 1, f"{len(incoming)} incoming records still held (8 attempts decided)"
 
 
 def test_a_migration_is_one_append_a_step_on_each_side(network: MemoryNetwork, mesh: str, tmp_path: Path,

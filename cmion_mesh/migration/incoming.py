@@ -186,14 +186,14 @@ class Incoming:
         # The commit (or abort) normally follows at once. If the link fails now, the source's one
         # abort may be lost for good: once overdue, ask the source, as after a restart. A timer on
         # the loop rather than a thread waiting: nothing starts on the way to the commit.
-        host.sim.call_later(host.retry[1], functools.partial(self._overdue, incoming))
+        host.sim.call_later(host.retry[1], functools.partial(self._overdue, incoming.companion, incoming.attempt))
         self.expire_later(incoming)
 
-    def _overdue(self, record: Record) -> None:
-        """Loop: the attempt of ``record`` is still undecided a while after its prepare: ask its source."""
-        current = self.host.records.get(record.companion)
-        if current is not None and current.state == "incoming" and current.attempt == record.attempt:
-            self.host.spawn(f"resolve-{record.companion}", self.resolve_incoming, record)
+    def _overdue(self, companion: str, attempt: str) -> None:
+        """Loop: ``attempt`` is still undecided a while after its prepare: ask its source."""
+        current = self.host.records.get(companion)
+        if current is not None and current.state == "incoming" and current.attempt == attempt:
+            self.host.spawn(f"resolve-{companion}", self.resolve_incoming, current)
 
     def _take_token(self, source: str) -> bool:
         bucket = self._buckets.setdefault(source, TokenBucket())
@@ -312,13 +312,15 @@ class Incoming:
             self._drop(settled, f"{record.peer!r} aborted it")
 
     def expire_later(self, record: Record) -> None:
-        """Loop: drop ``record``'s attempt at its deadline if it is still undecided then."""
+        """Loop: drop ``record``'s attempt at its deadline if it is still undecided then. The timer
+        holds the names only: a record carries the companion's chain of custody, and the deadline of
+        every attempt of the last minute is pending (many, when migrations come one after another)."""
         due = handshake.incoming_deadline(record, self.timeout)
-        self.host.sim.call_later(max(0.0, due - time.time()), functools.partial(self._expire, record))
+        self.host.sim.call_later(max(0.0, due - time.time()), functools.partial(self._expire, record.companion, record.attempt))
 
-    def _expire(self, record: Record) -> None:
-        current = self.host.records.get(record.companion)
-        if current is None or current.state != "incoming" or current.attempt != record.attempt:
+    def _expire(self, companion: str, attempt: str) -> None:
+        current = self.host.records.get(companion)
+        if current is None or current.state != "incoming" or current.attempt != attempt:
             return  # decided meanwhile
         expired = handshake.expire_incoming(current, now=time.time(), bound=self.timeout)
         if expired is None:  # the clock went back since the timer was set
