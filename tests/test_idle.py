@@ -32,6 +32,8 @@ MAX_THREADS = 8
 #: Wakes of all of an idle daemon's Python threads together, per second, at most (before: about 200).
 MAX_WAKES_PER_S = 1.0
 WINDOW = 2.0
+#: Windows measured at most, until one is quiet.
+WINDOWS = 4
 
 
 def python_threads(pid: int) -> list[str]:
@@ -76,10 +78,19 @@ def test_an_idle_daemon_wakes_no_thread_and_holds_few(mesh: str, tmp_path: Path)
         tids = {d.name: python_threads(d.proc.pid) for d in daemons}
         for daemon in daemons:
             assert len(tids[daemon.name]) <= MAX_THREADS, f"{daemon.name} holds {len(tids[daemon.name])} Python threads while idle"
-        before = {d.name: wakes(d.proc.pid, tids[d.name]) for d in daemons}
-        threading.Event().wait(WINDOW)  # a window of idleness, measured: nothing to wait for
-        woke = {d.name: (wakes(d.proc.pid, tids[d.name]) - before[d.name]) / WINDOW for d in daemons}
-        assert all(rate <= MAX_WAKES_PER_S for rate in woke.values()), f"Python threads' wakes per second while idle: {woke}"
+        # Something that happens in the mesh now and then (the client's leaving, a peer of another
+        # test found on the way) wakes a daemon once or twice: what is measured is that it then
+        # stays asleep. So a window counts once one is quiet; a thread a timer wakes, wakes in every one.
+        windows = []
+        for _ in range(WINDOWS):
+            before = {d.name: wakes(d.proc.pid, tids[d.name]) for d in daemons}
+            threading.Event().wait(WINDOW)  # a window of idleness, measured: nothing to wait for
+            woke = {d.name: (wakes(d.proc.pid, tids[d.name]) - before[d.name]) / WINDOW for d in daemons}
+            windows.append(woke)
+            if all(rate <= MAX_WAKES_PER_S for rate in woke.values()):
+                break
+        assert all(rate <= MAX_WAKES_PER_S for rate in windows[-1].values()), \
+            f"Python threads' wakes per second while idle, in {len(windows)} windows of {WINDOW:g} s: {windows}"
     finally:
         for daemon in daemons:
             daemon.stop()
