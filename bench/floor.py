@@ -164,13 +164,22 @@ class Floor:
             extra = ("--connect", connect) if connect else ()
             self.children.append(start_child("bench.floor", "--name", name, "--tag", tag, "--folder", str(folder),
                                              "--listen", listen, *extra, name=f"floor-{name}"))
-        for child in self.children:
-            child.wait_line("ready", 30.0)
+        try:
+            for child in self.children:
+                child.wait_line("ready", 30.0)
+        except BaseException:
+            for child in self.children:
+                stop_child(child)
+            raise
         self.session = open_session(client_config(*listens))
         self.subscriber = self.session.declare_subscriber(f"{tag}/event/*", zenoh.handlers.FifoChannel(CHANNEL_CAPACITY))
         self.drain = _drain("floor-events", self.subscriber.handler.recv,
                             lambda sample: self.events.put((time.perf_counter(), sample.payload.to_bytes())))
-        self.join()
+        try:
+            self.join()
+        except BaseException:
+            self.close()
+            raise
 
     def ask(self, peer: str, op: str, payload: bytes, timeout: float = REQUEST_TIMEOUT) -> bool:
         replies = [r for r in self.session.get(f"{self.tag}/{peer}/{op}", payload=payload, timeout=timeout)
