@@ -52,6 +52,7 @@ import os
 import queue
 import tempfile
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -94,6 +95,29 @@ def size_name(size: int) -> str:
 
 def log(text: str) -> None:
     print(f"  [migration] {text}", flush=True)
+
+
+def two_daemons(stack: ExitStack, mesh: str, tmp: Path, names: tuple[str, str], *, companion: str | None = None,
+                launcher: tuple[str, ...] | None = None, report: Callable[[str], None] = log) -> tuple[dict[str, Node], MeshClient]:
+    """Two daemons (the second connected to the first), up, and a client that sees both and the
+    companion living on the first: born there (``companion``) or resumed from its state folder.
+    Everything started is stopped by ``stack``."""
+    first, second = names
+    a = Node(first, mesh, tmp / first, companion=companion, launcher=launcher)
+    b = Node(second, mesh, tmp / second, connect=(a.listen,), launcher=launcher)
+    nodes = {first: a, second: b}
+    for node in nodes.values():
+        node.start()
+    stack.callback(stop_and_report, list(nodes.values()), report)
+    for node in nodes.values():
+        node.wait_up(60.0)
+    transport = ZenohTransport(client_config(a.listen, b.listen))
+    stack.callback(transport.close)
+    client = MeshClient(transport, mesh)
+    for name in nodes:
+        client.wait_for_embodiment(name, timeout=20.0)
+    wait_for(lambda: client.describe(first, timeout=2.0).get("inhabitant") == COMPANION, 20.0, f"{COMPANION} living on {first}")
+    return nodes, client
 
 
 class Migrations:
@@ -228,23 +252,10 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-migration-")))
         raw_child = start_child("bench.core", "serve-raw", "--listen", raw_ep, "--tag", mesh, name="serve-raw")
         stack.callback(stop_child, raw_child)
-        a = Node(A, mesh, tmp / A, companion=COMPANION)
-        b = Node(B, mesh, tmp / B, connect=(a.listen,))
-        nodes = {A: a, B: b}
-        for node in nodes.values():
-            node.start()
-        stack.callback(stop_and_report, list(nodes.values()), log)
+        nodes, client = two_daemons(stack, mesh, tmp, (A, B), companion=COMPANION)
         raw_child.wait_line("ready", 30.0)
-        for node in nodes.values():
-            node.wait_up(60.0)
         session = open_session(loopback_config(connect=raw_ep))
         stack.callback(session.close)
-        transport = ZenohTransport(client_config(a.listen, b.listen))
-        stack.callback(transport.close)
-        client = MeshClient(transport, mesh)
-        for name in nodes:
-            client.wait_for_embodiment(name, timeout=20.0)
-        wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
         for target in (B, A):  # there and back: each daemon has seen the other alive before anything is timed
             migrate_once_seen(client, COMPANION, target)
         mig = Migrations(client, nodes)
@@ -356,20 +367,7 @@ def aged_pair(stack: ExitStack, mesh: str, tmp: Path, warmups: int) -> Migration
     made beforehand), migrates: warmed up there and back (the other side has verified its chain)."""
     old_a, old_b = "old-a", "old-b"
     aged_state(tmp / old_a / "state", old_a, old_b, AGE)
-    a = Node(old_a, mesh, tmp / old_a)
-    b = Node(old_b, mesh, tmp / old_b, connect=(a.listen,))
-    nodes = {old_a: a, old_b: b}
-    for node in nodes.values():
-        node.start()
-    stack.callback(stop_and_report, list(nodes.values()), log)
-    for node in nodes.values():
-        node.wait_up(60.0)
-    transport = ZenohTransport(client_config(a.listen, b.listen))
-    stack.callback(transport.close)
-    client = MeshClient(transport, mesh)
-    for name in nodes:
-        client.wait_for_embodiment(name, timeout=20.0)
-    wait_for(lambda: client.describe(old_a, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the aged companion resumed")
+    nodes, client = two_daemons(stack, mesh, tmp, (old_a, old_b))
     mig = Migrations(client, nodes)
     stack.callback(mig.close)
     for _ in range(max(2, warmups)):

@@ -29,14 +29,10 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from bench.daemons import Node, client_config, stop_and_report
-from bench.migration import COMPANION, DELTA_SCRATCH, OVERHEAD, SIZES, A, B, Migrations, size_name
+from bench.migration import COMPANION, DELTA_SCRATCH, OVERHEAD, SIZES, A, B, Migrations, size_name, two_daemons
 from bench.registry import Options, Row
 from bench.stats import summarize
-from cmion_mesh.client import MeshClient
 from cmion_mesh.procs import unique_mesh
-from cmion_mesh.testing.wait import wait_for
-from cmion_mesh.transport.zenoh import ZenohTransport
 
 TRACE = re.compile(r"^TRACE (.+) (\d+) (\d+) (\S+)$")
 _print_lock = threading.Lock()
@@ -189,20 +185,7 @@ def run(options: Options, groups: frozenset[str]) -> list[Row]:
     rows: list[Row] = []
     with ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-migtrace-")))
-        a = Node(A, mesh, tmp / A, companion=COMPANION, launcher=launcher)
-        b = Node(B, mesh, tmp / B, connect=(a.listen,), launcher=launcher)
-        nodes = {A: a, B: b}
-        for node in nodes.values():
-            node.start()
-        stack.callback(stop_and_report, list(nodes.values()), log)
-        for node in nodes.values():
-            node.wait_up(60.0)
-        transport = ZenohTransport(client_config(a.listen, b.listen))
-        stack.callback(transport.close)
-        client = MeshClient(transport, mesh)
-        for name in nodes:
-            client.wait_for_embodiment(name, timeout=20.0)
-        wait_for(lambda: client.describe(A, timeout=2.0).get("inhabitant") == COMPANION, 20.0, "the companion born on mig-a")
+        nodes, client = two_daemons(stack, mesh, tmp, (A, B), companion=COMPANION, launcher=launcher, report=log)
         mig = Migrations(client, nodes)
         stack.callback(mig.close)
         # (name, metric suffix, message setting the mind up, message before each traced migration)
