@@ -52,6 +52,11 @@ from cmion_mesh.testing.wait import wait_for
 REQUEST_TIMEOUT = 30.0
 
 
+def answered(session: zenoh.Session, key: str, payload: bytes, timeout: float = REQUEST_TIMEOUT) -> bool:
+    """Whether exactly one peer answered the get ``key`` (none, an error or a timeout: no)."""
+    return sum(reply.ok is not None for reply in session.get(key, payload=payload, timeout=timeout)) == 1
+
+
 class FloorPeer:
     """One bare peer (child process): its log, its document and the handshake of either side."""
 
@@ -78,10 +83,8 @@ class FloorPeer:
             os.close(fd)
 
     def ask(self, peer: str, op: str, payload: bytes) -> None:
-        replies = [r for r in self.session.get(f"{self.tag}/{peer}/{op}", payload=payload, timeout=REQUEST_TIMEOUT)
-                   if r.ok is not None]
-        if len(replies) != 1:
-            raise MeshError(f"floor {op} to {peer}: {len(replies)} replies")
+        if not answered(self.session, f"{self.tag}/{peer}/{op}", payload):
+            raise MeshError(f"floor {op} to {peer}: no answer")
 
     def migrate(self, target: str) -> None:
         """Worker thread: the source's side of one handshake."""
@@ -182,9 +185,7 @@ class Floor:
             raise
 
     def ask(self, peer: str, op: str, payload: bytes, timeout: float = REQUEST_TIMEOUT) -> bool:
-        replies = [r for r in self.session.get(f"{self.tag}/{peer}/{op}", payload=payload, timeout=timeout)
-                   if r.ok is not None]
-        return len(replies) == 1
+        return answered(self.session, f"{self.tag}/{peer}/{op}", payload, timeout)
 
     def join(self) -> None:
         """Until this session reaches both peers and each reaches the other (a fresh session knows nobody)."""

@@ -158,7 +158,8 @@ class Records:
         self.journal = Journal(self.dir, bound)
         self.path = self.journal.path
         for offset, payload in self.journal.entries:
-            self._replay(self._whole(self._decode(payload, offset), offset))
+            entry = self._decode(payload, offset)
+            self._replay(whole(entry, self._cache.get(entry.companion), f"{self.path} (entry at byte {offset})"))
         self.journal.entries = []
         self._restore_sections()
         legacy = sorted(self.dir.glob("*.record.json"))
@@ -188,11 +189,8 @@ class Records:
             raise ConfigError(f"unusable migration ledger entry: it keeps {entry.chain_kept} links of a chain", path=where)
         return entry
 
-    def _whole(self, entry: Entry, offset: int) -> Entry:
-        return whole(entry, self._cache.get(entry.companion), f"{self.path} (entry at byte {offset})")
-
     def _replay(self, entry: Entry) -> None:
-        """``entry`` into the records here (its chain whole: ``_whole``)."""
+        """``entry`` into the records here (its chain whole: ``whole``)."""
         companion, record = entry.companion, entry.record
         if record is None:
             for held in (self._cache, self._documents, self._keys, self._unsynced):
